@@ -1,0 +1,3 @@
+"""jtraj: differentiable robot trajectory optimisation in JAX."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,108 @@
+"""Robot models as pure JAX functions.
+
+Use :func:`get` for the built-in robots and :func:`serial_planar` for a planar arm of
+any number of links. A new robot subclasses :class:`Robot` and writes its kinematics
+and energies; the dynamics follow by autodiff.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from typing import Callable
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._base import Actuator, Friction, Limits, Robot
+from .serial import SerialPlanar, serial_planar
+
+# name -> "module:factory" (imported lazily so that a broken optional model cannot
+# break the others)
+_REGISTRY: dict[str, str] = {
+    "serial3": "jtraj.robots.serial:serial3",
+    "serial3_vertical": "jtraj.robots.serial:serial3_vertical",
+    "ibm7535": "jtraj.robots.serial:ibm7535",
+    "pkm2": "jtraj.robots.pkm2:pkm2",
+    "parallel3": "jtraj.robots.parallel3:parallel3",
+    "wmr": "jtraj.robots.wmr:wmr",
+}
+
+# parameters that must stay strictly positive when overridden
+_POSITIVE = {"lengths", "masses", "leg_mass", "slider_mass", "platform_mass", "link_length",
+             "link_mass", "R", "r", "L", "wheel_radius", "track", "mass"}
+
+
+def names() -> list[str]:
+    """Names accepted by :func:`get`."""
+    return sorted(_REGISTRY)
+
+
+def _factory(name: str) -> Callable[[], Robot]:
+    if not isinstance(name, str) or name not in _REGISTRY:
+        raise ValueError(f"robot must be one of {names()}, got {name!r}")
+    module, attr = _REGISTRY[name].split(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+def parameter_names(robot: Robot) -> list[str]:
+    """Names :func:`with_params` accepts for ``robot``: its array parameters and the
+    fields of its :class:`Limits`."""
+    own = [f.name for f in dataclasses.fields(robot)
+           if f.name not in ("limits", "friction", "actuator")
+           and not f.metadata.get("static", False)]
+    return own + [f.name for f in dataclasses.fields(Limits)]
+
+
+def with_params(robot: Robot, **overrides) -> Robot:
+    """A validated copy of ``robot`` with some parameters replaced.
+
+    Keys are array parameters of the robot (e.g. ``masses``) or limit fields (e.g.
+    ``tau_max``). Values must have the shape of the parameter they replace.
+    """
+    allowed = parameter_names(robot)
+    limit_fields = {f.name for f in dataclasses.fields(Limits)}
+    limit_changes, own_changes = {}, {}
+    for key, value in overrides.items():
+        if key not in allowed:
+            raise ValueError(f"unknown override {key!r} for robot {robot.name!r}; "
+                             f"expected one of {allowed}")
+        current = getattr(robot.limits, key) if key in limit_fields else getattr(robot, key)
+        if value is None:
+            if key not in limit_fields:
+                raise ValueError(f"override {key} cannot be None")
+            limit_changes[key] = None
+            continue
+        try:
+            arr = np.asarray(value, dtype=float)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"override {key} must be numeric, got {value!r}") from err
+        shape = np.shape(current) if current is not None else arr.shape
+        if arr.shape != shape and not (arr.ndim == 0 and len(shape) == 1):
+            raise ValueError(f"override {key} must have shape {shape}, got {arr.shape}")
+        arr = np.broadcast_to(arr, shape)
+        if np.isnan(arr).any() or (key not in limit_fields and not np.isfinite(arr).all()):
+            raise ValueError(f"override {key} must be finite, got {arr.tolist()}")
+        if key in _POSITIVE and (arr <= 0).any():
+            raise ValueError(f"override {key} must be > 0, got {arr.tolist()}")
+        if key in limit_fields:
+            limit_changes[key] = arr
+        else:
+            own_changes[key] = jnp.asarray(arr) if np.ndim(current) else float(arr)
+    if limit_changes:
+        merged = {f.name: getattr(robot.limits, f.name) for f in dataclasses.fields(Limits)}
+        merged.update(limit_changes)
+        own_changes["limits"] = Limits.make(robot.n, **merged)
+    return dataclasses.replace(robot, **own_changes)
+
+
+def get(name: str, **overrides) -> Robot:
+    """A built-in robot by name, optionally with parameters overridden.
+
+    >>> robot = get("serial3", masses=(10, 8, 5.5))
+    """
+    return with_params(_factory(name)(), **overrides)
+
+
+__all__ = ["Actuator", "Friction", "Limits", "Robot", "SerialPlanar", "get", "names",
+           "parameter_names", "serial_planar", "with_params"]
