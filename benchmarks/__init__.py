@@ -1,0 +1,1 @@
+"""jtraj benchmarks (makes ``benchmarks.peers`` importable from the repo root)."""

@@ -1,0 +1,24 @@
+"""Reference peers for jtraj's benchmarks (independent of jtraj).
+
+* :mod:`.ipopt_peer` -- the canonical serial3 ALD problem in CasADi + IPOPT:
+  :func:`solve_pair`, :func:`solve_many`, :func:`cycloidal_init`, :func:`benchmark_pairs`.
+* :mod:`.verify` -- NumPy + Pinocchio verifier: :func:`verify`, :func:`verify_batch`.
+
+Names are imported lazily so that IPOPT workers do not load Pinocchio and vice versa.
+"""
+
+import importlib
+
+_NAMES = {
+    "solve_pair": "ipopt_peer", "solve_many": "ipopt_peer", "cycloidal_init": "ipopt_peer",
+    "benchmark_pairs": "ipopt_peer", "get_peer": "ipopt_peer", "SolveBatch": "ipopt_peer",
+    "verify": "verify", "verify_batch": "verify", "rnea": "verify", "simulate": "verify",
+}
+
+__all__ = sorted(_NAMES)
+
+
+def __getattr__(name):
+    if name in _NAMES:
+        return getattr(importlib.import_module(f".{_NAMES[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
