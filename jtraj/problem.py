@@ -1,0 +1,241 @@
+"""What to achieve: :class:`Problem`, :class:`Weights` and :class:`ViaPoint`.
+
+Units: positions in rad (or m for prismatic/task coordinates), velocities per second,
+times in seconds, torques in N m (or N). A :class:`Problem` is an equinox Module: its
+arrays are leaves (so problems can be batched with ``vmap`` and differentiated), its
+sizes (``N``, number of via points) are static.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from ._checks import as_vector, check_state, is_concrete
+from .robots import Robot
+
+
+class Weights(eqx.Module):
+    """Weights of the multi-objective cost
+
+    ``J = sum_k h_k [ time + tau_k^T U tau_k + qd_k^T Q qd_k + singularity * w(q_k) ]``
+
+    with ``w(q) = 1 / sqrt(det(J J^T))`` the inverse manipulability. By default
+    ``U = energy * diag(1 / tau_max^2)`` (torques normalised by their limits, so the
+    energy term is dimensionless per second) and ``Q = kinetic * I``. Pass ``U`` or
+    ``Q`` (square matrices, or vectors for diagonals) to override.
+
+    "Energy" in reports is ``sum_k h_k tau_k^T U_1 tau_k`` with ``U_1 = diag(1/tau_max^2)``,
+    i.e. the h-weighted (time-integral) form, independent of the weight ``energy``.
+    """
+
+    time: float | Array = 1.0
+    energy: float | Array = 1.0
+    kinetic: float | Array = 0.0
+    singularity: float | Array = 0.0
+    U: Array | None = None
+    Q: Array | None = None
+
+    def __check_init__(self):
+        for name in ("time", "energy", "kinetic", "singularity"):
+            value = getattr(self, name)
+            if is_concrete(value):
+                v = float(np.asarray(value))
+                if not math.isfinite(v) or v < 0:
+                    raise ValueError(f"Weights.{name} must be a finite number >= 0, got {value!r}")
+
+    def matrices(self, robot: Robot) -> tuple[Array, Array]:
+        """(U, Q) for ``robot``: U is (m, m) over actuator efforts, Q (n, n)."""
+        tau_max = robot.limits.tau_max
+        m = robot.n if tau_max is None else tau_max.shape[0]
+        if self.U is None:
+            scale = jnp.ones(m) if tau_max is None else 1.0 / tau_max**2
+            U = self.energy * jnp.diag(scale)
+        else:
+            U = _square(self.U, m, "Weights.U")
+        Q = self.kinetic * jnp.eye(robot.n) if self.Q is None else _square(self.Q, robot.n, "Weights.Q")
+        return U, Q
+
+    @staticmethod
+    def parse(text: str) -> "Weights":
+        """Parse ``"time=1,energy=0.1"`` (CLI form)."""
+        kw = {}
+        for item in filter(None, (s.strip() for s in text.split(","))):
+            key, sep, value = item.partition("=")
+            if not sep or key.strip() not in ("time", "energy", "kinetic", "singularity"):
+                raise ValueError(f"weights must look like 'time=1,energy=0.1' with keys time, "
+                                 f"energy, kinetic, singularity; got {item!r}")
+            try:
+                kw[key.strip()] = float(value)
+            except ValueError as err:
+                raise ValueError(f"weights: {key.strip()} must be a number, got {value!r}") from err
+        return Weights(**kw)
+
+
+def _square(M, m, name):
+    M = jnp.asarray(M, dtype=float)
+    if M.ndim == 1:
+        M = jnp.diag(M)
+    if M.shape != (m, m):
+        raise ValueError(f"{name} must have shape ({m}, {m}) or ({m},), got {M.shape}")
+    if is_concrete(M):
+        Mn = np.asarray(M)
+        if not np.isfinite(Mn).all() or not np.allclose(Mn, Mn.T) or np.linalg.eigvalsh(Mn).min() < -1e-12:
+            raise ValueError(f"{name} must be finite, symmetric and positive semidefinite")
+    return M
+
+
+class ViaPoint(eqx.Module):
+    """An imposed passage of the task point: ``||p(q_k) - point|| <= tol``.
+
+    The passing sample is fixed before solving (fixed shapes, smooth constraints):
+    ``sample`` if given, else via point l of L is assigned ``k = round((l+1) N/(L+1))``,
+    i.e. the via points split the samples evenly. Because the sampling periods are free,
+    the optimiser still chooses *when* the passage happens.
+    """
+
+    point: Array
+    tol: float | Array = 1e-6
+    sample: int | None = eqx.field(static=True, default=None)
+
+
+class Problem(eqx.Module):
+    """A point-to-point trajectory problem for the decoupled transcription.
+
+    Args:
+        robot: a :class:`jtraj.robots.Robot`.
+        q_start, q_goal: (n,) start and goal configurations.
+        N: number of sampling intervals (>= 2).
+        weights: :class:`Weights` of the cost.
+        qd_start, qd_goal: (n,) start and goal velocities (default 0).
+        via_points: sequence of :class:`ViaPoint` (or (d,) points).
+        T_max: optional upper bound on the total time T = sum h_k [s].
+    """
+
+    robot: Robot
+    q_start: Array
+    q_goal: Array
+    qd_start: Array
+    qd_goal: Array
+    weights: Weights
+    via_points: tuple[ViaPoint, ...]
+    T_max: Array
+    N: int = eqx.field(static=True)
+
+    def __init__(self, robot: Robot, q_start, q_goal, *, N: int = 20, weights: Weights | None = None,
+                 qd_start=0.0, qd_goal=0.0, via_points: Sequence = (), T_max: float | None = None,
+                 validate: bool = True):
+        if not isinstance(robot, Robot):
+            raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
+        if not isinstance(N, (int, np.integer)) or isinstance(N, bool) or N < 2:
+            raise ValueError(f"N must be an integer >= 2, got {N!r}")
+        n = robot.n
+        self.robot = robot
+        self.N = int(N)
+        self.q_start = check_state(q_start, "q_start", n)
+        self.q_goal = check_state(q_goal, "q_goal", n)
+        self.qd_start = check_state(jnp.broadcast_to(jnp.asarray(qd_start, float), (n,))
+                                    if jnp.ndim(qd_start) == 0 else qd_start, "qd_start", n)
+        self.qd_goal = check_state(jnp.broadcast_to(jnp.asarray(qd_goal, float), (n,))
+                                   if jnp.ndim(qd_goal) == 0 else qd_goal, "qd_goal", n)
+        self.weights = Weights() if weights is None else weights
+        if not isinstance(self.weights, Weights):
+            raise ValueError(f"weights must be a jtraj.Weights, got {type(weights).__name__}")
+        self.via_points = tuple(_as_via(p, i) for i, p in enumerate(via_points))
+        if T_max is None:
+            self.T_max = jnp.asarray(jnp.inf)
+        else:
+            if is_concrete(T_max) and not (float(T_max) > 0):
+                raise ValueError(f"T_max must be > 0 or None, got {T_max!r}")
+            self.T_max = jnp.asarray(T_max, dtype=float)
+        if validate and all(is_concrete(x) for x in (self.q_start, self.q_goal, self.T_max)):
+            self._check_feasible()
+
+    def via_samples(self) -> tuple[int, ...]:
+        """The sample index k at which each via point must be passed."""
+        L = len(self.via_points)
+        out = []
+        for l, vp in enumerate(self.via_points):
+            k = vp.sample if vp.sample is not None else int(round((l + 1) * self.N / (L + 1)))
+            if not 1 <= k <= self.N - 1:
+                raise ValueError(f"via_points[{l}].sample must be in [1, N-1] = [1, {self.N - 1}], got {k}")
+            out.append(k)
+        return tuple(out)
+
+    def _check_feasible(self):
+        """Reject problems that are infeasible on their face (before any solve)."""
+        lim = self.robot.limits
+        N = self.N
+        for name, q in (("q_start", self.q_start), ("q_goal", self.q_goal)):
+            if lim.q_min is not None and bool(jnp.any((q < lim.q_min) | (q > lim.q_max))):
+                raise ValueError(f"{name} = {np.asarray(q).tolist()} is outside the joint limits "
+                                 f"[{np.asarray(lim.q_min).tolist()}, {np.asarray(lim.q_max).tolist()}]")
+        for name, qd in (("qd_start", self.qd_start), ("qd_goal", self.qd_goal)):
+            if lim.qd_max is not None and bool(jnp.any(jnp.abs(qd) > lim.qd_max)):
+                raise ValueError(f"{name} exceeds the velocity limits qd_max = {np.asarray(lim.qd_max).tolist()}")
+        if lim.workspace is not None:
+            for name, q in (("q_start", self.q_start), ("q_goal", self.q_goal)):
+                p = self.robot.forward_kinematics(q)
+                if bool(jnp.any((p < lim.workspace[0] - 1e-9) | (p > lim.workspace[1] + 1e-9))):
+                    raise ValueError(f"{name} puts the task point at {np.asarray(p).tolist()}, outside "
+                                     f"the workspace box {np.asarray(lim.workspace).tolist()}")
+        rest = not (bool(jnp.any(self.qd_start != 0)) or bool(jnp.any(self.qd_goal != 0)))
+        T_need = float(minimum_time_bound(self)) if rest else 0.0
+        if T_need > N * lim.h_max * (1 + 1e-9):
+            raise ValueError(f"N = {N} is too small: the move needs at least {T_need:.3g} s but "
+                             f"N * h_max = {N * lim.h_max:.3g} s; increase N")
+        if float(self.T_max) < max(T_need, N * lim.h_min):
+            raise ValueError(f"T_max = {float(self.T_max):.4g} s is below the minimum time of this "
+                             f"move ({max(T_need, N * lim.h_min):.4g} s: velocity/acceleration bound "
+                             f"or N * h_min)")
+        if N * lim.h_min > float(self.T_max):
+            raise ValueError("T_max is below N * h_min; reduce N")
+
+    @staticmethod
+    def from_task(robot: Robot, p_start, p_goal, *, q_init=None, ik_method: str = "weighted",
+                  **kwargs) -> "Problem":
+        """Build a problem from task-space start and goal points using inverse kinematics.
+
+        Raises ``ValueError`` when a point is unreachable.
+        """
+        from .robots.ik import ik
+
+        q_start = ik_or_raise(robot, p_start, q_init, "p_start", ik_method)
+        q_goal = ik_or_raise(robot, p_goal, q_start, "p_goal", ik_method)
+        return Problem(robot, q_start, q_goal, **kwargs)
+
+
+def ik_or_raise(robot, p, q_init, name, method="weighted"):
+    """Inverse kinematics for a single point, raising ``ValueError`` naming ``name``."""
+    from .robots.ik import ik
+
+    res = ik(robot, p, q_init, method=method)
+    if int(res.status) != 0:
+        raise ValueError(f"{name} = {np.asarray(p).tolist()} is unreachable for robot "
+                         f"{robot.name!r} (IK status {int(res.status)}, residual {float(res.error):.3g} m)")
+    return res.q
+
+
+def _as_via(p, i) -> ViaPoint:
+    if isinstance(p, ViaPoint):
+        as_vector(p.point, f"via_points[{i}].point")
+        return p
+    return ViaPoint(point=as_vector(p, f"via_points[{i}]"))
+
+
+def minimum_time_bound(problem: Problem) -> Array:
+    """A lower bound on T from the velocity and acceleration boxes, per joint, for a
+    rest-to-rest move: ``T >= max_j max(|dq|/qd_max, 2 sqrt(|dq|/qdd_max))``."""
+    lim = problem.robot.limits
+    dq = jnp.abs(problem.q_goal - problem.q_start)
+    T = jnp.zeros(())
+    if lim.qd_max is not None:
+        T = jnp.maximum(T, jnp.max(dq / lim.qd_max))
+    if lim.qdd_max is not None:
+        T = jnp.maximum(T, jnp.max(2 * jnp.sqrt(dq / lim.qdd_max)))
+    return T

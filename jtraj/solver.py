@@ -1,0 +1,486 @@
+"""The augmented-Lagrangian solver (ALD): outer multiplier/penalty loop around a
+projected, damped Newton method on the stage-structured NLP.
+
+Design (why it is fast under ``vmap`` on a CPU):
+
+* **One flat, bounded loop.** Outer (multiplier) and inner (Newton) iterations share
+  one ``lax.while_loop``: an outer update is a branch-free ``jnp.where`` taken when
+  the inner subproblem is solved to its tolerance. Under ``vmap`` a nested loop would
+  run every inner loop to the batch's worst case; the flat one does not.
+* **Exact Hessians from small pieces.** The objective is a sum of per-sample terms
+  ``l_k(w_k)`` of the stage vector ``w_k = (q_k, qd_k, u_k, h_k)``, composed with the
+  polynomial state recursion ``W(z)``. The Hessian is
+  ``sum_k J_k^T (d2 l_k) J_k + sum_k (dl_k/dw_k) . d2 W_k``: per-sample (2n+m+1)^2
+  Hessians of the inverse dynamics, plus the co-state term of the recursion. The
+  co-states ``dl_k/dw_k`` are reverse-mode autodiff, never hand-derived adjoints.
+* **Bounds kept exactly.** Boxes on the controls and on h are simple bounds on z,
+  handled by Bertsekas' projected Newton (no penalty, never violated); all other
+  constraints enter the augmented Lagrangian (PHR for inequalities).
+* **Branch-free globalisation.** Levenberg damping plus a line search that evaluates
+  a fixed ladder of step lengths in one vectorised call.
+
+Shapes follow :mod:`jtraj.transcription`.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array
+
+from .problem import Problem
+from .transcription import Layout, StageData, Transcription
+
+# ----------------------------------------------------------------------------------------
+# status codes
+
+
+class Status(enum.IntEnum):
+    """Per-problem outcome. ``int(status)`` is stored in batched results."""
+
+    CONVERGED = 0
+    MAX_ITERATIONS = 1
+    FEASIBLE_NOT_OPTIMAL = 2
+    NUMERICAL_ERROR = 3
+    INVALID_INPUT = 4
+    VERIFICATION_FAILED = 5
+
+    @property
+    def message(self) -> str:
+        return _MESSAGES[self]
+
+
+_MESSAGES = {
+    Status.CONVERGED: "converged: feasible within tolerance and first-order optimal",
+    Status.MAX_ITERATIONS: "iteration limit reached before the constraints were met",
+    Status.FEASIBLE_NOT_OPTIMAL: "iteration limit reached: feasible, but optimality not certified",
+    Status.NUMERICAL_ERROR: "numerical failure (non-finite values); the trajectory is not usable",
+    Status.INVALID_INPUT: "invalid input for this sample (non-finite start/goal or infeasible on its face)",
+    Status.VERIFICATION_FAILED: "the solver stopped but the re-simulated trajectory violates a bound or misses the goal",
+}
+
+
+# ----------------------------------------------------------------------------------------
+# options
+
+
+class SolverOptions(eqx.Module):
+    """Hyperparameters of the AL solver (defaults tuned on the serial3 benchmark).
+
+    Attributes:
+        max_iter: total Newton iterations (inner iterations over all outer ones).
+        max_outer: maximum number of multiplier updates (history length).
+        max_inner: Newton iterations per AL subproblem before a forced outer update.
+        tol_feasibility: target on the normalised constraint violation (boxes are
+            relative to their bound; the goal is absolute in rad / (qd/qd_max)).
+        tol_optimality: target on the projected gradient of the Lagrangian (scaled z).
+        penalty_init, penalty_growth, penalty_max: PHR penalty mu schedule; mu grows
+            when the violation did not shrink by ``feasibility_ratio``.
+        schedule: "default" (multipliers updated at every outer iteration, ALGENCAN
+            style) or "thesis" (Conn-Gould-Toint / Khoukhi: multipliers updated only
+            when the violation meets the current tolerance eta, which tightens as
+            ``eta <- eta mu^-beta_eta``; otherwise mu grows and ``eta <- eta0 mu^-alpha_eta``).
+        damping_init: initial Levenberg damping of the Newton system.
+        verify_tol: relative/absolute tolerance of the final strict verification.
+        guess: "cycloidal" or "trapezoidal".
+    """
+
+    max_iter: int = eqx.field(static=True, default=200)
+    max_outer: int = eqx.field(static=True, default=30)
+    max_inner: int = eqx.field(static=True, default=25)
+    tol_feasibility: float = eqx.field(static=True, default=1e-9)
+    tol_optimality: float = eqx.field(static=True, default=1e-7)
+    penalty_init: float = eqx.field(static=True, default=10.0)
+    penalty_growth: float = eqx.field(static=True, default=10.0)
+    penalty_max: float = eqx.field(static=True, default=1e9)
+    feasibility_ratio: float = eqx.field(static=True, default=0.25)
+    schedule: str = eqx.field(static=True, default="default")
+    damping_init: float = eqx.field(static=True, default=1e-4)
+    verify_tol: float = eqx.field(static=True, default=1e-6)
+    guess: str = eqx.field(static=True, default="cycloidal")
+
+    def __check_init__(self):
+        if self.schedule not in ("default", "thesis"):
+            raise ValueError(f"schedule must be 'default' or 'thesis', got {self.schedule!r}")
+        if self.guess not in ("cycloidal", "trapezoidal"):
+            raise ValueError(f"guess must be 'cycloidal' or 'trapezoidal', got {self.guess!r}")
+        for name in ("max_iter", "max_outer", "max_inner"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1")
+
+
+# ----------------------------------------------------------------------------------------
+# the NLP in AL form
+
+
+class Multipliers(NamedTuple):
+    eq: dict
+    ineq: dict
+    glob: Array
+
+
+class _NLP(eqx.Module):
+    """The transcribed problem with everything the solver needs, pure functions of z."""
+
+    problem: Problem
+    tr: Transcription = eqx.field(static=True)
+    layout: Layout
+    sd: StageData
+
+    def W(self, z):
+        return self.tr.stage_vectors(self.problem, self.layout, z)
+
+    def stage_cost(self, w, sdk):
+        return sum(self.tr.stage_cost_terms(self.problem, w, sdk).values())
+
+    def stage_al(self, w, sdk, mult_k, mu):
+        eq, ineq = self.tr.stage_constraints(self.problem, w, sdk)
+        val = self.stage_cost(w, sdk)
+        for key, c in eq.items():
+            val = val + jnp.sum(mult_k.eq[key] * c) + 0.5 * mu * jnp.sum(c**2)
+        for key, g in ineq.items():
+            val = val + _phr(g, mult_k.ineq[key], mu)
+        return val
+
+    def global_al(self, z, mult, mu):
+        return _phr(self.tr.global_inequalities(self.problem, self.layout, z), mult.glob, mu)
+
+    def al_value(self, z, mult, mu):
+        W = self.W(z)
+        per_stage = jax.vmap(self.stage_al, in_axes=(0, 0, _stage_axes(mult), None))(W, self.sd, _stage_mult(mult), mu)
+        return jnp.sum(per_stage) + self.global_al(z, mult, mu)
+
+    def al_derivatives(self, z, mult, mu):
+        """Value, gradient and exact Hessian of the AL in z, from per-stage pieces."""
+        sm = _stage_mult(mult)
+        W = self.W(z)
+        val_k = jax.vmap(self.stage_al, in_axes=(0, 0, _stage_axes(mult), None))(W, self.sd, sm, mu)
+        grad_fn = jax.grad(self.stage_al)
+        c = jax.vmap(grad_fn, in_axes=(0, 0, _stage_axes(mult), None))(W, self.sd, sm, mu)
+        Hk = jax.vmap(jax.hessian(self.stage_al), in_axes=(0, 0, _stage_axes(mult), None))(W, self.sd, sm, mu)
+        J = jax.jacfwd(self.W)(z)  # (N+1, nw, nz)
+        g = jnp.einsum("kai,ka->i", J, c)
+        H = jnp.einsum("kai,kab,kbj->ij", J, Hk, J)
+        # co-state (second-order) term of the recursion: d2/dz2 <c, W(z)>, c fixed
+        c_fixed = jax.lax.stop_gradient(c)
+        H = H + jax.hessian(lambda zz: jnp.sum(c_fixed * self.W(zz)))(z)
+        gval, ggrad, ghess = (self.global_al(z, mult, mu), jax.grad(self.global_al)(z, mult, mu),
+                              jax.hessian(self.global_al)(z, mult, mu))
+        return jnp.sum(val_k) + gval, g + ggrad, H + ghess
+
+    def constraints(self, z):
+        W = self.W(z)
+        eq, ineq = jax.vmap(lambda w, s: self.tr.stage_constraints(self.problem, w, s))(W, self.sd)
+        return eq, ineq, self.tr.global_inequalities(self.problem, self.layout, z)
+
+    def cost_terms(self, z):
+        W = self.W(z)
+        terms = jax.vmap(lambda w, s: self.tr.stage_cost_terms(self.problem, w, s))(W, self.sd)
+        return {k: jnp.sum(v) for k, v in terms.items()}
+
+
+def _phr(g, rho, mu):
+    """Rockafellar/PHR term for g <= 0 with multiplier rho >= 0 and penalty mu."""
+    return jnp.sum(jnp.maximum(0.0, rho + mu * g) ** 2 - rho**2) / (2 * mu)
+
+
+def _stage_mult(mult: Multipliers):
+    return Multipliers(eq=mult.eq, ineq=mult.ineq, glob=jnp.zeros(()))
+
+
+def _stage_axes(mult: Multipliers):
+    return Multipliers(eq=jax.tree.map(lambda _: 0, mult.eq), ineq=jax.tree.map(lambda _: 0, mult.ineq), glob=None)
+
+
+def _violation(eq, ineq, glob, mult=None, mu=None):
+    """Max normalised violation; with multipliers, the complementarity-aware measure
+    max(|c|, |min(-g, rho/mu)|) used to steer the penalty."""
+    parts = [jnp.max(jnp.abs(c)) for c in jax.tree.leaves(eq)]
+    if mult is None:
+        parts += [jnp.max(jnp.maximum(g, 0.0)) for g in jax.tree.leaves(ineq)]
+        parts.append(jnp.max(jnp.maximum(glob, 0.0)))
+    else:
+        parts += [jnp.max(jnp.abs(jnp.minimum(-g, r / mu)))
+                  for g, r in zip(jax.tree.leaves(ineq), jax.tree.leaves(mult.ineq))]
+        parts.append(jnp.max(jnp.abs(jnp.minimum(-glob, mult.glob / mu))))
+    return jnp.max(jnp.stack(parts))
+
+
+# ----------------------------------------------------------------------------------------
+# the loop
+
+
+class _State(NamedTuple):
+    z: Array
+    mult: Multipliers
+    mu: Array
+    damping: Array
+    omega: Array  # current inner tolerance
+    eta: Array  # current feasibility tolerance (thesis schedule)
+    viol_prev: Array
+    inner: Array
+    outer: Array
+    it: Array
+    done: Array
+    failed: Array
+    stationarity: Array
+    history: Array  # (max_outer, 3): cost, violation, penalty
+
+
+_LADDER = 0.5 ** jnp.arange(10)
+
+
+def _newton_step(nlp: _NLP, z, mult, mu, damping):
+    val, g, H = nlp.al_derivatives(z, mult, mu)
+    lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
+    pg = z - jnp.clip(z - g, lo, hi)  # projected-gradient residual
+    eps = jnp.minimum(1e-3, jnp.max(jnp.abs(pg)))
+    active = ((z <= lo + eps) & (g > 0)) | ((z >= hi - eps) & (g < 0))
+    free = ~active
+    Hf = jnp.where(free[:, None] & free[None, :], H, 0.0)
+    Hf = Hf + jnp.diag(jnp.where(free, damping, 1.0))
+    gf = jnp.where(free, g, 0.0)
+    # a second, surely positive-definite shift (Gershgorin) if the first factorisation fails
+    radius = jnp.sum(jnp.abs(Hf), axis=1) - jnp.abs(jnp.diag(Hf))
+    shift = jnp.maximum(0.0, jnp.max(radius - jnp.diag(Hf))) + damping
+    L1 = jnp.linalg.cholesky(Hf)
+    ok1 = jnp.all(jnp.isfinite(L1))
+    L2 = jnp.linalg.cholesky(Hf + shift * jnp.eye(Hf.shape[0]))
+    Lc = jnp.where(ok1, L1, L2)
+    d_free = -jax.scipy.linalg.cho_solve((Lc, True), gf)
+    d = jnp.where(free, d_free, -g)
+    d = jnp.where(jnp.all(jnp.isfinite(d)), d, -g)
+    candidates = jnp.clip(z[None, :] + _LADDER[:, None] * d[None, :], lo, hi)
+    values = jax.vmap(nlp.al_value, in_axes=(0, None, None))(candidates, mult, mu)
+    decrease = jnp.einsum("i,ki->k", g, candidates - z[None, :])
+    ok = (values <= val + 1e-4 * decrease) & jnp.isfinite(values)
+    first = jnp.argmax(ok)
+    any_ok = jnp.any(ok)
+    z_new = jnp.where(any_ok, candidates[first], z)
+    step = jnp.where(any_ok, _LADDER[first], 0.0)
+    damping = jnp.where(step == 1.0, damping * 0.25, jnp.where(step >= 0.25, damping, damping * 8.0))
+    damping = jnp.where(ok1, damping, jnp.maximum(damping, 1e-6) * 10.0)
+    damping = jnp.clip(damping, 1e-12, 1e10)
+    return z_new, damping, jnp.max(jnp.abs(pg)), val, any_ok
+
+
+def _stationarity(nlp: _NLP, z, mult, mu):
+    g = jax.grad(nlp.al_value)(z, mult, mu)
+    return jnp.max(jnp.abs(z - jnp.clip(z - g, nlp.layout.z_lo, nlp.layout.z_hi)))
+
+
+def _init_multipliers(nlp: _NLP, z) -> Multipliers:
+    eq, ineq, glob = nlp.constraints(z)
+    return Multipliers(eq=jax.tree.map(jnp.zeros_like, eq), ineq=jax.tree.map(jnp.zeros_like, ineq),
+                       glob=jnp.zeros_like(glob))
+
+
+def _run(nlp: _NLP, z0, opts: SolverOptions):
+    mult0 = _init_multipliers(nlp, z0)
+    mu0 = jnp.asarray(opts.penalty_init, dtype=z0.dtype)
+    state = _State(
+        z=z0, mult=mult0, mu=mu0, damping=jnp.asarray(opts.damping_init, dtype=z0.dtype),
+        omega=jnp.asarray(1e-2, dtype=z0.dtype), eta=jnp.asarray(1e-2, dtype=z0.dtype),
+        viol_prev=jnp.asarray(jnp.inf, dtype=z0.dtype), inner=jnp.asarray(0), outer=jnp.asarray(0),
+        it=jnp.asarray(0), done=jnp.asarray(False), failed=jnp.asarray(False),
+        stationarity=jnp.asarray(jnp.inf, dtype=z0.dtype),
+        history=jnp.full((opts.max_outer, 3), jnp.nan, dtype=z0.dtype))
+
+    def cond(s: _State):
+        return (~s.done) & (s.it < opts.max_iter) & (s.outer < opts.max_outer)
+
+    def body(s: _State):
+        z, damping, pg, _, moved = _newton_step(nlp, s.z, s.mult, s.mu, s.damping)
+        failed = ~jnp.all(jnp.isfinite(z))
+        inner = s.inner + 1
+        stat = _stationarity(nlp, z, s.mult, s.mu)
+        subproblem_done = (stat <= s.omega) | (inner >= opts.max_inner) | (~moved & (damping >= 1e9))
+        # ---- outer update (computed always, applied where subproblem_done) ----
+        eq, ineq, glob = nlp.constraints(z)
+        viol = _violation(eq, ineq, glob, s.mult, s.mu)
+        new_eq = jax.tree.map(lambda l, c: jnp.clip(l + s.mu * c, -1e10, 1e10), s.mult.eq, eq)
+        new_ineq = jax.tree.map(lambda r, g: jnp.clip(r + s.mu * g, 0.0, 1e10), s.mult.ineq, ineq)
+        new_glob = jnp.clip(s.mult.glob + s.mu * glob, 0.0, 1e10)
+        updated = Multipliers(new_eq, new_ineq, new_glob)
+        if opts.schedule == "default":
+            take_mult = jnp.asarray(True)
+            grow = viol > opts.feasibility_ratio * s.viol_prev
+            eta = s.eta
+        else:  # Conn-Gould-Toint as in the thesis (alpha = beta = 0.4 family)
+            take_mult = viol <= s.eta
+            grow = ~take_mult
+            mu_next = jnp.where(grow, jnp.minimum(s.mu * opts.penalty_growth, opts.penalty_max), s.mu)
+            eta = jnp.where(take_mult, s.eta * mu_next ** -0.4, 1e-2 * mu_next ** -0.4)
+            eta = jnp.maximum(eta, opts.tol_feasibility)
+        mult = jax.tree.map(lambda new, old: jnp.where(take_mult, new, old), updated, s.mult)
+        mu = jnp.where(grow, jnp.minimum(s.mu * opts.penalty_growth, opts.penalty_max), s.mu)
+        omega = jnp.maximum(s.omega * 0.1, opts.tol_optimality)
+        plain_viol = _violation(eq, ineq, glob)
+        converged = (plain_viol <= opts.tol_feasibility) & (stat <= opts.tol_optimality)
+        cost = sum(nlp.cost_terms(z).values())
+        hist = s.history.at[jnp.minimum(s.outer, opts.max_outer - 1)].set(jnp.stack([cost, plain_viol, s.mu]))
+
+        def pick(new, old):
+            return jax.tree.map(lambda a, b: jnp.where(subproblem_done, a, b), new, old)
+
+        return _State(
+            z=z, mult=pick(mult, s.mult), mu=pick(mu, s.mu), damping=damping,
+            omega=pick(omega, s.omega), eta=pick(eta, s.eta), viol_prev=pick(viol, s.viol_prev),
+            inner=jnp.where(subproblem_done, 0, inner), outer=s.outer + subproblem_done.astype(int),
+            it=s.it + 1, done=(subproblem_done & converged) | failed, failed=failed,
+            stationarity=stat, history=jnp.where(subproblem_done, hist, s.history))
+
+    return jax.lax.while_loop(cond, body, state)
+
+
+# ----------------------------------------------------------------------------------------
+# public entry points
+
+
+class Solution(eqx.Module):
+    """An optimised trajectory (a leading batch axis in batched results).
+
+    Attributes:
+        q, qd: (N+1, n) states; v: (N, n) accelerations; tau: (N, m) actuator efforts;
+        h: (N,) periods [s]; T: total time [s]; cost: objective value;
+        cost_terms: dict time / energy / kinetic / singularity (weighted, summing to cost);
+        energy: sum_k h_k tau_k^T diag(1/tau_max^2) tau_k (unweighted, see Weights);
+        max_violation: dict per constraint family plus "overall": relative for boxes,
+            absolute for the goal (rad and rad/s), re-simulated from v and h;
+        converged: strict: status == CONVERGED, i.e. the solver certified first-order
+            optimality and the re-simulated trajectory meets every bound within
+            ``verify_tol`` (relative) and the goal within ``verify_tol``;
+        status: int code of :class:`Status`; iterations: Newton iterations;
+        outer_iterations: multiplier updates;
+        history: (max_outer, 3) per outer iteration: cost, violation, penalty (NaN-padded).
+    """
+
+    q: Array
+    qd: Array
+    v: Array
+    tau: Array
+    h: Array
+    T: Array
+    cost: Array
+    cost_terms: dict
+    energy: Array
+    max_violation: dict
+    converged: Array
+    status: Array
+    iterations: Array
+    outer_iterations: Array
+    history: Array
+
+    @property
+    def status_message(self) -> str:
+        s = jnp.asarray(self.status)
+        if s.ndim:
+            raise ValueError("status_message is for a single solution; use Status(int(code)).message")
+        return Status(int(s)).message
+
+
+def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init=None) -> Solution:
+    layout = tr.layout(problem)
+    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem))
+    from .initial_guess import GUESSES
+
+    if init is None:
+        v0, h0 = GUESSES[opts.guess](problem)
+        if tr.name == "coupled":
+            q, qd = _decoupled_states(problem, v0, h0)
+            u0 = jax.vmap(problem.robot.inverse_dynamics)(q[:-1], qd[:-1], v0)
+        else:
+            u0 = v0
+    else:
+        u0, h0 = init
+    z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
+    valid = jnp.all(jnp.isfinite(z0)) & jnp.all(jnp.isfinite(problem.q_start)) & jnp.all(jnp.isfinite(problem.q_goal))
+    z0 = jnp.where(valid, z0, jnp.clip(jnp.zeros_like(z0), layout.z_lo, layout.z_hi))
+    s = _run(nlp, z0, opts)
+    return _finish(nlp, s, opts, valid)
+
+
+def _decoupled_states(problem, v, h):
+    from .transcription import integrate
+
+    return integrate(problem.q_start, problem.qd_start, v, h)
+
+
+def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
+    problem, tr = nlp.problem, nlp.tr
+    u, h = nlp.layout.unpack(s.z)
+    q, qd = tr.states(problem, u, h)
+    a, tau = jax.vmap(lambda q_, qd_, u_: tr.accel_and_tau(problem, q_, qd_, u_))(q[:-1], qd[:-1], u)
+    eq, ineq, glob = nlp.constraints(s.z)
+    viol = {k: jnp.max(jnp.maximum(g, 0.0)) for k, g in ineq.items()}
+    # bounds kept by projection, reported for completeness (relative)
+    lim = problem.robot.limits
+    if lim.qdd_max is not None:
+        viol["qdd"] = jnp.maximum(viol.get("qdd", 0.0), jnp.max(jnp.maximum(jnp.abs(a) / lim.qdd_max - 1, 0)))
+    if lim.tau_max is not None:
+        viol["tau"] = jnp.maximum(viol.get("tau", 0.0), jnp.max(jnp.maximum(jnp.abs(tau) / lim.tau_max - 1, 0)))
+    viol["h"] = jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0))
+    viol["T"] = jnp.maximum(glob[0], 0.0)
+    viol["goal"] = jnp.maximum(jnp.max(jnp.abs(q[-1] - problem.q_goal)), jnp.max(jnp.abs(qd[-1] - problem.qd_goal)))
+    for k, c in eq.items():
+        if k != "goal":
+            viol[k] = jnp.max(jnp.abs(c))
+    overall = jnp.max(jnp.stack(list(viol.values())))
+    viol["overall"] = overall
+    terms = nlp.cost_terms(s.z)
+    cost = sum(terms.values())
+    finite = jnp.all(jnp.isfinite(s.z)) & jnp.isfinite(cost) & jnp.all(jnp.isfinite(tau))
+    verified = overall <= opts.verify_tol
+    status = jnp.where(
+        ~valid, Status.INVALID_INPUT,
+        jnp.where(~finite | s.failed, Status.NUMERICAL_ERROR,
+                  jnp.where(s.done & verified, Status.CONVERGED,
+                            jnp.where(s.done, Status.VERIFICATION_FAILED,
+                                      jnp.where(verified, Status.FEASIBLE_NOT_OPTIMAL, Status.MAX_ITERATIONS)))))
+    scale = 1.0 if lim.tau_max is None else lim.tau_max
+    energy = jnp.sum(h * jnp.sum((tau / scale) ** 2, axis=1))
+    return Solution(q=q, qd=qd, v=a, tau=tau, h=h, T=jnp.sum(h), cost=cost, cost_terms=terms, energy=energy,
+                    max_violation=viol, converged=status == Status.CONVERGED, status=status.astype(jnp.int32),
+                    iterations=s.it, outer_iterations=s.outer, history=s.history)
+
+
+@eqx.filter_jit
+def _solve_jit(problem, opts, transcription, init):
+    return _solve_core(problem, opts, Transcription(transcription), init)
+
+
+def solve(problem: Problem, *, options: SolverOptions | None = None, transcription: str = "decoupled",
+          init: tuple[Any, Any] | None = None) -> Solution:
+    """Solve one trajectory problem; compiled once per robot type, shape and options.
+
+    Args:
+        problem: a :class:`jtraj.Problem`.
+        options: :class:`SolverOptions` (defaults documented there).
+        transcription: "decoupled" (thesis ALD, default) or "coupled".
+        init: optional warm start (u (N, m_u), h (N,)): accelerations for
+            "decoupled", actuator efforts for "coupled".
+    """
+    Transcription(transcription)  # validates the name
+    if not isinstance(problem, Problem):
+        raise ValueError(f"problem must be a jtraj.Problem, got {type(problem).__name__}")
+    opts = SolverOptions() if options is None else options
+    if init is not None:
+        init = _check_init(problem, init, transcription)
+    return _solve_jit(problem, opts, transcription, init)
+
+
+def _check_init(problem, init, transcription):
+    u, h = init
+    u, h = jnp.asarray(u, float), jnp.asarray(h, float)
+    m_u = Transcription(transcription).control_dim(problem)
+    if u.shape != (problem.N, m_u):
+        raise ValueError(f"init[0] must have shape ({problem.N}, {m_u}), got {u.shape}")
+    if h.shape != (problem.N,):
+        raise ValueError(f"init[1] must have shape ({problem.N},), got {h.shape}")
+    if not (jnp.all(jnp.isfinite(u)) and jnp.all(jnp.isfinite(h))):
+        raise ValueError("init must be finite")
+    return u, h
