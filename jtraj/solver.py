@@ -484,3 +484,65 @@ def _check_init(problem, init, transcription):
     if not (jnp.all(jnp.isfinite(u)) and jnp.all(jnp.isfinite(h))):
         raise ValueError("init must be finite")
     return u, h
+
+
+@eqx.filter_jit
+def _solve_batch_jit(problems, opts, transcription, init):
+    tr = Transcription(transcription)
+    axes = eqx.filter_vmap(lambda p, i: _solve_core(p, opts, tr, i))
+    return axes(problems, init)
+
+
+def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None = None,
+                qd_start=None, qd_goal=None, T_max=None, options: SolverOptions | None = None,
+                transcription: str = "decoupled", init: tuple[Any, Any] | None = None) -> Solution:
+    """Solve B problems sharing one robot, N and weights in one vmapped, compiled call.
+
+    Args:
+        robot: a :class:`jtraj.robots.Robot` (shared by the batch).
+        q_start, q_goal: (B, n) start and goal configurations.
+        qd_start, qd_goal: optional (B, n) boundary velocities (default rest).
+        T_max: optional scalar or (B,) bound on the total time.
+        init: optional warm start (u (B, N, m_u), h (B, N)).
+
+    Returns a :class:`Solution` whose fields carry a leading batch axis. Samples with
+    non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch
+    never raises for one bad sample); shapes and the robot are checked up front.
+    """
+    from .robots import Robot
+
+    if not isinstance(robot, Robot):
+        raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
+    n = robot.n
+    q_start = jnp.asarray(q_start, float)
+    q_goal = jnp.asarray(q_goal, float)
+    if q_start.ndim != 2 or q_start.shape[1] != n:
+        raise ValueError(f"q_start must have shape (B, {n}), got {q_start.shape}")
+    if q_goal.shape != q_start.shape:
+        raise ValueError(f"q_goal must have shape {q_start.shape} like q_start, got {q_goal.shape}")
+    B = q_start.shape[0]
+    if B < 1:
+        raise ValueError("q_start must hold at least one problem (B >= 1)")
+
+    def per_sample(x, name):
+        x = jnp.zeros((B, n)) if x is None else jnp.broadcast_to(jnp.asarray(x, float), (B, n))
+        return x
+
+    qd_start, qd_goal = per_sample(qd_start, "qd_start"), per_sample(qd_goal, "qd_goal")
+    T_max = jnp.broadcast_to(jnp.asarray(jnp.inf if T_max is None else T_max, float), (B,))
+    Transcription(transcription)
+    opts = SolverOptions() if options is None else options
+    weights = Weights() if weights is None else weights
+
+    def make(a, b, c, d, t):
+        return Problem(robot, a, b, N=N, weights=weights, qd_start=c, qd_goal=d, T_max=t, validate=False)
+
+    problems = eqx.filter_vmap(make)(q_start, q_goal, qd_start, qd_goal, T_max)
+    if init is not None:
+        m_u = Transcription(transcription).control_dim(make(q_start[0], q_goal[0], qd_start[0], qd_goal[0], T_max[0]))
+        u, h = jnp.asarray(init[0], float), jnp.asarray(init[1], float)
+        if u.shape != (B, N, m_u) or h.shape != (B, N):
+            raise ValueError(f"init must be (u (B, N, {m_u}), h (B, N)) = ({(B, N, m_u)}, {(B, N)}), "
+                             f"got ({u.shape}, {h.shape})")
+        init = (u, h)
+    return _solve_batch_jit(problems, opts, transcription, init)

@@ -1,0 +1,95 @@
+"""The ``jtraj`` command line.
+
+Each sub-command lives in its own module under :mod:`jtraj.commands` and exposes
+
+* ``HELP``: one line for ``jtraj --help``;
+* ``configure(parser)``: adds its arguments to an :class:`argparse.ArgumentParser`;
+* ``run(args) -> int``: does the work and returns the exit status.
+
+Command modules must not import JAX at module level, so that ``jtraj --help`` stays fast;
+:func:`main` turns on float64 and JAX's persistent compilation cache before ``run`` is
+called, so a second call of the same command does not recompile.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+COMMANDS = {
+    "solve": "jtraj.commands.solve",
+    "gradcheck": "jtraj.commands.gradcheck",
+    "dataset": "jtraj.commands.dataset",
+    "train": "jtraj.commands.train",
+    "query": "jtraj.commands.query",
+    "robots": "jtraj.commands.robots",
+}
+
+
+def cache_dir() -> str:
+    """Where compiled programs are kept between calls (``$JTRAJ_CACHE_DIR`` overrides)."""
+    default = os.path.join(os.path.expanduser("~"), ".cache", "jtraj", "jax")
+    return os.environ.get("JTRAJ_CACHE_DIR", default)
+
+
+def setup_jax(x64: bool = True) -> None:
+    """float64 and a persistent compilation cache for every CLI command."""
+    import jax
+
+    jax.config.update("jax_enable_x64", x64)
+    path = cache_dir()
+    try:
+        os.makedirs(path, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    except OSError as exc:  # unwritable home: run without the cache, but say so
+        print(f"jtraj: compilation cache disabled ({exc})", file=sys.stderr)
+
+
+def _available():
+    mods = {}
+    for name, modname in COMMANDS.items():
+        try:
+            mods[name] = importlib.import_module(modname)
+        except ModuleNotFoundError as exc:
+            if exc.name != modname:
+                raise
+    return mods
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from jtraj import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="jtraj",
+        description="Differentiable robot trajectory optimisation in JAX "
+                    "(decoupled augmented Lagrangian, batched datasets, ANFIS online planner).")
+    parser.add_argument("--version", action="version", version=f"jtraj {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, mod in _available().items():
+        p = sub.add_parser(name, help=mod.HELP, description=getattr(mod, "__doc__", None) or mod.HELP,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        mod.configure(p)
+        p.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 2
+    setup_jax()
+    try:
+        return int(args._run(args) or 0)
+    except ValueError as exc:  # bad input: one readable line, no traceback
+        print(f"jtraj {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Sub-commands of the ``jtraj`` CLI; see :mod:`jtraj.cli` for the protocol."""
