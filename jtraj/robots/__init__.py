@@ -30,7 +30,9 @@ _REGISTRY: dict[str, str] = {
 
 # parameters that must stay strictly positive when overridden
 _POSITIVE = {"lengths", "masses", "leg_mass", "slider_mass", "platform_mass", "link_length",
-             "link_mass", "R", "r", "L", "wheel_radius", "track", "mass"}
+             "link_mass", "R", "r", "L", "wheel_radius", "track", "mass",
+             "link_com", "link_inertia", "inertia", "wheel_inertia", "body_radius",
+             "eps1", "eps2", "rho_min", "rho_max"}
 
 
 def names() -> list[str]:
@@ -45,9 +47,11 @@ def _factory(name: str) -> Callable[[], Robot]:
     return getattr(importlib.import_module(module), attr)
 
 
-def parameter_names(robot: Robot) -> list[str]:
-    """Names :func:`with_params` accepts for ``robot``: its array parameters and the
-    fields of its :class:`Limits`."""
+def parameter_names(robot: Robot | str) -> list[str]:
+    """Names :func:`with_params` accepts for ``robot`` (a robot or a built-in name): its
+    array parameters and the fields of its :class:`Limits`."""
+    if isinstance(robot, str):
+        robot = _factory(robot)()
     own = [f.name for f in dataclasses.fields(robot)
            if f.name not in ("limits", "friction", "actuator")
            and not f.metadata.get("static", False)]
@@ -92,7 +96,7 @@ def with_params(robot: Robot, **overrides) -> Robot:
     if limit_changes:
         merged = {f.name: getattr(robot.limits, f.name) for f in dataclasses.fields(Limits)}
         merged.update(limit_changes)
-        own_changes["limits"] = Limits.make(robot.n, **merged)
+        own_changes["limits"] = Limits.make(robot.n, n_actuators=robot.n_actuators, **merged)
     return dataclasses.replace(robot, **own_changes)
 
 

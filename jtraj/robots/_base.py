@@ -63,8 +63,14 @@ class Limits(eqx.Module):
 
     @staticmethod
     def make(n: int, *, q_min=None, q_max=None, qd_max=None, qdd_max=None, qddd_max=None,
-             tau_max=None, h_min=0.005, h_max=0.1, workspace=None) -> "Limits":
-        """Validated constructor; scalars broadcast to all ``n`` joints."""
+             tau_max=None, h_min=0.005, h_max=0.1, workspace=None,
+             n_actuators: int | None = None) -> "Limits":
+        """Validated constructor; scalars broadcast to all ``n`` joints.
+
+        ``tau_max`` has one entry per actuator: ``n_actuators`` of them (default ``n``;
+        differs for redundantly actuated or under-actuated robots).
+        """
+        m = n if n_actuators is None else int(n_actuators)
 
         def vec(x, name, **kw):
             return None if x is None else as_vector(x, name, n, allow_inf=True, **kw)
@@ -85,7 +91,8 @@ class Limits(eqx.Module):
             qd_max=vec(qd_max, "qd_max", positive=True),
             qdd_max=vec(qdd_max, "qdd_max", positive=True),
             qddd_max=vec(qddd_max, "qddd_max", positive=True),
-            tau_max=vec(tau_max, "tau_max", positive=True),
+            tau_max=None if tau_max is None else as_vector(tau_max, "tau_max", m, positive=True,
+                                                           allow_inf=True),
             h_min=float(h_min), h_max=float(h_max), workspace=workspace,
         )
 
@@ -172,6 +179,12 @@ class Robot(eqx.Module):
     def n(self) -> int:
         """Number of degrees of freedom (length of q)."""
         raise NotImplementedError
+
+    @property
+    def n_actuators(self) -> int:
+        """Number of actuators (length of tau); ``n`` unless the robot is redundantly
+        actuated or under-actuated."""
+        return self.n
 
     @property
     def name(self) -> str:
