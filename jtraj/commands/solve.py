@@ -1,0 +1,218 @@
+"""Solve one point-to-point trajectory problem and print, save or plot the result.
+
+Give a start and a goal, each either in joint space (--start-q / --goal-q, radians,
+or degrees with --deg) or as a task-space point (--start-xy / --goal-xy, metres,
+solved by inverse kinematics). Example (the README demo):
+
+    jtraj solve --robot serial3 --start-q 0,30,30 --goal-xy 1.35,1.30 --deg --plot serial3.png
+
+Negative values must be attached with '=': --start-q=-10,30,30.
+Exit status: 0 when the solution converged (strictly verified), 1 when the solver
+stopped without convergence (the summary, JSON and plot are still written), 2 on bad
+input. Solve time is reported without compilation: the problem is solved twice and the
+second, already compiled call is timed (compile_seconds is the difference).
+"""
+
+HELP = "solve one trajectory problem (summary, --json, --plot)"
+
+
+def configure(parser):
+    parser.add_argument("--robot", default="serial3", help="robot name (see `jtraj robots`), default serial3")
+    start = parser.add_mutually_exclusive_group()
+    start.add_argument("--start-q", metavar="Q1,Q2,...", help="start configuration (rad, or deg with --deg)")
+    start.add_argument("--start-xy", metavar="X,Y", help="start task point [m] (inverse kinematics)")
+    goal = parser.add_mutually_exclusive_group()
+    goal.add_argument("--goal-q", metavar="Q1,Q2,...", help="goal configuration (rad, or deg with --deg)")
+    goal.add_argument("--goal-xy", metavar="X,Y", help="goal task point [m] (inverse kinematics)")
+    parser.add_argument("--deg", action="store_true", help="--start-q / --goal-q are in degrees")
+    parser.add_argument("--N", type=int, default=20, help="number of sampling intervals (default 20)")
+    parser.add_argument("--weights", default="time=1,energy=1",
+                        help="cost weights, keys time, energy, kinetic, singularity (default 'time=1,energy=1')")
+    parser.add_argument("--transcription", default="decoupled", choices=("decoupled", "coupled"),
+                        help="decoupled (ALD, default) or coupled")
+    parser.add_argument("--T-max", type=float, default=None, help="upper bound on the total time [s]")
+    parser.add_argument("--via", action="append", default=[], metavar="X,Y",
+                        help="imposed passage point of the tip (repeatable)")
+    parser.add_argument("--via-tol", type=float, default=1e-3, help="via-point tolerance [m] (default 1e-3)")
+    parser.add_argument("--json", metavar="PATH", help="write the solution as JSON")
+    parser.add_argument("--plot", metavar="PATH", help="write the figures (PNG, PDF, SVG by extension)")
+
+
+def parse_vector(text, name, n=None, *, deg=False):
+    """'a,b,c' -> float array, ValueError naming ``name`` on malformed or non-finite input."""
+    import math
+
+    import numpy as np
+
+    if text is None:
+        return None
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError:
+        raise ValueError(f"{name} must be comma-separated numbers like 0,30,30; got {text!r}") from None
+    if not all(math.isfinite(v) for v in vals):
+        raise ValueError(f"{name} must be finite numbers (no NaN or inf); got {text!r}")
+    if n is not None and len(vals) != n:
+        raise ValueError(f"{name} must have {n} values for this robot, got {len(vals)} ({text!r})")
+    arr = np.asarray(vals, dtype=float)
+    return np.deg2rad(arr) if deg else arr
+
+
+def _ik(robot, p, q_init, name):
+    try:
+        from jtraj.problem import ik_or_raise
+
+        return ik_or_raise(robot, p, q_init, name)
+    except ModuleNotFoundError as exc:
+        if exc.name and exc.name.startswith("jtraj"):
+            raise ValueError(f"{name} needs inverse kinematics (jtraj.robots.ik), which is not available in "
+                             f"this installation; give the configuration with --{name[2:].split('-')[0]}-q "
+                             f"instead") from None
+        raise
+
+
+def build_problem(args):
+    """(robot, Problem) from parsed arguments; ValueError naming the argument."""
+    import math
+
+    import numpy as np
+
+    from jtraj import Problem, ViaPoint, Weights, robots
+
+    if args.robot not in robots.names():
+        raise ValueError(f"--robot must be one of {robots.names()}, got {args.robot!r}")
+    try:
+        robot = robots.get(args.robot)
+    except ModuleNotFoundError as exc:
+        raise ValueError(f"--robot {args.robot}: model not available in this installation ({exc.name})") from None
+    n = robot.n
+    if args.start_q is None and args.start_xy is None:
+        raise ValueError("give a start: --start-q Q1,Q2,... (joint space) or --start-xy X,Y (task space)")
+    if args.goal_q is None and args.goal_xy is None:
+        raise ValueError("give a goal: --goal-q Q1,Q2,... (joint space) or --goal-xy X,Y (task space)")
+    if args.N < 2:
+        raise ValueError(f"--N must be an integer >= 2, got {args.N}")
+    try:
+        weights = Weights.parse(args.weights)
+    except ValueError as exc:
+        raise ValueError(f"--weights: {exc}") from None
+    if args.T_max is not None and not (math.isfinite(args.T_max) and args.T_max > 0):
+        raise ValueError(f"--T-max must be a finite number > 0, got {args.T_max}")
+    if not (math.isfinite(args.via_tol) and args.via_tol > 0):
+        raise ValueError(f"--via-tol must be a finite number > 0, got {args.via_tol}")
+    d = int(np.asarray(robot.forward_kinematics(np.zeros(n))).shape[0])
+    q_start = parse_vector(args.start_q, "--start-q", n, deg=args.deg)
+    q_goal = parse_vector(args.goal_q, "--goal-q", n, deg=args.deg)
+    p_start = parse_vector(args.start_xy, "--start-xy", d)
+    p_goal = parse_vector(args.goal_xy, "--goal-xy", d)
+    vias = [ViaPoint(point=parse_vector(v, "--via", d), tol=args.via_tol) for v in args.via]
+    if q_start is None:
+        q_start = np.asarray(_ik(robot, p_start, None, "--start-xy"))
+    if q_goal is None:
+        q_goal = np.asarray(_ik(robot, p_goal, q_start, "--goal-xy"))
+    try:
+        problem = Problem(robot, q_start, q_goal, N=args.N, weights=weights, via_points=vias, T_max=args.T_max)
+    except ValueError as exc:  # name the CLI argument behind the Problem argument
+        msg = str(exc)
+        for api, cli in (("q_start", "--start-q" if args.start_q else "--start-xy"),
+                         ("q_goal", "--goal-q" if args.goal_q else "--goal-xy"), ("T_max", "--T-max"),
+                         ("N =", "--N ="), ("via_points", "--via")):
+            msg = msg.replace(api, cli)
+        raise ValueError(msg) from None
+    return robot, problem
+
+
+def _tolist(x):
+    import math
+
+    import numpy as np
+
+    arr = np.asarray(x)
+    if arr.dtype.kind in "fc":
+        arr = arr.astype(float)
+        out = arr.tolist()
+        if arr.ndim == 0:
+            return out if math.isfinite(out) else None
+        return _finite(out)
+    return arr.tolist()
+
+
+def _finite(x):
+    import math
+
+    if isinstance(x, list):
+        return [_finite(v) for v in x]
+    return x if math.isfinite(x) else None
+
+
+def solution_dict(args, problem, sol, solve_s, compile_s) -> dict:
+    from jtraj import Status
+
+    w = problem.weights
+    return {
+        "robot": args.robot, "N": problem.N, "transcription": args.transcription,
+        "weights": {k: float(getattr(w, k)) for k in ("time", "energy", "kinetic", "singularity")},
+        "q_start": _tolist(problem.q_start), "q_goal": _tolist(problem.q_goal),
+        "qd_start": _tolist(problem.qd_start), "qd_goal": _tolist(problem.qd_goal),
+        "T_max": _tolist(problem.T_max), "via_points": [_tolist(v.point) for v in problem.via_points],
+        "converged": bool(sol.converged), "status": int(sol.status), "status_name": Status(int(sol.status)).name,
+        "status_message": sol.status_message, "T": _tolist(sol.T), "cost": _tolist(sol.cost),
+        "cost_terms": {k: _tolist(v) for k, v in sol.cost_terms.items()}, "energy": _tolist(sol.energy),
+        "max_violation": {k: _tolist(v) for k, v in sol.max_violation.items()},
+        "iterations": int(sol.iterations), "outer_iterations": int(sol.outer_iterations),
+        "solve_seconds": solve_s, "compile_seconds": compile_s,
+        "q": _tolist(sol.q), "qd": _tolist(sol.qd), "v": _tolist(sol.v), "tau": _tolist(sol.tau),
+        "h": _tolist(sol.h), "history": _tolist(sol.history),
+    }
+
+
+def _f(x, fmt):
+    return "nan" if x is None else format(x, fmt)
+
+
+def summary(d: dict) -> str:
+    """A readable multi-line summary of :func:`solution_dict`'s output."""
+    lines = [f"robot {d['robot']}, N = {d['N']}, {d['transcription']} transcription, weights "
+             + ", ".join(f"{k}={v:g}" for k, v in d["weights"].items() if v),
+             f"status: {d['status_name']} ({d['status_message']})",
+             f"T = {_f(d['T'], '.4f')} s, cost = {_f(d['cost'], '.6g')} ("
+             + ", ".join(f"{k} {_f(v, '.4g')}" for k, v in d["cost_terms"].items())
+             + f"), energy = {_f(d['energy'], '.4g')}",
+             "max violation: " + ", ".join(f"{k} {_f(v, '.1e')}" for k, v in d["max_violation"].items()),
+             f"iterations: {d['iterations']} Newton, {d['outer_iterations']} outer; solve {d['solve_seconds']:.3f} s "
+             f"(compile {d['compile_seconds']:.1f} s)"]
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    import json
+    import time
+
+    import jax
+
+    import jtraj
+
+    robot, problem = build_problem(args)
+    t0 = time.perf_counter()
+    sol = jtraj.solve(problem, transcription=args.transcription)
+    jax.block_until_ready(sol)
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    sol = jtraj.solve(problem, transcription=args.transcription)
+    jax.block_until_ready(sol)
+    solve_s = time.perf_counter() - t0
+    d = solution_dict(args, problem, sol, solve_s, max(first - solve_s, 0.0))
+    print(summary(d))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(d, fh, indent=1)
+        print(f"wrote {args.json}")
+    if args.plot:
+        from jtraj.plotting import plot_solution, save
+
+        title = (f"{args.robot}: {d['status_name']}, T = {d['T']:.3f} s, cost = {d['cost']:.4g} "
+                 f"(weights {args.weights})")
+        save(plot_solution(problem, sol, title=title), args.plot)
+        print(f"wrote {args.plot}")
+    return 0 if d["converged"] else 1

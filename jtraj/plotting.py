@@ -1,0 +1,207 @@
+"""Thesis-style figures of an optimised trajectory (matplotlib, no pyplot state).
+
+Every function takes a :class:`~jtraj.Problem` and a :class:`~jtraj.Solution` and
+returns a :class:`matplotlib.figure.Figure` built without ``pyplot``, so it is safe
+with the Agg backend, in threads and in tests; save it with ``fig.savefig(path)``.
+
+The cycloidal initial guess (:func:`jtraj.initial_guess.cycloidal`) is drawn beside
+the optimum (thin dashed grey lines) so the gain of the optimisation is visible.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_OPT = dict(lw=1.8)
+_GUESS = dict(lw=1.0, ls="--", color="0.55")
+
+
+def _np(x):
+    return np.asarray(x, dtype=float)
+
+
+def guess_trajectory(problem) -> dict:
+    """The cycloidal initial guess as arrays: q, qd (N+1, n), v (N, n), tau (N, m),
+    h (N,), t (N+1,)."""
+    import jax
+
+    from .initial_guess import cycloidal
+    from .transcription import integrate
+
+    v, h = cycloidal(problem)
+    q, qd = integrate(problem.q_start, problem.qd_start, v, h)
+    tau = jax.vmap(problem.robot.inverse_dynamics)(q[:-1], qd[:-1], v)
+    h = _np(h)
+    return dict(q=_np(q), qd=_np(qd), v=_np(v), tau=_np(tau), h=h, t=np.concatenate([[0.0], np.cumsum(h)]))
+
+
+def solution_arrays(solution) -> dict:
+    """The solution's trajectory as NumPy arrays, with sample times t (N+1,)."""
+    h = _np(solution.h)
+    return dict(q=_np(solution.q), qd=_np(solution.qd), v=_np(solution.v), tau=_np(solution.tau), h=h,
+                t=np.concatenate([[0.0], np.cumsum(h)]))
+
+
+def _tip_path(robot, q):
+    import jax
+
+    return _np(jax.vmap(robot.forward_kinematics)(q))
+
+
+def _links(robot, q):
+    """Polyline of the mechanism at q for drawing, or None when the robot has none."""
+    f = getattr(robot, "joint_positions", None)
+    if f is None:
+        return None
+    try:
+        pts = _np(f(q))
+    except Exception:  # a robot whose drawing helper has another signature
+        return None
+    return pts if pts.ndim == 2 and pts.shape[1] >= 2 else None
+
+
+def _stairs(ax, t, y, **kw):
+    """Piecewise-constant y_k on [t_k, t_{k+1}) (zero-order hold of per-interval data)."""
+    return ax.stairs(y, t, baseline=None, **kw)
+
+
+def _energy(tau, h, tau_max):
+    scale = 1.0 if tau_max is None else _np(tau_max)
+    return np.concatenate([[0.0], np.cumsum(h * np.sum((tau / scale) ** 2, axis=1))])
+
+
+def plot_path(problem, solution, ax=None, *, guess: dict | None = None, instants: int = 5):
+    """Task-space path of the tip, with the mechanism drawn at ``instants`` samples."""
+    from matplotlib.figure import Figure
+
+    fig = None
+    if ax is None:
+        fig = Figure(figsize=(5, 5))
+        ax = fig.add_subplot()
+    robot = problem.robot
+    sol = solution_arrays(solution)
+    p = _tip_path(robot, sol["q"])
+    N = p.shape[0] - 1
+    for i, k in enumerate(np.unique(np.linspace(0, N, instants).round().astype(int))):
+        pts = _links(robot, sol["q"][k])
+        if pts is not None:
+            shade = 0.75 - 0.6 * k / max(N, 1)
+            ax.plot(pts[:, 0], pts[:, 1], "-o", color=(shade, shade, 1.0), lw=2.5, ms=4, zorder=1,
+                    label="arm (optimum)" if i == 0 else None)
+    if guess is not None:
+        pg = _tip_path(robot, guess["q"])
+        ax.plot(pg[:, 0], pg[:, 1], label="cycloidal guess", **_GUESS)
+    ax.plot(p[:, 0], p[:, 1], "-", color="C3", label="optimum", zorder=3, **_OPT)
+    ax.plot(p[:, 0], p[:, 1], ".", color="C3", ms=4, zorder=3)
+    ps, pg_ = _np(robot.forward_kinematics(problem.q_start)), _np(robot.forward_kinematics(problem.q_goal))
+    ax.plot(ps[0], ps[1], "s", color="k", ms=6, zorder=4, label="start")
+    ax.plot(pg_[0], pg_[1], "*", color="k", ms=11, zorder=4, label="goal")
+    for vp in problem.via_points:
+        pt = _np(vp.point)
+        ax.plot(pt[0], pt[1], "x", color="C2", ms=9, mew=2, zorder=4, label="via point")
+    ws = problem.robot.limits.workspace
+    if ws is not None and _np(ws).shape[1] >= 2:
+        lo, hi = _np(ws)
+        ax.plot([lo[0], hi[0], hi[0], lo[0], lo[0]], [lo[1], lo[1], hi[1], hi[1], lo[1]], ":", color="0.4",
+                label="workspace")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title("tip path")
+    ax.legend(fontsize=7, loc="best")
+    return fig if fig is not None else ax.figure
+
+
+def plot_solution(problem, solution, *, guess: bool = True, title: str | None = None):
+    """The full figure: tip path with the arm, q(t), qd(t) against limits, tau(t)
+    against limits (dashed), h_k, and cumulative energy; the cycloidal guess beside
+    the optimum when ``guess``."""
+    from matplotlib.figure import Figure
+
+    robot = problem.robot
+    lim = robot.limits
+    sol = solution_arrays(solution)
+    g = guess_trajectory(problem) if guess else None
+    fig = Figure(figsize=(15, 8.5), layout="constrained")
+    axs = fig.subplots(2, 3)
+    plot_path(problem, solution, axs[0, 0], guess=g)
+
+    # q(t)
+    ax = axs[0, 1]
+    for j in range(sol["q"].shape[1]):
+        ax.plot(sol["t"], sol["q"][:, j], color=f"C{j}", label=f"q{j + 1}", **_OPT)
+        if g is not None:
+            ax.plot(g["t"], g["q"][:, j], **{**_GUESS, "color": f"C{j}", "alpha": 0.6})
+    if lim.q_min is not None:
+        for j, (lo, hi) in enumerate(zip(_np(lim.q_min), _np(lim.q_max))):
+            for b in (lo, hi):
+                if np.isfinite(b):
+                    ax.axhline(b, ls=":", color=f"C{j}", lw=0.8)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("q [rad]")
+    ax.set_title("joint positions (dashed: guess)")
+    ax.legend(fontsize=7)
+
+    # qd(t)
+    ax = axs[0, 2]
+    for j in range(sol["qd"].shape[1]):
+        ax.plot(sol["t"], sol["qd"][:, j], color=f"C{j}", label=f"qd{j + 1}", **_OPT)
+        if g is not None:
+            ax.plot(g["t"], g["qd"][:, j], **{**_GUESS, "color": f"C{j}", "alpha": 0.6})
+        if lim.qd_max is not None:
+            b = _np(lim.qd_max)[j]
+            ax.axhline(b, ls="--", color=f"C{j}", lw=0.8)
+            ax.axhline(-b, ls="--", color=f"C{j}", lw=0.8)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("qd [rad/s]")
+    ax.set_title("joint velocities and limits")
+    ax.legend(fontsize=7)
+
+    # tau(t)
+    ax = axs[1, 0]
+    for j in range(sol["tau"].shape[1]):
+        _stairs(ax, sol["t"], sol["tau"][:, j], color=f"C{j}", label=f"tau{j + 1}", **_OPT)
+        if g is not None:
+            _stairs(ax, g["t"], g["tau"][:, j], **{**_GUESS, "color": f"C{j}", "alpha": 0.6})
+        if lim.tau_max is not None:
+            b = _np(lim.tau_max)[j]
+            ax.axhline(b, ls="--", color=f"C{j}", lw=0.9)
+            ax.axhline(-b, ls="--", color=f"C{j}", lw=0.9)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("tau [N m]")
+    ax.set_title("actuator efforts and limits (dashed)")
+    ax.legend(fontsize=7)
+
+    # h_k
+    ax = axs[1, 1]
+    k = np.arange(sol["h"].shape[0])
+    ax.plot(k, sol["h"], "o-", color="C3", label=f"optimum (T = {sol['t'][-1]:.3f} s)", **_OPT)
+    if g is not None:
+        ax.plot(k, g["h"], marker=".", label=f"guess (T = {g['t'][-1]:.3f} s)", **_GUESS)
+    ax.axhline(float(lim.h_min), ls=":", color="0.3", lw=0.8)
+    ax.axhline(float(lim.h_max), ls=":", color="0.3", lw=0.8)
+    ax.set_xlabel("interval k")
+    ax.set_ylabel("h_k [s]")
+    ax.set_title("sampling periods (dotted: bounds)")
+    ax.legend(fontsize=7)
+
+    # cumulative energy
+    ax = axs[1, 2]
+    e = _energy(sol["tau"], sol["h"], lim.tau_max)
+    ax.plot(sol["t"], e, color="C3", label=f"optimum ({e[-1]:.3g})", **_OPT)
+    if g is not None:
+        eg = _energy(g["tau"], g["h"], lim.tau_max)
+        ax.plot(g["t"], eg, label=f"guess ({eg[-1]:.3g})", **_GUESS)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("sum h tau^T diag(1/tau_max^2) tau [s]")
+    ax.set_title("cumulative energy")
+    ax.legend(fontsize=7)
+
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def save(fig, path: str, dpi: int = 110) -> None:
+    """Write ``fig`` to ``path`` (format from the extension)."""
+    fig.savefig(path, dpi=dpi)
