@@ -13,13 +13,15 @@ The weighted pseudo-inverse is the inertia-weighted ("dynamically consistent") o
 the thesis. Its null-space term moves the joints towards the middle of their range
 without moving the task point. SCIENCE.md prints ``W = diag(q_max - q_min)``, which is
 dimensionally inconsistent (it would push wide-range joints hardest); we use the
-Liegeois weighting ``W = diag(((q_max - q_min) / 2)^-2) * mean(((q_max - q_min)/2)^2)``,
-i.e. the gradient of ``sum ((q_i - q_mid,i) / half_range_i)^2`` rescaled to rad, so
-joints close to a limit relative to their range are pushed hardest. Without a joint
+Liegeois weighting ``W = diag(min_j(half_j^2) / half_i^2)``, ``half = (q_max - q_min)/2``,
+i.e. the gradient of ``sum ((q_i - q_mid,i) / half_i)^2`` scaled so that the largest
+weight is 1 (keeps the iteration stable), so joints close to a limit relative to
+their range are pushed hardest. Without a joint
 box (``q_min``/``q_max`` None) there is no null-space term.
 
-Iteration stops when ``|e| <= tol`` and the null-space step is below ``null_tol``, or
-after ``max_iter`` iterations.
+Iteration stops when ``|e| <= tol`` and q is inside the joint box (or, outside it,
+once the null-space step is below ``null_tol``: the self-motion cannot bring q back
+in), or after ``max_iter`` iterations.
 
 Status codes (:data:`STATUS`):
 
@@ -29,7 +31,8 @@ Status codes (:data:`STATUS`):
   robot cannot assemble there: ``assembly_margin(q) <= 0``) or the iteration stalled
   (e.g. at a singularity);
 * 2 ``JOINT_LIMITS``: the task point is reached but q lies outside the joint box;
-* 3 ``NONFINITE``: NaN/inf appeared (e.g. NaN inputs inside a traced call).
+* 3 ``NONFINITE``: NaN/inf appeared (e.g. NaN inputs inside a traced call); q is
+  then the last finite iterate.
 
 Bad concrete input (wrong shape, NaN/inf, unknown method) raises ``ValueError`` naming
 the argument, before tracing.
@@ -147,7 +150,7 @@ def _ik(robot, p, q0, method, max_iter, tol, damping, null_gain, null_tol, max_s
         finite = jnp.isfinite(lo) & jnp.isfinite(hi)
         mid = jnp.where(finite, 0.5 * (lo + hi), 0.0)
         half2 = jnp.where(finite, (0.5 * (hi - lo)) ** 2, 1.0)
-        w = jnp.where(finite, jnp.sum(jnp.where(finite, half2, 0.0)) / jnp.maximum(jnp.sum(finite), 1) / half2, 0.0)
+        w = jnp.where(finite, jnp.min(jnp.where(finite, half2, jnp.inf)) / half2, 0.0)
 
     def residual(q):
         return p - robot.forward_kinematics(q)
@@ -176,27 +179,32 @@ def _ik(robot, p, q0, method, max_iter, tol, damping, null_gain, null_tol, max_s
         scale = jnp.minimum(1.0, max_dq / jnp.maximum(jnp.max(jnp.abs(dq)), 1e-300))
         return q + scale * dq, jnp.max(jnp.abs(dq_null))
 
+    def inside_box(q):
+        return jnp.all((q >= lim.q_min) & (q <= lim.q_max)) if has_box else jnp.asarray(True)
+
     def done(q, null_step):
-        return (jnp.linalg.norm(residual(q)) <= tol) & (null_step <= null_tol)
+        return (jnp.linalg.norm(residual(q)) <= tol) & (inside_box(q) | (null_step <= null_tol))
 
     def cond(state):
-        q, k, null_step = state
-        ok = jnp.all(jnp.isfinite(q))
-        return (k < max_iter) & ~done(q, null_step) & ok
+        q, k, null_step, bad = state
+        return (k < max_iter) & ~done(q, null_step) & ~bad
 
     def body(state):
-        q, k, _ = state
+        q, k, _, _ = state
         q_new, null_step = step(q)
-        return q_new, k + 1, null_step
+        bad = ~(jnp.all(jnp.isfinite(q_new)) & jnp.isfinite(null_step))
+        return jnp.where(bad, q, q_new), k + 1, null_step, bad  # keep the last finite q
 
-    init = (q0, jnp.zeros((), jnp.int32), jnp.asarray(jnp.inf, q0.dtype))
-    q, k, _ = jax.lax.while_loop(cond, body, init)
+    init = (q0, jnp.zeros((), jnp.int32), jnp.asarray(jnp.inf, q0.dtype), ~jnp.all(jnp.isfinite(q0)))
+    q, k, _, bad = jax.lax.while_loop(cond, body, init)
     err = jnp.linalg.norm(residual(q))
     reached = err <= tol
+    assembled = jnp.asarray(True)
     margin = getattr(robot, "assembly_margin", None)
     if margin is not None:
-        reached = reached & (margin(q) > 0)
-    inside = jnp.all((q >= lim.q_min) & (q <= lim.q_max)) if has_box else jnp.asarray(True)
-    status = jnp.where(~(jnp.all(jnp.isfinite(q)) & jnp.isfinite(err)), NONFINITE,
-                       jnp.where(~reached, NOT_CONVERGED, jnp.where(inside, SUCCESS, JOINT_LIMITS)))
+        assembled = margin(q) > 0
+    inside = inside_box(q)
+    status = jnp.where(~assembled | (~reached & ~bad), NOT_CONVERGED,
+                       jnp.where(bad | ~jnp.isfinite(err), NONFINITE,
+                                 jnp.where(inside, SUCCESS, JOINT_LIMITS)))
     return IKResult(q=q, status=status.astype(jnp.int32), error=err, iterations=k)
