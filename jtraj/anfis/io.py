@@ -1,0 +1,77 @@
+"""Saving and loading :class:`~jtraj.anfis.model.Model`.
+
+File layout: one line of JSON (the header: format name and version, kind, order,
+shapes, dtype, and the model's metadata), a newline, then the array leaves written by
+``equinox.tree_serialise_leaves``. :func:`load` rebuilds a skeleton of the right shapes
+from the header and reads the leaves into it: no retraining, no pickle.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from .model import KINDS, Model, n_coef
+
+FORMAT = "jtraj.anfis"
+FORMAT_VERSION = 1
+
+
+def save(path, model: Model) -> None:
+    """Write ``model`` to ``path`` (parent directories must exist)."""
+    header = dict(format=FORMAT, version=FORMAT_VERSION, kind=model.kind, order=model.order,
+                  scalar_output=model.scalar_output, n_rules=model.n_rules, n_inputs=model.n_inputs,
+                  n_outputs=model.n_outputs, dtype=str(model.centers.dtype), metadata=model.metadata)
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "wb") as f:
+        f.write(json.dumps(header, sort_keys=True).encode() + b"\n")
+        eqx.tree_serialise_leaves(f, model)
+    os.replace(tmp, path)
+
+
+def read_header(path) -> dict:
+    """The JSON header of a model file (ValueError if it is not one)."""
+    try:
+        with open(path, "rb") as f:
+            line = f.readline()
+        header = json.loads(line)
+    except OSError:
+        raise
+    except (ValueError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path}: not a jtraj ANFIS model file") from err
+    if not isinstance(header, dict) or header.get("format") != FORMAT:
+        raise ValueError(f"{path}: not a jtraj ANFIS model file")
+    return header
+
+
+def load(path, *, mapping: str | None = None) -> Model:
+    """Read a model written by :meth:`Model.save`.
+
+    Raises ValueError when the file is not a model, was written by another format
+    version, or (with ``mapping`` given) was trained for another trajectory mapping.
+    """
+    header = read_header(path)
+    if header.get("version") != FORMAT_VERSION:
+        raise ValueError(f"{path}: model file format version {header.get('version')!r}, this jtraj reads "
+                         f"version {FORMAT_VERSION}; retrain or convert the model")
+    meta = header.get("metadata", {})
+    if mapping is not None and meta.get("mapping") != mapping:
+        raise ValueError(f"{path}: model was trained for mapping {meta.get('mapping')!r}, not {mapping!r}")
+    kind, order = header["kind"], int(header["order"])
+    if kind not in KINDS:
+        raise ValueError(f"{path}: unknown model kind {kind!r}")
+    R, d, m = int(header["n_rules"]), int(header["n_inputs"]), int(header["n_outputs"])
+    dt = jnp.dtype(header["dtype"])
+    z = lambda *shape: jnp.zeros(shape, dt)  # noqa: E731
+    skeleton = Model(z(R, d), z(R, d), z(R, n_coef(kind, order, d), m), z(d), z(d), z(m), z(m), kind=kind,
+                     order=order, scalar_output=bool(header["scalar_output"]),
+                     info=json.dumps(meta, sort_keys=True))
+    with open(path, "rb") as f:
+        f.readline()
+        try:
+            return eqx.tree_deserialise_leaves(f, skeleton)
+        except Exception as err:  # truncated or corrupted leaves
+            raise ValueError(f"{path}: corrupted model file ({err})") from err

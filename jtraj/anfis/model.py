@@ -1,0 +1,227 @@
+"""The ANFIS model: Gaussian premises, product t-norm, Sugeno or Tsukamoto consequents.
+
+Notation (shapes): ``d`` inputs, ``m`` outputs, ``R`` rules, ``B`` a batch.
+
+Inputs and outputs are scaled to the unit hypercube of the training data
+(``u = (x - x_lo) / x_span``, ``v = (y - y_lo) / y_span``); every parameter lives in
+those units, so the premise widths start at ``sigma = r_a / sqrt(8)`` as in MATLAB's
+``genfis2`` (``r_a (max - min) / sqrt(8)`` in data units) and the ridge regularisation
+is scale-free. :meth:`Model.memberships` converts back to data units.
+
+Layer by layer, for one sample ``u``:
+
+1. memberships ``mu_ri = exp(-(u_i - c_ri)^2 / (2 s_ri^2))``;
+2. firing strengths (product t-norm) kept in log space,
+   ``log w_r = -1/2 sum_i ((u_i - c_ri) / s_ri)^2``, so that many inputs far from a
+   centre never underflow to 0/0;
+3. normalised strengths ``beta = softmax(log w)`` (exact, stable);
+4. consequents, per output ``k``:
+
+   * ``"tsk"`` order 1 (first-order Sugeno): ``f_rk = theta_rk . [u, 1]``;
+   * ``"tsk"`` order 0 (zero-order Sugeno): ``f_rk = theta_rk``;
+   * ``"tsukamoto"``: monotone logistic consequent ``F(z) = 1 / (1 + exp(-(rho z - s)))``
+     read backwards at the rule's firing strength, ``f_rk = F^{-1}(w_r)
+     = (logit(w_r) + s_rk) / rho_rk = a_rk logit(w_r) + b_rk`` with
+     ``a = 1 / rho``, ``b = s / rho``: linear in ``(a, b)``, so least squares stays
+     exact. ``w_r`` is clipped to ``[w_eps, 1 - w_eps]`` (``w_eps = 1e-9``) because
+     ``logit(1)`` is infinite at a rule's centre.
+5. output ``v_k = sum_r beta_r f_rk``.
+
+dtype: ``predict`` computes in the dtype of the stored parameters, float64 when the
+model was trained with ``jax_enable_x64`` on (the CLI and the tests do so);
+``model.astype(jnp.float32)`` gives a float32 copy for faster queries.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+KINDS = ("tsk", "tsukamoto")
+W_EPS = 1e-9
+
+
+def n_coef(kind: str, order: int, d: int) -> int:
+    """Consequent coefficients per rule and output."""
+    if kind == "tsukamoto":
+        return 2
+    return d + 1 if order == 1 else 1
+
+
+def log_firing(c: Float[Array, "R d"], s: Float[Array, "R d"], u: Float[Array, "B d"]) -> Float[Array, "B R"]:
+    """log w (B, R): product of Gaussian memberships, in log space."""
+    z = (u[:, None, :] - c[None, :, :]) / s[None, :, :]
+    return -0.5 * jnp.sum(z * z, axis=-1)
+
+
+def features(c, s, u, kind: str, order: int) -> Float[Array, "B R k"]:
+    """Consequent regressors phi (B, R, k) with output ``v = sum_r phi_r . theta_r``."""
+    lw = log_firing(c, s, u)
+    beta = jax.nn.softmax(lw, axis=-1)
+    if kind == "tsukamoto":
+        logit, _ = _logit_clipped(lw)
+        reg = jnp.stack([logit, jnp.ones_like(logit)], axis=-1)
+        return beta[..., None] * reg
+    if order == 1:
+        ua = jnp.concatenate([u, jnp.ones(u.shape[:-1] + (1,), u.dtype)], axis=-1)
+        return beta[:, :, None] * ua[:, None, :]
+    return beta[:, :, None]
+
+
+def _logit_clipped(lw):
+    """logit(w) from log w, with w clipped to [W_EPS, 1 - W_EPS]; and the clip mask."""
+    lo, hi = jnp.log(W_EPS), jnp.log1p(-W_EPS)
+    lw_c = jnp.clip(lw, lo, hi)
+    return lw_c - jnp.log1p(-jnp.exp(lw_c)), (lw > lo) & (lw < hi)
+
+
+def rule_outputs(lw, u, theta, kind: str, order: int) -> Float[Array, "B R m"]:
+    """Per-rule consequent values f (B, R, m)."""
+    if kind == "tsukamoto":
+        logit, _ = _logit_clipped(lw)
+        return logit[:, :, None] * theta[None, :, 0, :] + theta[None, :, 1, :]
+    if order == 1:
+        R, k, m = theta.shape
+        W = jnp.transpose(theta[:, :-1, :], (1, 0, 2)).reshape(k - 1, R * m)
+        return (u @ W).reshape(u.shape[0], R, m) + theta[None, :, -1, :]
+    return jnp.broadcast_to(theta[None, :, 0, :], (u.shape[0],) + theta[:, 0, :].shape)
+
+
+def forward(c, s, theta, u, kind: str, order: int) -> Float[Array, "B m"]:
+    """Normalised outputs v (B, m) for normalised inputs u (B, d)."""
+    lw = log_firing(c, s, u)
+    beta = jax.nn.softmax(lw, axis=-1)
+    f = rule_outputs(lw, u, theta, kind, order)
+    return jnp.einsum("br,brm->bm", beta, f)
+
+
+@partial(jax.jit, static_argnames=("kind", "order"))
+def _predict(c, s, theta, x_lo, x_span, y_lo, y_span, X, kind, order):
+    u = (X - x_lo) / x_span
+    return forward(c, s, theta, u, kind, order) * y_span + y_lo
+
+
+class Model(eqx.Module):
+    """A trained ANFIS (see the module docstring for the structure).
+
+    Fields (unit-hypercube units): ``centers (R, d)``, ``sigmas (R, d)``,
+    ``theta (R, k, m)`` consequent coefficients, scalings ``x_lo, x_span (d,)`` and
+    ``y_lo, y_span (m,)``; static ``kind``, ``order``, ``scalar_output`` (Y was 1-D) and
+    ``info`` (a JSON string: hyperparameters, training figures, user metadata such as
+    the trajectory mapping).
+    """
+
+    centers: Array
+    sigmas: Array
+    theta: Array
+    x_lo: Array
+    x_span: Array
+    y_lo: Array
+    y_span: Array
+    kind: str = eqx.field(static=True, default="tsk")
+    order: int = eqx.field(static=True, default=1)
+    scalar_output: bool = eqx.field(static=True, default=False)
+    info: str = eqx.field(static=True, default="{}")
+
+    # ----- sizes ----------------------------------------------------------------------
+    @property
+    def n_rules(self) -> int:
+        return int(self.centers.shape[0])
+
+    @property
+    def n_inputs(self) -> int:
+        return int(self.centers.shape[1])
+
+    @property
+    def n_outputs(self) -> int:
+        return int(self.theta.shape[2])
+
+    @property
+    def metadata(self) -> dict:
+        """Hyperparameters and user metadata (a fresh dict)."""
+        return json.loads(self.info)
+
+    def with_metadata(self, **kv) -> "Model":
+        """Copy with ``kv`` merged into :attr:`metadata` (values must be JSON-able)."""
+        meta = self.metadata
+        meta.update(kv)
+        return _replace(self, info=json.dumps(meta, sort_keys=True))
+
+    def astype(self, dtype) -> "Model":
+        """Copy with every array cast to ``dtype`` (e.g. float32 for faster queries)."""
+        return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), self)
+
+    # ----- evaluation -----------------------------------------------------------------
+    def predict(self, X) -> Array:
+        """Outputs for inputs X: ``(d,)`` -> ``(m,)`` or ``(B, d)`` -> ``(B, m)``
+        (without the last axis when the model was fitted on 1-D targets).
+
+        Jitted (one compilation per batch shape); computes in the parameters' dtype.
+        """
+        X = jnp.asarray(X, dtype=self.centers.dtype)
+        single = X.ndim == 1
+        if single:
+            X = X[None, :]
+        if X.ndim != 2 or X.shape[1] != self.n_inputs:
+            raise ValueError(f"X must have shape ({self.n_inputs},) or (B, {self.n_inputs}), got {X.shape}")
+        Y = _predict(self.centers, self.sigmas, self.theta, self.x_lo, self.x_span, self.y_lo, self.y_span, X,
+                     self.kind, self.order)
+        if single:
+            Y = Y[0]
+        if self.scalar_output:
+            Y = Y[..., 0]
+        return Y
+
+    __call__ = predict
+
+    def predict_fn(self):
+        """A pure function ``X (B, d) -> Y (B, m)`` closing over the parameters, for use
+        inside other jitted code (e.g. the online planner)."""
+        c, s, th, xl, xs, yl, ys = (self.centers, self.sigmas, self.theta, self.x_lo, self.x_span,
+                                    self.y_lo, self.y_span)
+        kind, order = self.kind, self.order
+
+        def f(X):
+            u = (X - xl) / xs
+            return forward(c, s, th, u, kind, order) * ys + yl
+        return f
+
+    def firing(self, X) -> Array:
+        """Normalised firing strengths beta (B, R) for inputs X (B, d) in data units."""
+        X = jnp.atleast_2d(jnp.asarray(X, dtype=self.centers.dtype))
+        return jax.nn.softmax(log_firing(self.centers, self.sigmas, (X - self.x_lo) / self.x_span), axis=-1)
+
+    def memberships(self) -> tuple[np.ndarray, np.ndarray]:
+        """(centres, sigmas) of the Gaussian memberships in data units, each (R, d)."""
+        span = np.asarray(self.x_span)
+        return (np.asarray(self.centers) * span + np.asarray(self.x_lo), np.asarray(self.sigmas) * span)
+
+    def tsukamoto_parameters(self) -> tuple[np.ndarray, np.ndarray]:
+        """(rho, s) of the logistic consequents (R, m), in normalised units; ``inf``
+        where a rule's slope coefficient is 0 (a constant consequent)."""
+        if self.kind != "tsukamoto":
+            raise ValueError("tsukamoto_parameters: the model is of kind " + repr(self.kind))
+        a = np.asarray(self.theta[:, 0, :])
+        b = np.asarray(self.theta[:, 1, :])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rho = 1.0 / a
+            return rho, b * rho
+
+    def save(self, path) -> None:
+        """Write the model to ``path`` (see :func:`jtraj.anfis.load`)."""
+        from .io import save
+
+        save(path, self)
+
+
+def _replace(model: Model, **changes) -> Model:
+    fields = {k: getattr(model, k) for k in ("centers", "sigmas", "theta", "x_lo", "x_span", "y_lo", "y_span",
+                                              "kind", "order", "scalar_output", "info")}
+    fields.update(changes)
+    return Model(**fields)
