@@ -1,0 +1,98 @@
+"""Independent reference models and state samplers for the robot tests.
+
+Nothing here calls jtraj's dynamics: the Pinocchio models are built from the link data
+alone, and the closed forms are written out by hand.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import jtraj.robots as robots
+
+
+# ----- Pinocchio planar chains --------------------------------------------------------
+def pinocchio_planar(lengths, masses, inertias, com=None, gravity=0.0):
+    """A Pinocchio model of a planar serial arm: revolute-z joints, joint i+1 at
+    (l_i, 0, 0) in link i's frame, link i's centre of mass at (d_i, 0, 0) with inertia
+    I_i about z. Gravity ``gravity`` along -y. Returns (model, data, tip_frame_id)."""
+    import pinocchio as pin
+
+    lengths = np.asarray(lengths, float)
+    com = lengths / 2 if com is None else np.asarray(com, float)
+    model = pin.Model()
+    parent = 0
+    for i, (l_prev, m, d, I) in enumerate(zip(np.r_[0.0, lengths[:-1]], masses, com, inertias)):
+        placement = pin.SE3(np.eye(3), np.array([l_prev, 0.0, 0.0]))
+        parent = model.addJoint(parent, pin.JointModelRZ(), placement, f"j{i}")
+        model.appendBodyToJoint(parent, pin.Inertia(float(m), np.array([d, 0.0, 0.0]),
+                                                    np.diag([1e-3, 1e-3, float(I)])), pin.SE3.Identity())
+    tip = model.addFrame(pin.Frame("tip", parent, 0, pin.SE3(np.eye(3), np.array([lengths[-1], 0.0, 0.0])),
+                                   pin.FrameType.OP_FRAME))
+    model.gravity = pin.Motion(np.array([0.0, -gravity, 0.0]), np.zeros(3))
+    return model, model.createData(), tip
+
+
+def pin_mass(model, data, q):
+    import pinocchio as pin
+
+    M = pin.crba(model, data, np.asarray(q, float))
+    return np.triu(M) + np.triu(M, 1).T
+
+
+def pin_rnea(model, data, q, qd, qdd):
+    import pinocchio as pin
+
+    return np.array(pin.rnea(model, data, *(np.asarray(x, float) for x in (q, qd, qdd))))
+
+
+def pin_tip(model, data, frame, q):
+    import pinocchio as pin
+
+    pin.framesForwardKinematics(model, data, np.asarray(q, float))
+    return np.array(data.oMf[frame].translation[:2])
+
+
+# ----- textbook 2-link arm ------------------------------------------------------------
+def two_link_closed_form(q, qd, l1, m1, m2, d1, d2, I1, I2, g):
+    """M, c (= C qd) and G of a planar 2R arm (Spong, Hutchinson & Vidyasagar)."""
+    c2, s2 = np.cos(q[1]), np.sin(q[1])
+    M11 = m1 * d1**2 + m2 * (l1**2 + d2**2 + 2 * l1 * d2 * c2) + I1 + I2
+    M12 = m2 * (d2**2 + l1 * d2 * c2) + I2
+    M22 = m2 * d2**2 + I2
+    M = np.array([[M11, M12], [M12, M22]])
+    h = -m2 * l1 * d2 * s2
+    C = np.array([[h * qd[1], h * (qd[0] + qd[1])], [-h * qd[0], 0.0]])
+    G = np.array([(m1 * d1 + m2 * l1) * g * np.cos(q[0]) + m2 * d2 * g * np.cos(q[0] + q[1]),
+                  m2 * d2 * g * np.cos(q[0] + q[1])])
+    return M, C @ qd, G
+
+
+# ----- catalogue and admissible states ------------------------------------------------
+def catalogue():
+    return robots.names()
+
+
+def sample_state(robot, rng, speed=0.5):
+    """(q, qd, qdd) at a random admissible state of ``robot`` (NumPy arrays)."""
+    n = robot.n
+    lim = robot.limits
+    while True:
+        if lim.q_min is not None:
+            mid, half = (np.asarray(lim.q_min) + np.asarray(lim.q_max)) / 2, (np.asarray(lim.q_max) - np.asarray(lim.q_min)) / 2
+            q = mid + 0.8 * half * rng.uniform(-1, 1, n)
+        elif robot.name == "wmr":
+            q = np.r_[rng.uniform(2, 22, 2), rng.uniform(-np.pi, np.pi)]
+        else:
+            q = rng.uniform(-np.pi, np.pi, n)
+        if robot.name == "parallel3":
+            ratio = np.asarray(robot.leg_ratios(q))
+            if ratio.min() < 0.15 or ratio.max() > 0.9:
+                continue
+        break
+    scale = speed * (np.ones(n) if lim.qd_max is None else np.minimum(np.asarray(lim.qd_max), 1.0))
+    qd = scale * rng.uniform(-1, 1, n)
+    if robot.name == "wmr":
+        qd = np.asarray(robot.admissible_velocity(q, scale[:2] * rng.uniform(-1, 1, 2)))
+    qdd = rng.uniform(-1, 1, n)
+    return q, qd, qdd

@@ -1,0 +1,355 @@
+"""Robot models against independent references (closed forms, Pinocchio, Lagrange
+multipliers, per-leg Pinocchio models) and structural properties of the dynamics."""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jtraj.robots as robots
+from jtraj.robots import Actuator, Robot, serial_planar
+
+from helpers import (catalogue, pin_mass, pin_rnea, pin_tip, pinocchio_planar, sample_state,
+                     two_link_closed_form)
+
+
+def rel_err(a, b):
+    a, b = np.asarray(a), np.asarray(b)
+    return np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300)
+
+
+# ----- 2-link arm vs textbook closed form ----------------------------------------------
+def test_two_link_closed_form():
+    l1, l2, m1, m2, d1, d2, I1, I2, g = 0.7, 0.5, 3.0, 1.5, 0.3, 0.2, 0.12, 0.05, 9.81
+    arm = serial_planar((l1, l2), (m1, m2), (I1, I2), com=(d1, d2), gravity=g)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        q, qd = rng.uniform(-np.pi, np.pi, 2), rng.uniform(-2, 2, 2)
+        M, c, G = two_link_closed_form(q, qd, l1, m1, m2, d1, d2, I1, I2, g)
+        assert rel_err(arm.mass_matrix(q), M) < 1e-13
+        assert np.allclose(arm.coriolis(q, qd), c, atol=1e-13 * np.abs(M).max() * 4)
+        assert np.allclose(arm.coriolis_matrix(q, qd) @ qd, c, atol=1e-12)
+        assert rel_err(arm.gravity(q), G) < 1e-13
+        tip = [l1 * np.cos(q[0]) + l2 * np.cos(q[0] + q[1]), l1 * np.sin(q[0]) + l2 * np.sin(q[0] + q[1])]
+        assert np.allclose(arm.forward_kinematics(q), tip, atol=1e-14)
+
+
+# ----- serial chains vs Pinocchio -----------------------------------------------------
+SERIAL_CASES = {
+    "serial3": lambda: robots.get("serial3"),
+    "serial3_vertical": lambda: robots.get("serial3_vertical"),
+    "serial5": lambda: serial_planar((0.5, 0.4, 0.35, 0.3, 0.2), (5.0, 4.0, 3.0, 2.0, 1.0),
+                                     (0.2, 0.15, 0.1, 0.05, 0.02), gravity=9.81, name="serial5"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(SERIAL_CASES))
+def test_serial_against_pinocchio(case):
+    pytest.importorskip("pinocchio")
+    arm = SERIAL_CASES[case]()
+    model, data, tip = pinocchio_planar(np.asarray(arm.lengths), np.asarray(arm.masses),
+                                        np.asarray(arm.inertias), np.asarray(arm.com),
+                                        float(arm.gravity_accel))
+    rigid_lagrange = jax.jit(lambda q, qd, qdd: Robot.rigid_body_forces(arm, q, qd, qdd))
+    rigid_rnea = jax.jit(arm.rigid_body_forces)
+    mass = jax.jit(arm._mass_matrix_mechanism)
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        q, qd, qdd = rng.uniform(-np.pi, np.pi, arm.n), rng.uniform(-2, 2, arm.n), rng.uniform(-3, 3, arm.n)
+        M_ref = pin_mass(model, data, q)
+        tau_ref = pin_rnea(model, data, q, qd, qdd)
+        assert rel_err(mass(q), M_ref) < 1e-10
+        assert rel_err(rigid_rnea(q, qd, qdd), tau_ref) < 1e-10
+        assert rel_err(rigid_lagrange(q, qd, qdd), tau_ref) < 1e-10
+        assert np.max(np.abs(np.asarray(arm.forward_kinematics(q)) - pin_tip(model, data, tip, q))) < 1e-12
+        if arm.actuator is None:
+            assert rel_err(arm.inverse_dynamics(q, qd, qdd), tau_ref) < 1e-10
+        else:  # rotary gear: tau_m = (tau_joint + N^2 J_m qdd + N^2 b_m qd) / N
+            N, Jm, bm = 20.0, 1e-3, 1e-3
+            tau_m = (tau_ref + N**2 * Jm * qdd + N**2 * bm * qd) / N
+            assert rel_err(arm.inverse_dynamics(q, qd, qdd), tau_m) < 1e-10
+            assert rel_err(arm.mass_matrix(q), M_ref + N**2 * Jm * np.eye(arm.n)) < 1e-10
+
+
+# ----- catalogue-wide structure -------------------------------------------------------
+def frictionless(robot):
+    """The robot with friction and actuator damping removed (for energy conservation)."""
+    act = robot.actuator
+    if act is not None:
+        act = dataclasses.replace(act, b_s=jnp.zeros_like(act.b_s), b_m=jnp.zeros_like(act.b_m))
+    return dataclasses.replace(robot, friction=None, actuator=act)
+
+
+@pytest.mark.parametrize("name", catalogue())
+def test_mass_matrix_spd_and_skew(name):
+    robot = robots.get(name)
+    rng = np.random.default_rng(2)
+    M_fn = jax.jit(robot.mass_matrix)
+    C_fn = jax.jit(robot.coriolis_matrix)
+    Mdot_fn = jax.jit(lambda q, qd: jax.jvp(robot.mass_matrix, (q,), (qd,))[1])
+    c_fn = jax.jit(robot.coriolis)
+    for _ in range(4):
+        q, qd, _ = sample_state(robot, rng)
+        M = np.asarray(M_fn(q))
+        assert np.allclose(M, M.T, rtol=0, atol=1e-12 * np.abs(M).max())
+        assert np.linalg.eigvalsh(M).min() > 0
+        C = np.asarray(C_fn(q, qd))
+        S = np.asarray(Mdot_fn(q, qd)) - 2 * C
+        assert np.abs(S + S.T).max() < 1e-10 * max(np.abs(M).max(), 1.0)
+        assert np.allclose(C @ qd, c_fn(q, qd), atol=1e-10 * max(np.abs(M).max(), 1.0))
+
+
+@pytest.mark.parametrize("name", catalogue())
+def test_energy_conservation(name):
+    """RK4 of the frictionless, torque-free robot: relative drift <= 1e-8 over 2 s."""
+    robot = frictionless(robots.get(name))
+    rng = np.random.default_rng(3)
+    q0, qd0, _ = sample_state(robot, rng, speed=0.2)
+    tau0 = jnp.zeros(robot.n_actuators)
+    dt, steps = 2e-3, 1000
+
+    def f(x):
+        q, qd = x
+        return qd, robot.forward_dynamics(q, qd, tau0)
+
+    def rk4(x, _):
+        add = lambda a, b, s: jax.tree_util.tree_map(lambda u, v: u + s * v, a, b)  # noqa: E731
+        k1 = f(x)
+        k2 = f(add(x, k1, dt / 2))
+        k3 = f(add(x, k2, dt / 2))
+        k4 = f(add(x, k3, dt))
+        x = jax.tree_util.tree_map(lambda u, a, b, c, d: u + dt / 6 * (a + 2 * b + 2 * c + d), x, k1, k2, k3, k4)
+        return x, robot.energy(*x)
+
+    run = jax.jit(lambda x: jax.lax.scan(rk4, x, None, length=steps))
+    (qT, qdT), E = run((jnp.asarray(q0), jnp.asarray(qd0)))
+    E0 = float(robot.energy(jnp.asarray(q0), jnp.asarray(qd0)))
+    scale = max(abs(E0), float(robot.kinetic_energy(jnp.asarray(q0), jnp.asarray(qd0))))
+    assert np.all(np.isfinite(np.asarray(E)))
+    assert np.max(np.abs(np.asarray(E) - E0)) / scale < 1e-8
+    assert np.abs(np.asarray(qT) - q0).max() > 1e-3  # it did move
+
+
+@pytest.mark.parametrize("name", catalogue())
+def test_inverse_forward_roundtrip_and_jacobian(name):
+    robot = robots.get(name)
+    rng = np.random.default_rng(4)
+    q, qd, qdd = sample_state(robot, rng)
+    tau = robot.inverse_dynamics(q, qd, qdd)
+    assert tau.shape == (robot.n_actuators,)
+    assert rel_err(robot.forward_dynamics(q, qd, tau), qdd) < 1e-9 or robot.name == "wmr"
+    # Jacobian against central finite differences
+    J = np.asarray(robot.jacobian(q))
+    eps = 1e-6
+    J_fd = np.stack([(np.asarray(robot.forward_kinematics(q + eps * e)) - np.asarray(robot.forward_kinematics(q - eps * e))) / (2 * eps)
+                     for e in np.eye(robot.n)], axis=1)
+    assert np.abs(J - J_fd).max() < 1e-7
+
+
+@pytest.mark.parametrize("name", catalogue())
+def test_transforms_on_every_function(name):
+    """jit, vmap and grad work on every public function and give finite results."""
+    robot = robots.get(name)
+    rng = np.random.default_rng(5)
+    states = [sample_state(robot, rng) for _ in range(3)]
+    Q, QD, QDD = (jnp.asarray(np.stack(s)) for s in zip(*states))
+    TAU = jnp.stack([robot.inverse_dynamics(*s) for s in states])
+
+    def everything(q, qd, qdd, tau):
+        return {"fk": robot.forward_kinematics(q), "J": robot.jacobian(q), "M": robot.mass_matrix(q),
+                "bias": robot.bias(q, qd), "id": robot.inverse_dynamics(q, qd, qdd),
+                "fd": robot.forward_dynamics(q, qd, tau), "w": robot.manipulability(q)}
+
+    out = jax.jit(jax.vmap(everything))(Q, QD, QDD, TAU)
+    for key, val in out.items():
+        assert val.shape[0] == 3 and np.all(np.isfinite(np.asarray(val))), key
+
+    def scalar(q, qd, qdd, tau):
+        return sum(jnp.sum(v) for v in everything(q, qd, qdd, tau).values())
+
+    grads = jax.jit(jax.grad(scalar, argnums=(0, 1, 2, 3)))(Q[0], QD[0], QDD[0], TAU[0])
+    for g in grads:
+        assert np.all(np.isfinite(np.asarray(g)))
+    # gradient with respect to the robot's parameters (sensitivities)
+    g_robot = eqx.filter_grad(lambda r: jnp.sum(r.inverse_dynamics(Q[0], QD[0], QDD[0])))(robot)
+    leaves = [x for x in jax.tree_util.tree_leaves(g_robot) if eqx.is_array(x)]
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
+
+
+# ----- pkm2 ---------------------------------------------------------------------------
+def pkm2_lagrange_multiplier_forces(q, qd, qdd, mp, ms, ml, R, r, L):
+    """Slider forces of pkm2 from a redundant-coordinate model z = (x, y, y1, y2) with a
+    constant mass matrix (uniform-rod legs, T = m/6 (vA^2 + vA.vB + vB^2)) and the
+    closure constraints enforced by Lagrange multipliers."""
+    x, y = q
+    xd, yd = qd
+    xdd, ydd = qdd
+    c = R - r
+    Mz = np.array([[mp + 2 * ml / 3, 0, 0, 0],
+                   [0, mp + 2 * ml / 3, ml / 6, ml / 6],
+                   [0, ml / 6, ms + ml / 3, 0],
+                   [0, ml / 6, 0, ms + ml / 3]])
+    z_dd, Phi_z = np.zeros(4), np.zeros((2, 4))
+    z_dd[:2] = qdd
+    for i, s in enumerate((+1.0, -1.0)):
+        u, ud, udd = x + s * c, xd, xdd
+        w = np.sqrt(L**2 - u**2)
+        wd = -u * ud / w
+        wdd = -(ud**2 + u * udd + wd**2) / w
+        yi = y + w
+        z_dd[2 + i] = ydd + wdd
+        Phi_z[i, 0] = 2 * u
+        Phi_z[i, 1] = 2 * (y - yi)
+        Phi_z[i, 2 + i] = -2 * (y - yi)
+    B = np.zeros((4, 2))
+    B[2, 0] = B[3, 1] = 1.0
+    sol = np.linalg.solve(np.concatenate([Phi_z.T, B], axis=1), Mz @ z_dd)
+    return sol[2:]
+
+
+def test_pkm2_closure_and_inverse_dynamics():
+    robot = robots.get("pkm2")
+    rng = np.random.default_rng(6)
+    for _ in range(5):
+        q, qd, qdd = sample_state(robot, rng)
+        y_a = robot.actuated_coordinates(q)
+        assert np.abs(np.asarray(robot.closure_residual(q, y_a))).max() < 1e-12
+        A, B = (np.asarray(x) for x in robot.leg_endpoints(q))
+        assert np.allclose(np.linalg.norm(B - A, axis=1), 1.9725, atol=1e-12)
+        assert np.all(A[:, 1] > q[1])  # branch: platform below sliders
+        tau = np.asarray(robot.inverse_dynamics(q, qd, qdd))
+        ref = pkm2_lagrange_multiplier_forces(q, qd, qdd, 200.0, 100.0, 570.5, 1.203, 0.075, 1.9725)
+        assert rel_err(tau, ref) < 1e-10
+        # virtual work: slider power equals generalised power
+        Q = np.asarray(robot.generalized_forces(q, qd, qdd))
+        y_ad = np.asarray(robot.actuator_jacobian(q)) @ qd
+        assert abs(tau @ y_ad - Q @ qd) < 1e-10 * np.abs(tau).max() * np.abs(y_ad).max()
+
+
+def test_pkm2_singularities():
+    robot = robots.get("pkm2")
+    # inside the workspace: no singularity
+    s = robot.singularities(jnp.array([0.3, -1.2]))
+    assert float(s.type1) > 0.1 and abs(float(s.type2)) > 0.1 and float(s.type3) > 0.1
+    # type 1 at |x| = L - (R - r): left leg horizontal
+    x1 = 1.9725 - (1.203 - 0.075)
+    s = robot.singularities(jnp.array([x1 - 1e-9, -1.2]))
+    assert abs(float(s.type1)) < 1e-3 and abs(float(s.type2)) > 0.1
+    assert float(robot.manipulability(jnp.array([x1 - 1e-9, -1.2]))) < 1e-3
+    assert np.all(np.asarray(robot.path_constraints(jnp.array([0.0, -1.2]))) < 0)
+
+
+# ----- parallel3 ----------------------------------------------------------------------
+def parallel3_leg_joints(q, base, L):
+    """Leg joint angles (theta_i, psi_i) (3, 2) by circle intersection, elbow
+    counter-clockwise of the base-to-C line; psi is the relative elbow angle."""
+    d = q[None, :] - base
+    rho = jnp.linalg.norm(d, axis=1)
+    perp = jnp.stack([-d[:, 1], d[:, 0]], axis=1) / rho[:, None]
+    E = base + d / 2 + jnp.sqrt(L**2 - rho**2 / 4)[:, None] * perp
+    theta = jnp.arctan2(E[:, 1] - base[:, 1], E[:, 0] - base[:, 0])
+    phi = jnp.arctan2(q[1] - E[:, 1], q[0] - E[:, 0])
+    return jnp.stack([theta, phi - theta], axis=1), E
+
+
+def test_parallel3_closure_and_inverse_dynamics():
+    pytest.importorskip("pinocchio")
+    robot = robots.get("parallel3")
+    base, L = np.asarray(robot.base), 0.6
+    model, data, _ = pinocchio_planar((L, L), (10.0, 10.0), (0.1, 0.1), com=(0.3, 0.3))
+    legs = lambda q: parallel3_leg_joints(q, jnp.asarray(base), L)[0]  # noqa: E731
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        q, qd, qdd = (jnp.asarray(x) for x in sample_state(robot, rng))
+        joints, E = parallel3_leg_joints(q, jnp.asarray(base), L)
+        assert np.abs(np.asarray(robot.elbows(q)) - np.asarray(E)).max() < 1e-12
+        theta = robot.actuated_coordinates(q)
+        assert np.abs(np.asarray(robot.closure_residual(q, theta))).max() < 1e-12
+        # leg joint rates and accelerations by differentiating the independent leg IK
+        _, jd = jax.jvp(legs, (q,), (qd,))
+        Jq = jax.jacfwd(legs)(q)  # (3, 2, 2)
+        jdd = jnp.einsum("ijk,k->ij", Jq, qdd) + jax.jvp(lambda x: jnp.einsum("ijk,k->ij", jax.jacfwd(legs)(x), qd), (q,), (qd,))[1]
+        Q_ref = sum(np.asarray(Jq[i]).T @ pin_rnea(model, data, joints[i], jd[i], jdd[i]) for i in range(3))
+        Q = np.asarray(robot.generalized_forces(q, qd, qdd))
+        assert rel_err(Q, Q_ref) < 1e-10
+        Ja = np.asarray(Jq[:, 0, :])  # d theta / dq
+        tau_ref = Ja @ np.linalg.solve(Ja.T @ Ja, Q_ref)
+        tau = np.asarray(robot.inverse_dynamics(q, qd, qdd))
+        assert rel_err(tau, tau_ref) < 1e-10
+        assert abs(tau @ (Ja @ np.asarray(qd)) - Q @ np.asarray(qd)) < 1e-10 * np.abs(tau).max()
+
+
+# ----- wmr ----------------------------------------------------------------------------
+def test_wmr_reduced_equations():
+    robot = robots.get("wmr")
+    m, I, rw, b, Jw = 50.0, 2.5, 0.1, 0.25, 0.005
+    rng = np.random.default_rng(8)
+    for _ in range(5):
+        th, v, w = rng.uniform(-np.pi, np.pi), rng.uniform(-1, 1), rng.uniform(-1, 1)
+        q = jnp.array([5.0, 6.0, th])
+        qd = jnp.array([v * np.cos(th), v * np.sin(th), w])
+        tau = jnp.asarray(rng.uniform(-1, 1, 2))
+        vd = (tau[0] + tau[1]) / rw / (m + 2 * Jw / rw**2)
+        wd = b * (tau[0] - tau[1]) / rw / (I + 2 * Jw * b**2 / rw**2)
+        ref = np.array([vd * np.cos(th) - v * w * np.sin(th), vd * np.sin(th) + v * w * np.cos(th), wd])
+        qdd = robot.forward_dynamics(q, qd, tau)
+        assert rel_err(qdd, ref) < 1e-12
+        assert rel_err(robot.inverse_dynamics(q, qd, qdd), tau) < 1e-12
+        assert abs(float(robot.path_equalities(q, qd)[0])) < 1e-15
+    assert np.all(np.asarray(robot.path_constraints(jnp.array([8.0, 8.5, 0.0]))) [0] > 0)  # inside an obstacle
+
+
+# ----- bad input ----------------------------------------------------------------------
+@pytest.mark.parametrize("name, overrides, word", [
+    ("serial3", {"masses": (10.0, -8.0, 4.0)}, "masses"),
+    ("serial3", {"lengths": (1.0, 0.0, 0.45)}, "lengths"),
+    ("serial3", {"masses": (10.0, 8.0)}, "masses"),
+    ("serial3", {"masses": (10.0, np.nan, 4.0)}, "masses"),
+    ("serial3", {"inertias": (np.inf, 1.0, 1.0)}, "inertias"),
+    ("pkm2", {"L": -1.0}, "L"),
+    ("pkm2", {"platform_mass": 0.0}, "platform_mass"),
+    ("pkm2", {"tau_max": (550.0, 700.0, 1.0)}, "tau_max"),
+    ("parallel3", {"link_length": 0.0}, "link_length"),
+    ("parallel3", {"base": np.zeros((2, 2))}, "base"),
+    ("parallel3", {"tau_max": (25.0, 25.0)}, "tau_max"),
+    ("wmr", {"mass": -50.0}, "mass"),
+    ("wmr", {"wheel_radius": np.nan}, "wheel_radius"),
+    ("serial3", {"no_such_param": 1.0}, "no_such_param"),
+    ("pkm2", {"masses": (1.0, 2.0)}, "masses"),
+])
+def test_bad_overrides(name, overrides, word):
+    with pytest.raises(ValueError, match=word):
+        robots.get(name, **overrides)
+
+
+def test_bad_names_and_shapes():
+    with pytest.raises(ValueError, match="robot"):
+        robots.get("no_such_robot")
+    with pytest.raises(ValueError, match="lengths"):
+        serial_planar((1.0, -1.0), (1.0, 1.0), (0.1, 0.1))
+    with pytest.raises(ValueError, match="masses"):
+        serial_planar((1.0, 1.0), (1.0,), (0.1, 0.1))
+    robot = robots.get("pkm2")
+    with pytest.raises(ValueError, match="q"):
+        robot.check_q([0.1, 0.2, 0.3])
+    with pytest.raises(ValueError, match="q"):
+        robot.check_q([0.1, np.nan])
+
+
+def test_overrides_apply():
+    r = robots.get("pkm2", platform_mass=300.0, tau_max=(600.0, 700.0))
+    assert float(r.platform_mass) == 300.0 and np.allclose(r.limits.tau_max, (600.0, 700.0))
+    M0 = robots.get("pkm2").mass_matrix(jnp.array([0.0, -1.2]))
+    M1 = r.mass_matrix(jnp.array([0.0, -1.2]))
+    assert np.allclose(np.asarray(M1 - M0), 100.0 * np.eye(2))
+    p3 = robots.get("parallel3", tau_max=30.0)
+    assert p3.limits.tau_max.shape == (3,)
+    assert "platform_mass" in robots.parameter_names("pkm2")
+    for name in catalogue():
+        r = robots.get(name)
+        lim = r.limits
+        assert lim.tau_max is not None and lim.tau_max.shape == (r.n_actuators,)
+        assert 0 < lim.h_min < lim.h_max
