@@ -1,0 +1,103 @@
+"""Generate, inspect and plot datasets of optimal trajectories.
+
+  jtraj dataset [build] --robot serial3 --pairs 10000 --seed 0 --out runs/s3 [--N 20]
+                [--weights time=1,energy=0.1] [--space joint|task] [--batch 64] [--ray auto]
+  jtraj dataset info PATH
+  jtraj dataset plot PATH [--out overview.png]
+
+build: samples start/goal pairs deterministically from the seed (joint space:
+q_start ~ U(-1.2, 1.2)^n intersected with the joint box, q_goal = q_start +
+U(-0.8, 0.8)^n clipped into the joint box, |q_goal - q_start| >= 0.05; task space:
+uniform over the reachable workspace through inverse kinematics), solves them with
+jtraj.solve_batch in chunks of --batch pairs and writes every finished chunk atomically
+into the directory store PATH (manifest.json + chunks/chunk-XXXXXX.h5). Every pair is
+kept with its status; failures are flagged, not dropped. Re-running the same command
+resumes an interrupted run (a kill loses at most the chunk in flight); other parameters
+into an existing dataset are refused. --ray auto|HOST:PORT|local[:K] distributes the
+chunks over a Ray cluster with identical results.
+"""
+
+import argparse
+
+HELP = "build (resumable, optionally on Ray), summarise or plot a dataset of optimal trajectories"
+
+ACTIONS = ("build", "info", "plot")
+
+
+def configure(parser):
+    parser.add_argument("action", nargs="*", metavar="[build | info PATH | plot PATH]",
+                        help="what to do (default build)")
+    parser.add_argument("--robot", help="robot name (see 'jtraj robots')")
+    parser.add_argument("--pairs", type=int, help="number of start/goal pairs P >= 1")
+    parser.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
+    parser.add_argument("--out", help="build: dataset directory; plot: image file (default <PATH>-overview.png)")
+    parser.add_argument("--N", type=int, default=20, help="samples per trajectory (default 20)")
+    parser.add_argument("--weights", default="time=1,energy=0.1", help="cost weights (default time=1,energy=0.1)")
+    parser.add_argument("--space", choices=("joint", "task"), default="joint", help="sampling space (default joint)")
+    parser.add_argument("--batch", type=int, default=None,
+                        help="pairs per chunk = solve_batch size (default 64; part of the dataset's identity)")
+    parser.add_argument("--ray", metavar="ADDRESS", default=None,
+                        help="distribute over Ray: auto, HOST:PORT, ray://HOST:PORT, or local[:K] (start one here)")
+    parser.add_argument("--start-range", type=float, default=1.2, help="joint-space start range +-a (default 1.2)")
+    parser.add_argument("--step-range", type=float, default=0.8, help="joint-space step range +-b (default 0.8)")
+    parser.add_argument("--min-separation", type=float, default=0.05,
+                        help="minimum |goal - start| (rad in joint space, task units in task space; default 0.05)")
+    parser.add_argument("--ik-method", default="weighted", help="IK method for --space task (default weighted)")
+    parser.add_argument("--max-iter", type=int, default=None, help="solver iteration limit (SolverOptions.max_iter)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--solver", default="jtraj:solve_batch", help=argparse.SUPPRESS)  # tests: module:function
+
+
+def _action(args):
+    act = list(args.action)
+    if not act:
+        return "build", None
+    if act[0] not in ACTIONS:
+        raise ValueError(f"unknown action {act[0]!r}; use build, info PATH or plot PATH")
+    if act[0] == "build":
+        if len(act) > 1:
+            raise ValueError(f"build takes options only, got extra arguments {act[1:]}")
+        return "build", None
+    if len(act) != 2:
+        raise ValueError(f"usage: jtraj dataset {act[0]} PATH")
+    return act[0], act[1]
+
+
+def run(args) -> int:
+    import os
+    import sys
+
+    action, path = _action(args)
+    if action == "info":
+        from jtraj.dataset import summary
+
+        print(summary(path))
+        return 0
+    if action == "plot":
+        from jtraj.dataset.plot import plot
+
+        out = args.out or (os.path.abspath(path).rstrip(os.sep) + "-overview.png")
+        plot(path, out)
+        print(f"wrote {out}")
+        return 0
+
+    missing = [f"--{k}" for k in ("robot", "pairs", "out") if getattr(args, k) is None]
+    if missing:
+        raise ValueError(f"build needs {', '.join(missing)}")
+    from jtraj import dataset
+    from jtraj.dataset.build import DEFAULT_BATCH
+
+    options = {} if args.max_iter is None else {"max_iter": args.max_iter}
+    spec = dataset.make_spec(args.robot, args.pairs, args.seed, N=args.N, weights=args.weights,
+                             batch=DEFAULT_BATCH if args.batch is None else args.batch, space=args.space,
+                             start_range=args.start_range, step_range=args.step_range,
+                             min_separation=args.min_separation, ik_method=args.ik_method, options=options,
+                             solver=args.solver)
+    stats = dataset.build(spec, args.out, ray=args.ray, progress=not args.no_progress)
+    P = stats["pairs_done"]
+    rate = stats["pairs_per_s"]
+    print(f"{args.out}: {P}/{spec.pairs} pairs, converged {stats['converged']} "
+          f"({100 * stats['converged'] / max(P, 1):.1f} %); {stats['new_pairs']} new pairs in "
+          f"{stats['seconds']:.1f} s" + (f" ({rate:.2f} pairs/s)" if stats["new_pairs"] else ""),
+          file=sys.stdout)
+    return 0 if stats["complete"] else 1

@@ -1,0 +1,354 @@
+"""Building a dataset: validate, then solve chunk after chunk (locally or on Ray), streaming
+each finished chunk to the store.
+
+A run is described by a :class:`Spec` (plain, picklable values). Chunk ``c`` holds pairs
+``[c B, min((c+1) B, P))``; it is a pure function of the spec and ``c``
+(:func:`compute_chunk`): pairs from :func:`jtraj.dataset.sampling.sample_pairs`, solved
+by one call of ``solve_batch`` on a batch padded to ``B`` rows (the last pair repeated;
+padding rows are dropped) so that every chunk runs the same compiled program. That is
+why a resumed or Ray-distributed run equals an uninterrupted single-process one.
+
+Memory is bounded by the chunks in flight (one locally, ``2 x workers`` with Ray), never
+by the number of pairs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import importlib
+import math
+import os
+import platform
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import sampling, store
+
+DEFAULT_SOLVER = "jtraj:solve_batch"
+DEFAULT_BATCH = 64
+DEFAULT_WEIGHTS = "time=1,energy=0.1"
+
+
+def _plain(x):
+    """JSON-able form of a robot/limits/options tree."""
+    import equinox as eqx
+
+    if x is None or isinstance(x, (bool, str)):
+        return x
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x)
+    if isinstance(x, eqx.Module) or dataclasses.is_dataclass(x):
+        return {f.name: _plain(getattr(x, f.name)) for f in dataclasses.fields(x)}
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    try:
+        return np.asarray(x).tolist()
+    except Exception:  # noqa: BLE001
+        return repr(x)
+
+
+@dataclass(frozen=True)
+class Spec:
+    """Everything that determines a dataset's values (its *identity*)."""
+
+    robot: str
+    pairs: int
+    seed: int
+    N: int = 20
+    weights: str = DEFAULT_WEIGHTS
+    batch: int = DEFAULT_BATCH
+    distribution: sampling.Distribution = field(default_factory=sampling.Distribution)
+    options: tuple = ()  # (name, value) overrides of SolverOptions
+    solver: str = DEFAULT_SOLVER
+
+    @property
+    def n_chunks(self) -> int:
+        return math.ceil(self.pairs / self.batch)
+
+    def chunk_range(self, c: int) -> tuple[int, int]:
+        return c * self.batch, min((c + 1) * self.batch, self.pairs)
+
+    # cached per process (a Ray worker reuses them across chunks)
+    def robot_model(self):
+        return _cached(("robot", self.robot), lambda: _robots().get(self.robot))
+
+    def weights_obj(self):
+        import jtraj
+
+        return jtraj.Weights.parse(self.weights)
+
+    def options_obj(self):
+        import jtraj
+
+        return jtraj.SolverOptions(**dict(self.options))
+
+    def solve_fn(self):
+        return _cached(("solver", self.solver), lambda: resolve_solver(self.solver))
+
+    def identity(self) -> dict:
+        robot = self.robot_model()
+        w = self.weights_obj()
+        return {
+            "robot": self.robot,
+            "robot_model": _plain(robot),
+            "pairs": self.pairs,
+            "seed": self.seed,
+            "N": self.N,
+            "weights": {k: _plain(getattr(w, k)) for k in ("time", "energy", "kinetic", "singularity", "U", "Q")},
+            "batch": self.batch,
+            "distribution": self.distribution.describe(),
+            "solver": self.solver,
+            "solver_options": _plain(self.options_obj()),
+        }
+
+
+_CACHE: dict = {}
+
+
+def _cached(key, make):
+    if key not in _CACHE:
+        _CACHE[key] = make()
+    return _CACHE[key]
+
+
+def _robots():
+    from jtraj import robots
+
+    return robots
+
+
+def resolve_solver(name: str):
+    """``"module:function"`` -> the function (``jtraj:solve_batch`` by default)."""
+    mod, sep, attr = name.partition(":")
+    if not sep:
+        raise ValueError(f"solver must look like 'module:function', got {name!r}")
+    try:
+        return getattr(importlib.import_module(mod), attr)
+    except (ImportError, AttributeError) as err:
+        raise ValueError(f"cannot load solver {name!r}: {err}") from None
+
+
+# fields written per pair (besides cost_<term> and violation_<family>)
+FIELDS = ("index", "q_start", "q_goal", "converged", "status", "q", "qd", "v", "tau", "h", "T", "cost",
+          "energy", "max_violation", "iterations", "outer_iterations")
+
+
+def _get(sol, name):
+    return sol[name] if isinstance(sol, dict) else getattr(sol, name)
+
+
+def compute_chunk(spec: Spec, c: int) -> dict:
+    """Sample and solve chunk ``c`` of ``spec``; numpy arrays for pairs of the chunk only."""
+    start, stop = spec.chunk_range(c)
+    robot = spec.robot_model()
+    qs, qg = sampling.sample_pairs(robot, spec.distribution, spec.seed, start, stop)
+    count = stop - start
+    pad = spec.batch - count
+    qs_p = np.concatenate([qs, np.repeat(qs[-1:], pad, 0)]) if pad else qs
+    qg_p = np.concatenate([qg, np.repeat(qg[-1:], pad, 0)]) if pad else qg
+    sol = spec.solve_fn()(robot, qs_p, qg_p, N=spec.N, weights=spec.weights_obj(), options=spec.options_obj())
+    import jax
+
+    sol = jax.device_get(sol)
+
+    def take(x, dtype=None):
+        x = np.asarray(x)[:count]
+        return x.astype(dtype) if dtype else x
+
+    out = {"index": np.arange(start, stop, dtype=np.int64), "q_start": qs, "q_goal": qg}
+    for k in ("q", "qd", "v", "tau", "h", "T", "cost", "energy"):
+        out[k] = take(_get(sol, k), np.float64)
+    out["converged"] = take(_get(sol, "converged"), bool)
+    out["status"] = take(_get(sol, "status"), np.int32)
+    out["iterations"] = take(_get(sol, "iterations"), np.int32)
+    try:
+        out["outer_iterations"] = take(_get(sol, "outer_iterations"), np.int32)
+    except (AttributeError, KeyError):
+        out["outer_iterations"] = np.zeros(count, np.int32)
+    viol = _get(sol, "max_violation")
+    out["max_violation"] = take(viol["overall"] if isinstance(viol, dict) else viol, np.float64)
+    if isinstance(viol, dict):
+        for k, v in viol.items():
+            if k != "overall":
+                out[f"violation_{k}"] = take(v, np.float64)
+    try:
+        terms = _get(sol, "cost_terms")
+    except (AttributeError, KeyError):
+        terms = {}
+    for k, v in (terms or {}).items():
+        out[f"cost_{k}"] = take(v, np.float64)
+    return out
+
+
+def _versions() -> dict:
+    import jax
+
+    import jtraj
+
+    v = {"jtraj": jtraj.__version__, "jax": jax.__version__, "numpy": np.__version__,
+         "python": platform.python_version(), "platform": platform.platform(), "machine": platform.machine()}
+    try:
+        import jaxlib
+
+        v["jaxlib"] = jaxlib.__version__
+    except ImportError:  # pragma: no cover
+        pass
+    try:
+        import h5py
+
+        v["h5py"] = h5py.__version__
+    except ImportError:  # pragma: no cover
+        pass
+    return v
+
+
+def make_spec(robot: str, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=DEFAULT_BATCH, space="joint",
+              start_range=1.2, step_range=0.8, min_separation=0.05, ik_method="weighted", options=None,
+              solver=DEFAULT_SOLVER) -> Spec:
+    """Validated :class:`Spec` (raises ``ValueError`` naming the bad argument; no compute)."""
+    from jtraj import robots
+
+    if not isinstance(robot, str) or robot not in robots.names():
+        raise ValueError(f"unknown robot {robot!r}; choose one of {robots.names()}")
+
+    def integer(x, name, lo):
+        if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < lo:
+            raise ValueError(f"{name} must be an integer >= {lo}, got {x!r}")
+        return int(x)
+
+    pairs = integer(pairs, "pairs", 1)
+    seed = integer(seed, "seed", 0)
+    N = integer(N, "N", 2)
+    batch = integer(batch, "batch", 1)
+    batch = min(batch, pairs)  # never pad a small run up to a large batch
+    if not isinstance(weights, str):
+        raise ValueError("weights must be text like 'time=1,energy=0.1'")
+    import jtraj
+
+    jtraj.Weights.parse(weights)  # validates
+    dist = sampling.Distribution(space=space, start_range=float(start_range), step_range=float(step_range),
+                                 min_separation=float(min_separation), ik_method=ik_method)
+    opts = tuple(sorted((options or {}).items()))
+    jtraj.SolverOptions(**dict(opts))  # validates
+    resolve_solver(solver)
+    spec = Spec(robot=robot, pairs=pairs, seed=seed, N=N, weights=weights, batch=batch, distribution=dist,
+                options=opts, solver=solver)
+    sampling.check(spec.robot_model(), dist)
+    return spec
+
+
+def metadata(spec: Spec) -> dict:
+    robot = spec.robot_model()
+    d = {
+        "robot": spec.robot,
+        "n": robot.n,
+        "limits": _plain(robot.limits),
+        "pairs": spec.pairs,
+        "N": spec.N,
+        "seed": spec.seed,
+        "batch": spec.batch,
+        "chunks": spec.n_chunks,
+        "weights_text": spec.weights,
+        "sampling": spec.distribution.describe(),
+        "versions": _versions(),
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": " ".join(sys.argv),
+        "fields": {
+            "index": "(P,) pair index", "q_start": "(P, n) rad", "q_goal": "(P, n) rad",
+            "converged": "(P,) strict convergence (status == 0)", "status": "(P,) jtraj.Status code",
+            "q": "(P, N+1, n)", "qd": "(P, N+1, n)", "v": "(P, N, n) accelerations", "tau": "(P, N, m) efforts",
+            "h": "(P, N) periods [s]", "T": "(P,) total time [s]", "cost": "(P,)", "energy": "(P,)",
+            "max_violation": "(P,) overall (relative boxes, absolute goal)", "iterations": "(P,) Newton",
+            "outer_iterations": "(P,)", "cost_<term>": "(P,) weighted cost terms",
+            "violation_<family>": "(P,) per constraint family",
+        },
+    }
+    return d
+
+
+def _check_ray(address):
+    from . import _ray
+
+    return _ray.connect(address)
+
+
+def build(spec: Spec, out: str, *, ray: str | None = None, progress: bool = True, max_chunks: int | None = None,
+          log=None) -> dict:
+    """Build (or resume) the dataset ``spec`` at ``out``. Returns a summary dict.
+
+    ``ray``: ``None`` (this process), ``"auto"``, ``"local"``/``"local:K"`` (start a
+    local Ray instance with K CPUs) or a cluster address ``host:port``/``ray://host:port``.
+    ``max_chunks`` stops after that many new chunks (tests).
+    """
+    log = log or (lambda s: print(s, file=sys.stderr))
+    ident = spec.identity()
+    store.inspect(out, ident)  # read-only checks first
+    backend = _check_ray(ray) if ray else None  # then the cluster; both before any compute
+    writer = store.Writer(out, ident, metadata(spec))
+    try:
+        done = set(writer.finished(spec.n_chunks))
+        todo = [c for c in range(spec.n_chunks) if c not in done]
+        if max_chunks is not None:
+            todo = todo[:max_chunks]
+        pairs_done = sum(spec.chunk_range(c)[1] - spec.chunk_range(c)[0] for c in done)
+        conv_done = 0
+        for c in sorted(done):
+            conv_done += int(np.sum(store.read_chunk(writer.path, c, ["converged"])["converged"]))
+        if writer.resumed:
+            log(f"jtraj dataset: resuming {out}: {len(done)}/{spec.n_chunks} chunks already done")
+        stats = {"pairs_done": pairs_done, "converged": conv_done, "new_pairs": 0}
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=spec.pairs, initial=pairs_done, unit="pair", desc="dataset", dynamic_ncols=True,
+                       smoothing=0.1, file=sys.stderr)
+            bar.set_postfix_str(_postfix(stats))
+        t0 = time.perf_counter()
+
+        def finish(c, arrays):
+            start, stop = spec.chunk_range(c)
+            writer.write_chunk(c, start, arrays)
+            k = stop - start
+            stats["pairs_done"] += k
+            stats["new_pairs"] += k
+            stats["converged"] += int(np.sum(arrays["converged"]))
+            if bar is not None:
+                bar.update(k)
+                bar.set_postfix_str(_postfix(stats))
+
+        if todo:
+            if backend is None:
+                for c in todo:
+                    finish(c, compute_chunk(spec, c))
+            else:
+                backend.run(spec, todo, finish)
+        wall = time.perf_counter() - t0
+        if bar is not None:
+            bar.close()
+        stats["seconds"] = wall
+        stats["complete"] = len(writer.finished(spec.n_chunks)) == spec.n_chunks
+        stats["pairs_per_s"] = stats["new_pairs"] / wall if wall > 0 and stats["new_pairs"] else float("nan")
+        return stats
+    finally:
+        writer.close()
+        if backend is not None:
+            backend.close()
+
+
+def _postfix(stats):
+    n = stats["pairs_done"]
+    pct = 100.0 * stats["converged"] / n if n else float("nan")
+    return f"converged {pct:.1f}%"
+
+
+def default_processes() -> int:
+    return os.cpu_count() or 1

@@ -1,0 +1,76 @@
+"""Overview figure of a dataset: workspace coverage and histograms of T, energy and status."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def plot(path: str, out: str) -> str:
+    """Draw the overview of the dataset at ``path`` into the image file ``out``; returns ``out``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jtraj.solver import Status
+
+    from . import load
+    from .views import _task, robot_of
+
+    data = load(path, partial=True)
+    md = data.metadata
+    fig, ax = plt.subplots(2, 2, figsize=(10, 8))
+    fig.suptitle(f"{md['robot']}: {data.pairs if data.chunks else 0}/{md['pairs']} pairs, N = {md['N']}, "
+                 f"weights {md['weights_text']}, seed {md['seed']}")
+    if not data.chunks:
+        for a in ax.flat:
+            a.text(0.5, 0.5, "no finished chunk yet", ha="center")
+        fig.savefig(out, dpi=110)
+        plt.close(fig)
+        return out
+    conv = data["converged"]
+    robot = robot_of(data)
+    q = data["q"]
+    # workspace coverage: task points of all trajectory samples, start/goal points on top
+    p = _task(robot, q.reshape(-1, q.shape[-1]), np.zeros((q.shape[0] * q.shape[1], q.shape[-1])))[0]
+    p0 = _task(robot, data["q_start"], np.zeros_like(data["q_start"]))[0]
+    p1 = _task(robot, data["q_goal"], np.zeros_like(data["q_goal"]))[0]
+    a = ax[0, 0]
+    if p.shape[1] >= 2:
+        a.hist2d(p[:, 0], p[:, 1], bins=60, cmap="Greys", cmin=1)
+        a.scatter(p0[:, 0], p0[:, 1], s=4, c="tab:blue", label="start")
+        a.scatter(p1[:, 0], p1[:, 1], s=4, c="tab:orange", label="goal")
+        bad = ~conv
+        if bad.any():
+            a.scatter(p0[bad, 0], p0[bad, 1], s=12, marker="x", c="tab:red", label="not converged (start)")
+        a.set_xlabel("x [m]")
+        a.set_ylabel("y [m]")
+        a.set_aspect("equal", adjustable="datalim")
+        a.legend(fontsize=7, loc="upper right")
+    else:
+        a.hist(p[:, 0], bins=60)
+        a.set_xlabel("task coordinate")
+    a.set_title("workspace coverage (trajectory samples)")
+    for a, key, label in ((ax[0, 1], "T", "T [s]"), (ax[1, 0], "energy", "energy (sum h tau^T U1 tau)")):
+        x = data[key]
+        ok = np.isfinite(x)
+        a.hist([x[ok & conv], x[ok & ~conv]], bins=40, stacked=True, label=["converged", "not converged"],
+               color=["tab:green", "tab:red"])
+        a.set_xlabel(label)
+        a.set_ylabel("pairs")
+        a.legend(fontsize=7)
+    a = ax[1, 1]
+    codes, counts = np.unique(data["status"], return_counts=True)
+    names = []
+    for c in codes:
+        try:
+            names.append(f"{int(c)} {Status(int(c)).name.lower()}")
+        except ValueError:
+            names.append(str(int(c)))
+    a.barh(names, counts, color=["tab:green" if c == 0 else "tab:red" for c in codes])
+    a.set_xlabel("pairs")
+    a.set_title(f"status (converged {100 * conv.mean():.1f} %)")
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out

@@ -1,0 +1,274 @@
+"""On-disk layout of a dataset: a directory of independent, atomically written HDF5 chunks.
+
+::
+
+    PATH/
+      manifest.json          written first (atomically): format, identity, metadata
+      .lock                  advisory lock (fcntl) held by the process building the dataset
+      chunks/
+        chunk-000000.h5      pairs [0, B)          one self-describing HDF5 file per chunk
+        chunk-000001.h5      pairs [B, 2B)
+        ...
+        chunk-000007.h5.tmp-<pid>   a chunk being written (ignored; removed on resume)
+
+Durability. A chunk is written to ``chunk-XXXXXX.h5.tmp-<pid>``, flushed, ``fsync``-ed
+and only then renamed to its final name with :func:`os.replace` (atomic on POSIX); the
+directory is ``fsync``-ed after the rename. A ``kill -9`` at any moment therefore
+leaves either no file for a chunk or a complete one; finished chunks are never opened for
+writing again. HDF5 datasets carry Fletcher-32 checksums, so a file damaged later (disk
+fault) is detected on read. Each chunk file repeats the dataset's identity hash and its
+pair range in its attributes, so it cannot be mixed into another dataset.
+
+Resuming. The manifest's ``identity`` holds every parameter that determines the values
+(robot and its parameters, N, weights, solver settings, seed, pairs, batch, sampling
+distribution, solver function). A second run into the same path with an identical
+identity computes only the missing chunks; any difference is refused with a message
+naming the differing parameters.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import re
+from typing import Iterator
+
+import numpy as np
+
+FORMAT = "jtraj-dataset"
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+LOCK = ".lock"
+CHUNKS = "chunks"
+_CHUNK_RE = re.compile(r"^chunk-(\d{6})\.h5$")
+_TMP_RE = re.compile(r"^chunk-(\d{6})\.h5\.tmp-\d+$")
+
+
+def identity_hash(identity: dict) -> str:
+    text = json.dumps(identity, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def chunk_name(c: int) -> str:
+    return f"chunk-{c:06d}.h5"
+
+
+def _fsync_dir(path: str) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _write_atomic(path: str, data: bytes) -> None:
+    tmp = f"{path}.tmp-{os.getpid()}"
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    _fsync_dir(os.path.dirname(os.path.abspath(path)))
+
+
+def read_manifest(path: str) -> dict:
+    try:
+        with open(os.path.join(path, MANIFEST)) as f:
+            man = json.load(f)
+    except FileNotFoundError:
+        raise ValueError(f"{path!r} is not a jtraj dataset (no {MANIFEST})") from None
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path!r}: unreadable {MANIFEST} ({err})") from None
+    if not isinstance(man, dict) or man.get("format") != FORMAT:
+        raise ValueError(f"{path!r} is not a jtraj dataset ({MANIFEST} of another format)")
+    if man.get("format_version") != FORMAT_VERSION:
+        raise ValueError(f"{path!r}: dataset format version {man.get('format_version')} is not supported "
+                         f"(this jtraj reads version {FORMAT_VERSION})")
+    return man
+
+
+def _describe_diff(old: dict, new: dict, prefix: str = "") -> list[str]:
+    out = []
+    for k in sorted(set(old) | set(new)):
+        a, b = old.get(k, "<absent>"), new.get(k, "<absent>")
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _describe_diff(a, b, f"{prefix}{k}.")
+        elif a != b:
+            sa, sb = json.dumps(a), json.dumps(b)
+            if len(sa) > 60:
+                sa = sa[:57] + "..."
+            if len(sb) > 60:
+                sb = sb[:57] + "..."
+            out.append(f"{prefix}{k}: {sa} in the dataset, {sb} requested")
+    return out
+
+
+def inspect(path: str, identity: dict) -> bool:
+    """Read-only check of ``path`` for a run with ``identity``: True when it holds the same
+    dataset (resume), False when it is absent or empty; ``ValueError`` otherwise."""
+    apath = os.path.abspath(path)
+    ident_hash = identity_hash(identity)
+    resumed = False
+    if os.path.lexists(apath):
+        if not os.path.isdir(apath):
+            raise ValueError(f"{path!r} exists and is not a directory; refusing to overwrite it "
+                             f"(choose a new --out)")
+        if os.path.exists(os.path.join(apath, MANIFEST)):
+            man = read_manifest(apath)
+            if man.get("identity_hash") != ident_hash:
+                diff = _describe_diff(man.get("identity", {}), identity)
+                raise ValueError(
+                    f"{path!r} holds a dataset made with different parameters; refusing to resume "
+                    f"into it (" + "; ".join(diff[:6] or ["identity differs"]) + "). "
+                    "Use the original parameters to resume, or a new --out.")
+            resumed = True
+        else:
+            extra = [e for e in os.listdir(apath) if e not in (LOCK, CHUNKS)]
+            chunk_dir = os.path.join(apath, CHUNKS)
+            if os.path.isdir(chunk_dir) and os.listdir(chunk_dir):
+                extra.append(CHUNKS + "/...")
+            if extra:
+                raise ValueError(f"{path!r} is not empty and is not a jtraj dataset "
+                                 f"(contains {sorted(extra)[:5]}); refusing to write into it")
+    else:
+        parent = os.path.dirname(apath)
+        if not os.path.isdir(parent):
+            raise ValueError(f"cannot create {path!r}: the parent directory {parent!r} does not exist")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise ValueError(f"cannot create {path!r}: the parent directory {parent!r} is not writable")
+    if os.path.lexists(apath) and not os.access(apath, os.W_OK | os.X_OK):
+        raise ValueError(f"cannot write to {path!r}: permission denied")
+    return resumed
+
+
+class Writer:
+    """Creates or reopens the directory store at ``path`` for a run with ``identity``.
+
+    Checks everything before compute starts: an existing path must be either empty or a
+    dataset with the same identity; the path must be writable; no other process may be
+    building it (advisory lock). Nothing that exists is overwritten.
+    """
+
+    def __init__(self, path: str, identity: dict, metadata: dict):
+        self.path = os.path.abspath(path)
+        self.identity = identity
+        self.hash = identity_hash(identity)
+        self._lock_fd = None
+        self.resumed = inspect(path, identity)
+        try:
+            os.makedirs(self.path, exist_ok=True)
+            self._lock()
+            if not self.resumed:
+                man = {"format": FORMAT, "format_version": FORMAT_VERSION, "identity_hash": self.hash,
+                       "identity": identity, "metadata": metadata}
+                _write_atomic(os.path.join(self.path, MANIFEST),
+                              json.dumps(man, indent=1, sort_keys=True).encode())
+            os.makedirs(os.path.join(self.path, CHUNKS), exist_ok=True)
+            probe = os.path.join(self.path, CHUNKS, f".probe-{os.getpid()}")
+            with open(probe, "wb"):
+                pass
+            os.remove(probe)
+        except OSError as err:
+            self.close()
+            raise ValueError(f"cannot write to {path!r}: {err.strerror or err}") from None
+        self._clean_tmp()
+
+    def _lock(self):
+        import fcntl
+
+        fd = os.open(os.path.join(self.path, LOCK), os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise ValueError(f"{self.path!r} is being built by another process (locked); "
+                             f"wait for it or kill it first") from None
+        self._lock_fd = fd
+
+    def close(self):
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)  # releases the flock
+            self._lock_fd = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def _clean_tmp(self):
+        d = os.path.join(self.path, CHUNKS)
+        for e in os.listdir(d):
+            if _TMP_RE.match(e):  # a chunk that was in flight when a previous run died
+                with contextlib.suppress(OSError):
+                    os.remove(os.path.join(d, e))
+
+    def finished(self, n_chunks: int) -> list[int]:
+        """Indices of the chunks already on disk and valid (an invalid one is recomputed)."""
+        done = []
+        for c in finished_chunks(self.path):
+            if c < n_chunks and _chunk_ok(os.path.join(self.path, CHUNKS, chunk_name(c)), self.hash):
+                done.append(c)
+        return done
+
+    def write_chunk(self, c: int, start: int, arrays: dict) -> None:
+        """Write chunk ``c`` (pairs ``start .. start+len-1``) atomically."""
+        import h5py
+
+        final = os.path.join(self.path, CHUNKS, chunk_name(c))
+        tmp = f"{final}.tmp-{os.getpid()}"
+        count = len(arrays["status"])
+        with h5py.File(tmp, "w") as f:
+            f.attrs["format"] = FORMAT
+            f.attrs["identity_hash"] = self.hash
+            f.attrs["chunk"] = c
+            f.attrs["start"] = start
+            f.attrs["count"] = count
+            for k, v in arrays.items():
+                v = np.asarray(v)
+                f.create_dataset(k, data=v, fletcher32=v.size > 0, chunks=v.shape if v.size else None)
+            f.attrs["complete"] = True
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, final)
+        _fsync_dir(os.path.dirname(final))
+
+
+def finished_chunks(path: str) -> list[int]:
+    d = os.path.join(path, CHUNKS)
+    if not os.path.isdir(d):
+        return []
+    return sorted(int(m.group(1)) for m in map(_CHUNK_RE.match, os.listdir(d)) if m)
+
+
+def _chunk_ok(file: str, ident: str) -> bool:
+    import h5py
+
+    try:
+        with h5py.File(file, "r") as f:
+            return bool(f.attrs.get("complete")) and f.attrs.get("identity_hash") == ident
+    except OSError:
+        return False
+
+
+def read_chunk(path: str, c: int, keys=None, ident: str | None = None) -> dict:
+    """Arrays of chunk ``c`` (all fields, or ``keys``)."""
+    import h5py
+
+    file = os.path.join(path, CHUNKS, chunk_name(c))
+    with h5py.File(file, "r") as f:
+        if ident is not None and f.attrs.get("identity_hash") != ident:
+            raise ValueError(f"{file}: chunk belongs to another dataset")
+        names = list(f.keys()) if keys is None else keys
+        return {k: f[k][()] for k in names}
+
+
+def iter_chunk_files(path: str) -> Iterator[int]:
+    yield from finished_chunks(path)

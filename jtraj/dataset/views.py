@@ -1,0 +1,101 @@
+"""Learning views of a dataset: (inputs, targets, trajectory index) per sample.
+
+Each view returns a :class:`View` ``(X, Y, traj)``: one row per time sample, and
+``traj[i]`` the pair index of row ``i``'s trajectory, so that train/test splits can be
+made by trajectory (never splitting one trajectory across sets)::
+
+    X, Y, traj = views.nefotc(data)
+    test = np.isin(traj, rng.choice(np.unique(traj), 100, replace=False))
+
+Only converged trajectories are used unless ``converged_only=False``.
+
+* :func:`nefotc` (neuro-fuzzy optimal trajectory controller): ``X = (q_k, qd_k)``
+  (2n columns), ``Y = tau_k`` (m columns), k = 0..N-1.
+* :func:`nefumop` (neuro-fuzzy motion planner): ``X = (p_k, pd_k)`` with the task
+  point ``p = f(q)`` and its velocity ``pd = J(q) qd`` (for planar arms
+  ``(x, y, xd, yd)``), ``Y = (tau_k, h_k)``, k = 0..N-1.
+* :func:`nefik` (neuro-fuzzy inverse kinematics): ``X = p_k``, ``Y = q_k``, k = 0..N.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+
+class View(NamedTuple):
+    X: np.ndarray
+    Y: np.ndarray
+    traj: np.ndarray
+
+
+def _select(data, converged_only):
+    conv = np.asarray(data["converged"], bool)
+    sel = conv if converged_only else np.ones_like(conv)
+    return sel, np.asarray(data["index"])[sel]
+
+
+def _rows(a):
+    """(P', K, c) -> (P' K, c)."""
+    a = np.asarray(a)
+    return a.reshape(a.shape[0] * a.shape[1], *a.shape[2:])
+
+
+def _traj(index, K):
+    return np.repeat(index, K)
+
+
+def robot_of(data):
+    """The robot a dataset was made with (by name; the stored model is checked)."""
+    from jtraj import robots
+
+    return robots.get(data["metadata"]["robot"])
+
+
+def nefotc(data, *, converged_only: bool = True) -> View:
+    """``(q, qd) -> tau`` per time sample k = 0..N-1."""
+    sel, idx = _select(data, converged_only)
+    q, qd, tau = data["q"][sel][:, :-1], data["qd"][sel][:, :-1], data["tau"][sel]
+    N = tau.shape[1]
+    X = np.concatenate([_rows(q), _rows(qd)], axis=1)
+    return View(X, _rows(tau), _traj(idx, N))
+
+
+def _task(robot, q, qd):
+    import jax
+
+    def one(q_, qd_):
+        p, pd = jax.jvp(robot.forward_kinematics, (q_,), (qd_,))
+        return p, pd
+
+    p, pd = jax.jit(jax.vmap(one))(q, qd)
+    return np.asarray(p), np.asarray(pd)
+
+
+def nefumop(data, *, converged_only: bool = True, robot=None) -> View:
+    """``(p, pd) -> (tau, h)`` per time sample k = 0..N-1 (``p = f(q)``, ``pd = J(q) qd``)."""
+    sel, idx = _select(data, converged_only)
+    robot = robot or robot_of(data)
+    tau, h = data["tau"][sel], data["h"][sel]
+    N = tau.shape[1]
+    q, qd = _rows(data["q"][sel][:, :-1]), _rows(data["qd"][sel][:, :-1])
+    if len(q) == 0:
+        d = 0
+        p = pd = np.zeros((0, d))
+    else:
+        p, pd = _task(robot, q, qd)
+    X = np.concatenate([p, pd], axis=1)
+    Y = np.concatenate([_rows(tau), _rows(h[..., None])], axis=1)
+    return View(X, Y, _traj(idx, N))
+
+
+def nefik(data, *, converged_only: bool = True, robot=None) -> View:
+    """``p -> q`` per time sample k = 0..N."""
+    sel, idx = _select(data, converged_only)
+    robot = robot or robot_of(data)
+    q = data["q"][sel]
+    K = q.shape[1]
+    qr = _rows(q)
+    p = _task(robot, qr, np.zeros_like(qr))[0] if len(qr) else np.zeros((0, 0))
+    return View(p, qr, _traj(idx, K))
