@@ -1,0 +1,319 @@
+"""jtraj.dataset: sampling, durable chunked store, resume (also after kill -9), Ray, views, CLI.
+
+Most tests inject the fast stand-in solver ``jtraj.dataset.testing:fake_solve_batch`` so
+that storage and resume logic are tested in seconds; ``test_real_solver_end_to_end``
+runs ``jtraj.solve_batch`` on 8 pairs.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from jtraj import dataset
+from jtraj.cli import main as cli_main
+from jtraj.dataset import sampling, store
+
+FAKE = "jtraj.dataset.testing:fake_solve_batch"
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def fake_spec(pairs=40, seed=3, batch=16, **kw):
+    return dataset.make_spec("serial3", pairs, seed, N=kw.pop("N", 6), batch=batch, solver=FAKE, **kw)
+
+
+def assert_same(a, b):
+    assert sorted(a.keys()) == sorted(b.keys())
+    for k in a:
+        if k == "metadata":
+            assert a[k]["identity"] == b[k]["identity"]
+            continue
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k, strict=True)
+
+
+# ----------------------------------------------------------------------------- sampling
+
+def test_sampling_is_a_function_of_seed_and_pair_index():
+    from jtraj import robots
+
+    r = robots.get("serial3")
+    d = sampling.Distribution()
+    qs, qg = sampling.sample_pairs(r, d, 7, 0, 150)
+    a = sampling.sample_pairs(r, d, 7, 0, 37)
+    b = sampling.sample_pairs(r, d, 7, 37, 150)
+    np.testing.assert_array_equal(np.concatenate([a[0], b[0]]), qs)
+    np.testing.assert_array_equal(np.concatenate([a[1], b[1]]), qg)
+    assert qs.shape == qg.shape == (150, 3)
+    assert np.all(np.abs(qs) <= 1.2) and np.all(np.abs(qg - qs) <= 0.8)
+    assert np.all(np.linalg.norm(qg - qs, axis=1) >= d.min_separation)
+    other = sampling.sample_pairs(r, d, 8, 0, 150)[0]
+    assert not np.allclose(other, qs)
+
+
+def test_sampling_clips_into_a_joint_box():
+    from jtraj import robots
+
+    r = robots.get("serial3", q_min=-0.5, q_max=(0.3, 0.4, 0.5))
+    qs, qg = sampling.sample_pairs(r, sampling.Distribution(), 0, 0, 200)
+    lo, hi = np.array([-0.5] * 3), np.array([0.3, 0.4, 0.5])
+    for q in (qs, qg):
+        assert np.all(q >= lo) and np.all(q <= hi)
+
+
+def test_task_space_sampling_reaches_its_points():
+    import jax
+
+    from jtraj import robots
+
+    r = robots.get("serial3")
+    qs, qg = sampling.sample_pairs(r, sampling.Distribution(space="task"), 1, 0, 10)
+    box = sampling.workspace_box(r)
+    for q in (qs, qg):
+        p = np.asarray(jax.vmap(r.forward_kinematics)(q))
+        assert np.all(p >= box[0] - 1e-9) and np.all(p <= box[1] + 1e-9)
+    p0 = np.asarray(jax.vmap(r.forward_kinematics)(qs))
+    p1 = np.asarray(jax.vmap(r.forward_kinematics)(qg))
+    assert np.all(np.linalg.norm(p1 - p0, axis=1) >= 0.05)
+
+
+# ----------------------------------------------------------------------------- build / load
+
+def test_build_load_keeps_every_pair_with_its_status(tmp_path):
+    spec = fake_spec(pairs=40, batch=16)
+    stats = dataset.build(spec, str(tmp_path / "d"), progress=False)
+    assert stats["complete"] and stats["pairs_done"] == 40
+    data = dataset.load(str(tmp_path / "d"))
+    P, N, n = 40, 6, 3
+    shapes = {"q_start": (P, n), "q_goal": (P, n), "converged": (P,), "status": (P,), "q": (P, N + 1, n),
+              "qd": (P, N + 1, n), "v": (P, N, n), "tau": (P, N, n), "h": (P, N), "T": (P,), "cost": (P,),
+              "max_violation": (P,), "iterations": (P,), "energy": (P,)}
+    for k, s in shapes.items():
+        assert data[k].shape == s, k
+    np.testing.assert_array_equal(data["index"], np.arange(P))
+    np.testing.assert_array_equal(data["converged"], data["status"] == 0)
+    assert 0 < data["converged"].sum() < P  # failures are kept, flagged
+    qs, qg = sampling.sample_pairs(spec.robot_model(), spec.distribution, spec.seed, 0, P)
+    np.testing.assert_array_equal(data["q_start"], qs)
+    md = data["metadata"]
+    for key in ("robot", "limits", "N", "seed", "sampling", "versions", "created", "identity"):
+        assert key in md
+    assert md["identity"]["weights"]["energy"] == 0.1 and md["versions"]["jax"]
+    assert md["identity"]["solver_options"]["max_iter"] > 0
+    assert data.complete and len(data.chunks) == 3
+
+
+def test_resume_equals_uninterrupted_run(tmp_path):
+    spec = fake_spec(pairs=50, batch=16)
+    dataset.build(spec, str(tmp_path / "full"), progress=False)
+    s1 = dataset.build(spec, str(tmp_path / "part"), progress=False, max_chunks=2)
+    assert not s1["complete"]
+    with pytest.raises(ValueError, match="incomplete"):
+        dataset.load(str(tmp_path / "part"))
+    part = dataset.load(str(tmp_path / "part"), partial=True)
+    np.testing.assert_array_equal(part["index"], np.arange(32))
+    # a stale temp file from a killed writer is ignored and removed
+    stale = tmp_path / "part" / "chunks" / "chunk-000002.h5.tmp-99999"
+    stale.write_bytes(b"garbage")
+    s2 = dataset.build(spec, str(tmp_path / "part"), progress=False)
+    assert s2["complete"] and s2["new_pairs"] == 18 and not stale.exists()
+    assert_same(dataset.load(str(tmp_path / "full")), dataset.load(str(tmp_path / "part")))
+    s3 = dataset.build(spec, str(tmp_path / "part"), progress=False)  # nothing left to do
+    assert s3["new_pairs"] == 0
+
+
+def test_different_parameters_are_refused_and_nothing_changes(tmp_path):
+    out = str(tmp_path / "d")
+    dataset.build(fake_spec(pairs=20, batch=8), out, progress=False)
+    before = {p: os.stat(os.path.join(out, p)).st_mtime_ns for p in ("manifest.json", "chunks/chunk-000000.h5")}
+    for kw, word in ((dict(seed=4), "seed"), (dict(batch=4), "batch"), (dict(N=7), "N"),
+                     (dict(weights="time=1,energy=1"), "weights"), (dict(pairs=21), "pairs")):
+        args = dict(pairs=20, batch=8, seed=3)
+        args.update(kw)
+        with pytest.raises(ValueError, match=f"different parameters.*{word}"):
+            dataset.build(fake_spec(**args), out, progress=False)
+    after = {p: os.stat(os.path.join(out, p)).st_mtime_ns for p in before}
+    assert before == after
+
+
+def test_bad_input_is_refused_before_compute(tmp_path):
+    with pytest.raises(ValueError, match="unknown robot"):
+        dataset.make_spec("nosuchbot", 10, 0)
+    for pairs in (0, -3):
+        with pytest.raises(ValueError, match="pairs"):
+            dataset.make_spec("serial3", pairs, 0)
+    with pytest.raises(ValueError, match="batch"):
+        dataset.make_spec("serial3", 10, 0, batch=0)
+    with pytest.raises(ValueError, match="space"):
+        dataset.make_spec("serial3", 10, 0, space="cartesian")
+    spec = fake_spec(pairs=8, batch=8)
+    f = tmp_path / "file.txt"
+    f.write_text("precious")
+    with pytest.raises(ValueError, match="not a directory"):
+        dataset.build(spec, str(f), progress=False)
+    assert f.read_text() == "precious"
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match="not a jtraj dataset"):
+        dataset.build(spec, str(other), progress=False)
+    assert os.listdir(other) == ["notes.txt"]
+    with pytest.raises(ValueError, match="cannot"):
+        dataset.build(spec, str(f / "sub"), progress=False)
+    with pytest.raises(ValueError, match="cannot"):
+        dataset.build(spec, "/proc/jtraj-dataset-test", progress=False)
+    with pytest.raises(ValueError, match="does not exist"):
+        dataset.build(spec, str(tmp_path / "missing" / "d"), progress=False)
+    pytest.importorskip("ray")
+    with pytest.raises(ValueError, match="does not answer"):
+        dataset.build(spec, str(tmp_path / "r"), ray="127.0.0.1:9", progress=False)
+    assert not (tmp_path / "r").exists()
+
+
+def test_ray_missing_gives_a_clear_error(tmp_path, monkeypatch):
+    import builtins
+
+    real = builtins.__import__
+
+    def no_ray(name, *a, **k):
+        if name == "ray" or name.startswith("ray."):
+            raise ImportError("No module named 'ray'")
+        return real(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", no_ray)
+    with pytest.raises(ValueError, match="pip install"):
+        dataset.build(fake_spec(pairs=8, batch=8), str(tmp_path / "d"), ray="auto", progress=False)
+    assert not (tmp_path / "d").exists()
+
+
+def test_chunk_files_are_checksummed_and_tied_to_their_dataset(tmp_path):
+    import h5py
+
+    a, b = str(tmp_path / "a"), str(tmp_path / "b")
+    dataset.build(fake_spec(pairs=16, batch=8), a, progress=False)
+    dataset.build(fake_spec(pairs=16, batch=8, seed=4), b, progress=False)
+    with h5py.File(os.path.join(a, "chunks", "chunk-000000.h5")) as f:
+        assert f["q"].fletcher32
+    # a chunk copied from another dataset is not accepted as finished
+    os.replace(os.path.join(b, "chunks", "chunk-000001.h5"), os.path.join(a, "chunks", "chunk-000001.h5"))
+    with pytest.raises(ValueError, match="another dataset"):
+        dataset.load(a)["q"]
+    s = dataset.build(fake_spec(pairs=16, batch=8), a, progress=False)
+    assert s["new_pairs"] == 8
+    assert dataset.load(a)["q"].shape == (16, 7, 3)
+
+
+# ----------------------------------------------------------------------------- views
+
+def test_views_rows_and_trajectory_index(tmp_path):
+    import jax
+
+    out = str(tmp_path / "d")
+    dataset.build(fake_spec(pairs=24, batch=8), out, progress=False)
+    data = dataset.load(out)
+    conv = np.flatnonzero(data["converged"])
+    N, n = 6, 3
+    X, Y, traj = dataset.views.nefotc(data)
+    assert X.shape == (len(conv) * N, 2 * n) and Y.shape == (len(conv) * N, n)
+    np.testing.assert_array_equal(np.unique(traj), conv)
+    i = conv[1]
+    rows = np.flatnonzero(traj == i)
+    np.testing.assert_array_equal(X[rows, :n], data["q"][i, :-1])
+    np.testing.assert_array_equal(Y[rows], data["tau"][i])
+    X, Y, traj = dataset.views.nefumop(data)
+    assert X.shape == (len(conv) * N, 4) and Y.shape == (len(conv) * N, n + 1)
+    rob = dataset.views.robot_of(data)
+    k = 3
+    p, pd = jax.jvp(rob.forward_kinematics, (data["q"][i, k],), (data["qd"][i, k],))
+    np.testing.assert_allclose(X[rows[k]], np.concatenate([p, pd]), rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(Y[rows[k]], np.append(data["tau"][i, k], data["h"][i, k]))
+    X, Y, traj = dataset.views.nefik(data, converged_only=False)
+    assert X.shape == (24 * (N + 1), 2) and Y.shape == (24 * (N + 1), n)
+    np.testing.assert_array_equal(traj, np.repeat(np.arange(24), N + 1))
+
+
+# ----------------------------------------------------------------------------- CLI
+
+def _cli(*args):
+    return cli_main(["dataset", *args])
+
+
+def test_cli_build_info_plot(tmp_path, capsys):
+    out = str(tmp_path / "A")
+    assert _cli("--robot", "serial3", "--pairs", "20", "--seed", "5", "--out", out, "--N", "6", "--batch", "8",
+                "--solver", FAKE, "--no-progress") == 0
+    assert _cli("build", "--robot", "serial3", "--pairs", "20", "--seed", "5", "--out", out, "--N", "6",
+                "--batch", "8", "--solver", FAKE, "--no-progress") == 0  # resumes: nothing to do
+    capsys.readouterr()
+    assert _cli("info", out) == 0
+    text = capsys.readouterr().out
+    assert "serial3" in text and "pairs 20/20" in text and "converged" in text
+    fig = str(tmp_path / "fig.png")
+    assert _cli("plot", out, "--out", fig) == 0
+    assert os.path.getsize(fig) > 10_000
+    assert _cli("--robot", "serial3", "--pairs", "0", "--out", str(tmp_path / "B")) == 2
+    assert _cli("--robot", "nope", "--pairs", "3", "--out", str(tmp_path / "B")) == 2
+    assert _cli("info", str(tmp_path)) == 2
+    assert _cli("frobnicate", out) == 2
+    err = capsys.readouterr().err
+    assert "pairs must be" in err and "unknown robot" in err and "not a jtraj dataset" in err
+    assert not (tmp_path / "B").exists()
+
+
+def test_kill_9_mid_run_then_resume_equals_uninterrupted(tmp_path):
+    args = ["--robot", "serial3", "--pairs", "64", "--seed", "5", "--N", "6", "--batch", "8", "--solver", FAKE,
+            "--no-progress"]
+    ref = str(tmp_path / "A")
+    assert _cli(*args, "--out", ref) == 0
+    out = str(tmp_path / "B")
+    env = dict(os.environ, JTRAJ_FAKE_SOLVER_DELAY="0.4")
+    proc = subprocess.Popen([sys.executable, "-m", "jtraj.cli", "dataset", *args, "--out", out], env=env, cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    first = os.path.join(out, "chunks", "chunk-000000.h5")
+    deadline = time.time() + 120
+    while not os.path.exists(first) and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.02)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    done = store.finished_chunks(out)
+    assert 1 <= len(done) < 8, done  # killed mid-run
+    assert _cli(*args, "--out", out) == 0
+    assert_same(dataset.load(ref), dataset.load(out))
+    with open(os.path.join(out, "manifest.json")) as f:
+        assert json.load(f)["identity"]["pairs"] == 64
+
+
+@pytest.mark.slow
+def test_ray_local_cluster_two_workers_equals_single_process(tmp_path):
+    pytest.importorskip("ray")
+    spec = fake_spec(pairs=40, batch=8)
+    dataset.build(spec, str(tmp_path / "single"), progress=False)
+    s = dataset.build(spec, str(tmp_path / "ray"), ray="local:2", progress=False)
+    assert s["complete"]
+    assert_same(dataset.load(str(tmp_path / "single")), dataset.load(str(tmp_path / "ray")))
+
+
+# ----------------------------------------------------------------------------- real solver
+
+def test_real_solver_end_to_end(tmp_path):
+    import jtraj
+
+    spec = dataset.make_spec("serial3", 8, 11, N=10, batch=8)
+    out = str(tmp_path / "d")
+    stats = dataset.build(spec, out, progress=False)
+    assert stats["complete"]
+    data = dataset.load(out)
+    assert data["q"].shape == (8, 11, 3) and data["tau"].shape == (8, 10, 3)
+    np.testing.assert_array_equal(data["converged"], data["status"] == 0)
+    assert set(np.unique(data["status"])) <= {int(s) for s in jtraj.Status}
+    ref = jtraj.solve_batch(spec.robot_model(), data["q_start"], data["q_goal"], N=10,
+                            weights=jtraj.Weights.parse("time=1,energy=0.1"))
+    np.testing.assert_array_equal(np.asarray(ref.q), data["q"])
+    np.testing.assert_array_equal(np.asarray(ref.status), data["status"])
+    np.testing.assert_allclose(data["q"][:, 0], data["q_start"], atol=1e-12)
+    assert data["metadata"]["identity"]["solver"] == "jtraj:solve_batch"
