@@ -54,8 +54,8 @@ def test_serial_against_pinocchio(case):
                                         np.asarray(arm.inertias), np.asarray(arm.com),
                                         float(arm.gravity_accel))
     rigid_lagrange = jax.jit(lambda q, qd, qdd: Robot.rigid_body_forces(arm, q, qd, qdd))
-    rigid_rnea = jax.jit(arm.rigid_body_forces)
-    mass = jax.jit(arm._mass_matrix_mechanism)
+    rigid_rnea = jax.jit(lambda q, qd, qdd: arm.rigid_body_forces(q, qd, qdd))
+    mass = jax.jit(lambda q: arm._mass_matrix_mechanism(q))
     rng = np.random.default_rng(1)
     for _ in range(5):
         q, qd, qdd = rng.uniform(-np.pi, np.pi, arm.n), rng.uniform(-2, 2, arm.n), rng.uniform(-3, 3, arm.n)
@@ -87,10 +87,10 @@ def frictionless(robot):
 def test_mass_matrix_spd_and_skew(name):
     robot = robots.get(name)
     rng = np.random.default_rng(2)
-    M_fn = jax.jit(robot.mass_matrix)
-    C_fn = jax.jit(robot.coriolis_matrix)
+    M_fn = jax.jit(lambda q: robot.mass_matrix(q))
+    C_fn = jax.jit(lambda q, qd: robot.coriolis_matrix(q, qd))
     Mdot_fn = jax.jit(lambda q, qd: jax.jvp(robot.mass_matrix, (q,), (qd,))[1])
-    c_fn = jax.jit(robot.coriolis)
+    c_fn = jax.jit(lambda q, qd: robot.coriolis(q, qd))
     for _ in range(4):
         q, qd, _ = sample_state(robot, rng)
         M = np.asarray(M_fn(q))
