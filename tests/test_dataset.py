@@ -65,6 +65,7 @@ def test_sampling_clips_into_a_joint_box():
         assert np.all(q >= lo) and np.all(q <= hi)
 
 
+@pytest.mark.slow  # ~20 s: compiles the vmapped IK
 def test_task_space_sampling_reaches_its_points():
     import jax
 
@@ -288,7 +289,8 @@ def test_kill_9_mid_run_then_resume_equals_uninterrupted(tmp_path):
         assert json.load(f)["identity"]["pairs"] == 64
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # ~35 s on 2 cores: starts a local Ray instance
+@pytest.mark.filterwarnings("ignore:os.fork")
 def test_ray_local_cluster_two_workers_equals_single_process(tmp_path):
     pytest.importorskip("ray")
     spec = fake_spec(pairs=40, batch=8)

@@ -346,8 +346,7 @@ def build(spec: Spec, out: str, *, ray: str | None = None, progress: bool = True
 
 def _postfix(stats):
     n = stats["pairs_done"]
-    pct = 100.0 * stats["converged"] / n if n else float("nan")
-    return f"converged {pct:.1f}%"
+    return f"converged {100.0 * stats['converged'] / n:.1f}%" if n else "converged -"
 
 
 def default_processes() -> int:
