@@ -87,19 +87,20 @@ def frictionless(robot):
 def test_mass_matrix_spd_and_skew(name):
     robot = robots.get(name)
     rng = np.random.default_rng(2)
-    M_fn = jax.jit(lambda q: robot.mass_matrix(q))
-    C_fn = jax.jit(lambda q, qd: robot.coriolis_matrix(q, qd))
-    Mdot_fn = jax.jit(lambda q, qd: jax.jvp(robot.mass_matrix, (q,), (qd,))[1])
-    c_fn = jax.jit(lambda q, qd: robot.coriolis(q, qd))
+
+    @jax.jit
+    def parts(q, qd):
+        Mdot = jax.jvp(robot.mass_matrix, (q,), (qd,))[1]
+        return robot.mass_matrix(q), robot.coriolis_matrix(q, qd), Mdot, robot.coriolis(q, qd)
+
     for _ in range(4):
         q, qd, _ = sample_state(robot, rng)
-        M = np.asarray(M_fn(q))
+        M, C, Mdot, c = (np.asarray(x) for x in parts(q, qd))
         assert np.allclose(M, M.T, rtol=0, atol=1e-12 * np.abs(M).max())
         assert np.linalg.eigvalsh(M).min() > 0
-        C = np.asarray(C_fn(q, qd))
-        S = np.asarray(Mdot_fn(q, qd)) - 2 * C
+        S = Mdot - 2 * C
         assert np.abs(S + S.T).max() < 1e-10 * max(np.abs(M).max(), 1.0)
-        assert np.allclose(C @ qd, c_fn(q, qd), atol=1e-10 * max(np.abs(M).max(), 1.0))
+        assert np.allclose(C @ qd, c, atol=1e-10 * max(np.abs(M).max(), 1.0))
 
 
 @pytest.mark.parametrize("name", catalogue())
@@ -115,13 +116,20 @@ def test_energy_conservation(name):
         q, qd = x
         return qd, robot.forward_dynamics(q, qd, tau0)
 
+    a_coef = jnp.array([0.0, 0.5, 0.5, 1.0])
+    b_coef = jnp.array([1.0, 2.0, 2.0, 1.0]) / 6.0
+
     def rk4(x, _):
-        add = lambda a, b, s: jax.tree_util.tree_map(lambda u, v: u + s * v, a, b)  # noqa: E731
-        k1 = f(x)
-        k2 = f(add(x, k1, dt / 2))
-        k3 = f(add(x, k2, dt / 2))
-        k4 = f(add(x, k3, dt))
-        x = jax.tree_util.tree_map(lambda u, a, b, c, d: u + dt / 6 * (a + 2 * b + 2 * c + d), x, k1, k2, k3, k4)
+        # the four stages as a scan, so forward_dynamics is traced (and compiled) once
+        def stage(carry, ab):
+            k_prev, acc = carry
+            a, b = ab
+            k = f(jax.tree_util.tree_map(lambda u, v: u + a * dt * v, x, k_prev))
+            return (k, jax.tree_util.tree_map(lambda s_, v: s_ + b * v, acc, k)), None
+
+        zero = jax.tree_util.tree_map(jnp.zeros_like, x)
+        (_, incr), _ = jax.lax.scan(stage, (zero, zero), (a_coef, b_coef))
+        x = jax.tree_util.tree_map(lambda u, v: u + dt * v, x, incr)
         return x, robot.energy(*x)
 
     run = jax.jit(lambda x: jax.lax.scan(rk4, x, None, length=steps))
@@ -138,14 +146,17 @@ def test_inverse_forward_roundtrip_and_jacobian(name):
     robot = robots.get(name)
     rng = np.random.default_rng(4)
     q, qd, qdd = sample_state(robot, rng)
-    tau = robot.inverse_dynamics(q, qd, qdd)
+    tau, qdd_back = jax.jit(lambda q, qd, qdd: (lambda t: (t, robot.forward_dynamics(q, qd, t)))(
+        robot.inverse_dynamics(q, qd, qdd)))(q, qd, qdd)
     assert tau.shape == (robot.n_actuators,)
-    assert rel_err(robot.forward_dynamics(q, qd, tau), qdd) < 1e-9 or robot.name == "wmr"
+    if robot.name != "wmr":  # (wmr: qdd must satisfy the constraint; see test_wmr_reduced_equations)
+        assert rel_err(qdd_back, qdd) < 1e-9
     # Jacobian against central finite differences
-    J = np.asarray(robot.jacobian(q))
+    J = np.asarray(jax.jit(lambda q: robot.jacobian(q))(q))
     eps = 1e-6
-    J_fd = np.stack([(np.asarray(robot.forward_kinematics(q + eps * e)) - np.asarray(robot.forward_kinematics(q - eps * e))) / (2 * eps)
-                     for e in np.eye(robot.n)], axis=1)
+    fk = jax.jit(jax.vmap(lambda q: robot.forward_kinematics(q)))
+    plus, minus = np.asarray(fk(q + eps * np.eye(robot.n))), np.asarray(fk(q - eps * np.eye(robot.n)))
+    J_fd = ((plus - minus) / (2 * eps)).T
     assert np.abs(J - J_fd).max() < 1e-7
 
 
@@ -156,7 +167,7 @@ def test_transforms_on_every_function(name):
     rng = np.random.default_rng(5)
     states = [sample_state(robot, rng) for _ in range(3)]
     Q, QD, QDD = (jnp.asarray(np.stack(s)) for s in zip(*states))
-    TAU = jnp.stack([robot.inverse_dynamics(*s) for s in states])
+    TAU = jax.jit(jax.vmap(lambda q, qd, qdd: robot.inverse_dynamics(q, qd, qdd)))(Q, QD, QDD)
 
     def everything(q, qd, qdd, tau):
         return {"fk": robot.forward_kinematics(q), "J": robot.jacobian(q), "M": robot.mass_matrix(q),
@@ -174,7 +185,7 @@ def test_transforms_on_every_function(name):
     for g in grads:
         assert np.all(np.isfinite(np.asarray(g)))
     # gradient with respect to the robot's parameters (sensitivities)
-    g_robot = eqx.filter_grad(lambda r: jnp.sum(r.inverse_dynamics(Q[0], QD[0], QDD[0])))(robot)
+    g_robot = eqx.filter_jit(eqx.filter_grad(lambda r: jnp.sum(r.inverse_dynamics(Q[0], QD[0], QDD[0]))))(robot)
     leaves = [x for x in jax.tree_util.tree_leaves(g_robot) if eqx.is_array(x)]
     assert all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
 
@@ -212,20 +223,24 @@ def pkm2_lagrange_multiplier_forces(q, qd, qdd, mp, ms, ml, R, r, L):
 
 def test_pkm2_closure_and_inverse_dynamics():
     robot = robots.get("pkm2")
+
+    @jax.jit
+    def model(q, qd, qdd):
+        y_a = robot.actuated_coordinates(q)
+        return (robot.closure_residual(q, y_a), robot.leg_endpoints(q), robot.inverse_dynamics(q, qd, qdd),
+                robot.generalized_forces(q, qd, qdd), robot.actuator_jacobian(q))
+
     rng = np.random.default_rng(6)
     for _ in range(5):
         q, qd, qdd = sample_state(robot, rng)
-        y_a = robot.actuated_coordinates(q)
-        assert np.abs(np.asarray(robot.closure_residual(q, y_a))).max() < 1e-12
-        A, B = (np.asarray(x) for x in robot.leg_endpoints(q))
+        res, (A, B), tau, Q, Ja = jax.tree_util.tree_map(np.asarray, model(q, qd, qdd))
+        assert np.abs(res).max() < 1e-12
         assert np.allclose(np.linalg.norm(B - A, axis=1), 1.9725, atol=1e-12)
         assert np.all(A[:, 1] > q[1])  # branch: platform below sliders
-        tau = np.asarray(robot.inverse_dynamics(q, qd, qdd))
         ref = pkm2_lagrange_multiplier_forces(q, qd, qdd, 200.0, 100.0, 570.5, 1.203, 0.075, 1.9725)
         assert rel_err(tau, ref) < 1e-10
         # virtual work: slider power equals generalised power
-        Q = np.asarray(robot.generalized_forces(q, qd, qdd))
-        y_ad = np.asarray(robot.actuator_jacobian(q)) @ qd
+        y_ad = Ja @ qd
         assert abs(tau @ y_ad - Q @ qd) < 1e-10 * np.abs(tau).max() * np.abs(y_ad).max()
 
 
@@ -259,33 +274,45 @@ def test_parallel3_closure_and_inverse_dynamics():
     pytest.importorskip("pinocchio")
     robot = robots.get("parallel3")
     base, L = np.asarray(robot.base), 0.6
-    model, data, _ = pinocchio_planar((L, L), (10.0, 10.0), (0.1, 0.1), com=(0.3, 0.3))
+    model_pin, data_pin, _ = pinocchio_planar((L, L), (10.0, 10.0), (0.1, 0.1), com=(0.3, 0.3))
     legs = lambda q: parallel3_leg_joints(q, jnp.asarray(base), L)[0]  # noqa: E731
-    rng = np.random.default_rng(7)
-    for _ in range(5):
-        q, qd, qdd = (jnp.asarray(x) for x in sample_state(robot, rng))
+
+    @jax.jit
+    def reference_kinematics(q, qd, qdd):
+        """Leg joints, rates and accelerations by differentiating the independent leg IK."""
         joints, E = parallel3_leg_joints(q, jnp.asarray(base), L)
-        assert np.abs(np.asarray(robot.elbows(q)) - np.asarray(E)).max() < 1e-12
-        theta = robot.actuated_coordinates(q)
-        assert np.abs(np.asarray(robot.closure_residual(q, theta))).max() < 1e-12
-        # leg joint rates and accelerations by differentiating the independent leg IK
         _, jd = jax.jvp(legs, (q,), (qd,))
         Jq = jax.jacfwd(legs)(q)  # (3, 2, 2)
-        jdd = jnp.einsum("ijk,k->ij", Jq, qdd) + jax.jvp(lambda x: jnp.einsum("ijk,k->ij", jax.jacfwd(legs)(x), qd), (q,), (qd,))[1]
-        Q_ref = sum(np.asarray(Jq[i]).T @ pin_rnea(model, data, joints[i], jd[i], jdd[i]) for i in range(3))
-        Q = np.asarray(robot.generalized_forces(q, qd, qdd))
+        Jdot_qd = jax.jvp(lambda x: jnp.einsum("ijk,k->ij", jax.jacfwd(legs)(x), qd), (q,), (qd,))[1]
+        return joints, E, jd, jnp.einsum("ijk,k->ij", Jq, qdd) + Jdot_qd, Jq
+
+    @jax.jit
+    def model(q, qd, qdd):
+        theta = robot.actuated_coordinates(q)
+        return (robot.elbows(q), robot.closure_residual(q, theta), robot.generalized_forces(q, qd, qdd),
+                robot.inverse_dynamics(q, qd, qdd))
+
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        q, qd, qdd = sample_state(robot, rng)
+        joints, E, jd, jdd, Jq = (np.asarray(x) for x in reference_kinematics(q, qd, qdd))
+        E_m, res, Q, tau = (np.asarray(x) for x in model(q, qd, qdd))
+        assert np.abs(E_m - E).max() < 1e-12
+        assert np.abs(res).max() < 1e-12
+        Q_ref = sum(Jq[i].T @ pin_rnea(model_pin, data_pin, joints[i], jd[i], jdd[i]) for i in range(3))
         assert rel_err(Q, Q_ref) < 1e-10
-        Ja = np.asarray(Jq[:, 0, :])  # d theta / dq
+        Ja = Jq[:, 0, :]  # d theta / dq
         tau_ref = Ja @ np.linalg.solve(Ja.T @ Ja, Q_ref)
-        tau = np.asarray(robot.inverse_dynamics(q, qd, qdd))
         assert rel_err(tau, tau_ref) < 1e-10
-        assert abs(tau @ (Ja @ np.asarray(qd)) - Q @ np.asarray(qd)) < 1e-10 * np.abs(tau).max()
+        assert abs(tau @ (Ja @ qd) - Q @ qd) < 1e-10 * np.abs(tau).max()
 
 
 # ----- wmr ----------------------------------------------------------------------------
 def test_wmr_reduced_equations():
     robot = robots.get("wmr")
     m, I, rw, b, Jw = 50.0, 2.5, 0.1, 0.25, 0.005
+    wmr_model = jax.jit(lambda q, qd, tau: (lambda a: (a, robot.inverse_dynamics(q, qd, a)))(
+        robot.forward_dynamics(q, qd, tau)))
     rng = np.random.default_rng(8)
     for _ in range(5):
         th, v, w = rng.uniform(-np.pi, np.pi), rng.uniform(-1, 1), rng.uniform(-1, 1)
@@ -295,9 +322,9 @@ def test_wmr_reduced_equations():
         vd = (tau[0] + tau[1]) / rw / (m + 2 * Jw / rw**2)
         wd = b * (tau[0] - tau[1]) / rw / (I + 2 * Jw * b**2 / rw**2)
         ref = np.array([vd * np.cos(th) - v * w * np.sin(th), vd * np.sin(th) + v * w * np.cos(th), wd])
-        qdd = robot.forward_dynamics(q, qd, tau)
+        qdd, tau_back = wmr_model(q, qd, tau)
         assert rel_err(qdd, ref) < 1e-12
-        assert rel_err(robot.inverse_dynamics(q, qd, qdd), tau) < 1e-12
+        assert rel_err(tau_back, tau) < 1e-12
         assert abs(float(robot.path_equalities(q, qd)[0])) < 1e-15
     assert np.all(np.asarray(robot.path_constraints(jnp.array([8.0, 8.5, 0.0]))) [0] > 0)  # inside an obstacle
 

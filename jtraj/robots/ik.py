@@ -138,7 +138,8 @@ def ik(robot: Robot, p, q_init=None, *, method: str = "weighted", max_iter: int 
     q0 = default_q_init(robot) if q_init is None else _check_array(q_init, "q_init", (n,))
     d = jax.eval_shape(robot.forward_kinematics, jax.ShapeDtypeStruct((n,), q0.dtype)).shape[0]
     p = _check_array(p, "p", (d,))
-    return _ik(robot, p, q0, method, int(max_iter), tol, damping, null_gain, null_tol, max_step, max_dq)
+    hyper = [jnp.asarray(x, dtype=q0.dtype) for x in (tol, damping, null_gain, null_tol, max_step, max_dq)]
+    return _ik(robot, p, q0, method, int(max_iter), *hyper)  # traced hyperparameters: one compile
 
 
 @eqx.filter_jit
