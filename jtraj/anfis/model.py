@@ -101,10 +101,16 @@ def forward(c, s, theta, u, kind: str, order: int) -> Float[Array, "B m"]:
     return jnp.einsum("br,brm->bm", beta, f)
 
 
-@partial(jax.jit, static_argnames=("kind", "order"))
-def _predict(c, s, theta, x_lo, x_span, y_lo, y_span, X, kind, order):
+@partial(jax.jit, static_argnames=("kind", "order", "single", "squeeze"))
+def _predict(c, s, theta, x_lo, x_span, y_lo, y_span, X, kind, order, single, squeeze):
+    X = jnp.asarray(X, c.dtype)
+    if single:
+        X = X[None, :]
     u = (X - x_lo) / x_span
-    return forward(c, s, theta, u, kind, order) * y_span + y_lo
+    Y = forward(c, s, theta, u, kind, order) * y_span + y_lo
+    if single:
+        Y = Y[0]
+    return Y[..., 0] if squeeze else Y
 
 
 class Model(eqx.Module):
@@ -164,19 +170,13 @@ class Model(eqx.Module):
 
         Jitted (one compilation per batch shape); computes in the parameters' dtype.
         """
-        X = jnp.asarray(X, dtype=self.centers.dtype)
-        single = X.ndim == 1
-        if single:
-            X = X[None, :]
-        if X.ndim != 2 or X.shape[1] != self.n_inputs:
-            raise ValueError(f"X must have shape ({self.n_inputs},) or (B, {self.n_inputs}), got {X.shape}")
-        Y = _predict(self.centers, self.sigmas, self.theta, self.x_lo, self.x_span, self.y_lo, self.y_span, X,
-                     self.kind, self.order)
-        if single:
-            Y = Y[0]
-        if self.scalar_output:
-            Y = Y[..., 0]
-        return Y
+        if not isinstance(X, jax.Array):
+            X = np.asarray(X)
+        shape = X.shape
+        if len(shape) not in (1, 2) or shape[-1] != self.centers.shape[1]:
+            raise ValueError(f"X must have shape ({self.n_inputs},) or (B, {self.n_inputs}), got {shape}")
+        return _predict(self.centers, self.sigmas, self.theta, self.x_lo, self.x_span, self.y_lo, self.y_span, X,
+                        self.kind, self.order, len(shape) == 1, self.scalar_output)
 
     __call__ = predict
 

@@ -43,7 +43,6 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.flatten_util import ravel_pytree
 
 from .clustering import radius_for_rules, subclust
 from .model import KINDS, Model, _logit_clipped, features, forward, log_firing, n_coef, rule_outputs
@@ -114,7 +113,7 @@ def consequents(c, s, U, V, kind, order, ridge):
 
 def premise_jacobian(c, s, th, U, kind, order):
     """Jacobian of the outputs v (B, m) with respect to (c, s), at fixed consequents,
-    as a (B m, 2 R d) matrix (columns ordered as ``ravel_pytree((c, s))``).
+    as a (B m, 2 R d) matrix (columns: c row-major, then s row-major).
 
     With ``l_r = log w_r`` and ``beta = softmax(l)``:
     ``dv_k / dl_r = beta_r (f_rk - v_k + df_rk / dl_r)``,
@@ -146,77 +145,46 @@ def _mse(c, s, th, U, V, kind, order):
     return jnp.mean(r * r)
 
 
-def _rmse_units(c, s, th, U, V, y_span, kind, order):
-    r = (forward(c, s, th, U, kind, order) - V) * y_span
-    return jnp.sqrt(jnp.mean(r * r))
+def _evaluate(c, s, U, V, Uv, Vv, y_span, ridge, kind, order):
+    """Least-squares consequents for premises (c, s), the training MSE (normalised
+    units) and the train / validation RMSE in target units."""
+    th = consequents(c, s, U, V, kind, order, ridge)
+    r = forward(c, s, th, U, kind, order) - V
+    rv = (forward(c, s, th, Uv, kind, order) - Vv) * y_span
+    mse = jnp.mean(r * r)
+    return th, mse, jnp.sqrt(jnp.mean((r * y_span) ** 2)), jnp.sqrt(jnp.mean(rv * rv))
 
 
 @partial(jax.jit, static_argnames=("kind", "order"))
-def _start(c, s, U, V, Uv, Vv, y_span, ridge, kind, order):
-    th = consequents(c, s, U, V, kind, order, ridge)
-    return (th, _rmse_units(c, s, th, U, V, y_span, kind, order),
-            _rmse_units(c, s, th, Uv, Vv, y_span, kind, order))
-
-
-# ----------------------------------------------------------------------------- LM epoch
-@partial(jax.jit, static_argnames=("kind", "order"))
-def _lm_epoch(prem, mu, U, V, Uv, Vv, y_span, ridge, floor, kind, order):
-    c, s = prem
-    th = consequents(c, s, U, V, kind, order, ridge)
-    flat, unravel = ravel_pytree(prem)
-
+def _lm_system(c, s, th, U, V, kind, order):
+    """Gauss-Newton system (J^T J, J^T r) of the premises at fixed consequents, and the
+    Marquardt scaling (diagonal of J^T J, bounded away from 0)."""
     r = (forward(c, s, th, U, kind, order) - V).ravel()
-    loss = jnp.mean(r * r)
     J = premise_jacobian(c, s, th, U, kind, order)
     H = J.T @ J
-    g = J.T @ r
     dH = jnp.diag(H)
-    scale = jnp.maximum(dH, 1e-12 * (jnp.max(dH) + 1e-300))
-
-    def trial(mu):
-        step = jnp.linalg.solve(H + mu * jnp.diag(scale), g)
-        cc, ss = unravel(flat - step)
-        ss = jnp.maximum(ss, floor)
-        tt = consequents(cc, ss, U, V, kind, order, ridge)
-        return (cc, ss), tt, _mse(cc, ss, tt, U, V, kind, order)
-
-    def cond(carry):
-        i, mu, _, _, new_loss = carry
-        return (i < 10) & ~(new_loss < loss)
-
-    def body(carry):
-        i, mu, _, _, _ = carry
-        mu = jnp.where(i == 0, mu, mu * 4.0)
-        p2, t2, l2 = trial(mu)
-        l2 = jnp.where(jnp.isfinite(l2), l2, jnp.inf)
-        return i + 1, mu, p2, t2, l2
-
-    init = (jnp.zeros((), jnp.int32), mu, (c, s), th, jnp.asarray(jnp.inf, loss.dtype))
-    _, mu, p2, t2, l2 = jax.lax.while_loop(cond, body, init)
-    ok = l2 < loss
-    new_prem = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), p2, (c, s))
-    new_th = jnp.where(ok, t2, th)
-    mu = jnp.where(ok, jnp.maximum(mu / 3.0, 1e-12), mu * 4.0)
-    tr = _rmse_units(*new_prem, new_th, U, V, y_span, kind, order)
-    va = _rmse_units(*new_prem, new_th, Uv, Vv, y_span, kind, order)
-    return new_prem, new_th, mu, tr, va
+    return H, J.T @ r, jnp.maximum(dH, 1e-12 * (jnp.max(dH) + 1e-300))
 
 
-# ----------------------------------------------------------------------------- gradient epoch
 @partial(jax.jit, static_argnames=("kind", "order"))
-def _grad_epoch(prem, ss, U, V, Uv, Vv, y_span, ridge, floor, kind, order):
-    c, s = prem
-    th = consequents(c, s, U, V, kind, order, ridge)
-    loss, grads = jax.value_and_grad(lambda p: _mse(p[0], p[1], th, U, V, kind, order))((c, s))
-    flat_g, unravel = ravel_pytree(grads)
-    norm = jnp.linalg.norm(flat_g) + 1e-300
-    flat_p, _ = ravel_pytree((c, s))
-    cc, sg = unravel(flat_p - ss * flat_g / norm)
-    sg = jnp.maximum(sg, floor)
-    tt = consequents(cc, sg, U, V, kind, order, ridge)
-    tr = _rmse_units(cc, sg, tt, U, V, y_span, kind, order)
-    va = _rmse_units(cc, sg, tt, Uv, Vv, y_span, kind, order)
-    return (cc, sg), tt, tr, va
+def _lm_trial(c, s, H, g, scale, mu, floor, U, V, Uv, Vv, y_span, ridge, kind, order):
+    """Premises after the damped step ``(H + mu diag(scale)) step = g`` (widths floored)
+    and their evaluation (see :func:`_evaluate`). With g = 0 this evaluates (c, s)."""
+    step = jnp.linalg.solve(H + mu * jnp.diag(scale), g)
+    n_c = c.size
+    c2 = c - step[:n_c].reshape(c.shape)
+    s2 = jnp.maximum(s - step[n_c:].reshape(s.shape), floor)
+    return (c2, s2) + _evaluate(c2, s2, U, V, Uv, Vv, y_span, ridge, kind, order)
+
+
+@partial(jax.jit, static_argnames=("kind", "order"))
+def _grad_trial(c, s, th, ss, floor, U, V, Uv, Vv, y_span, ridge, kind, order):
+    """MATLAB-style step of length ``ss`` along the normalised negative gradient."""
+    gc, gs = jax.grad(lambda p: _mse(p[0], p[1], th, U, V, kind, order))((c, s))
+    norm = jnp.sqrt(jnp.sum(gc**2) + jnp.sum(gs**2)) + 1e-300
+    c2 = c - ss * gc / norm
+    s2 = jnp.maximum(s - ss * gs / norm, floor)
+    return (c2, s2) + _evaluate(c2, s2, U, V, Uv, Vv, y_span, ridge, kind, order)
 
 
 # ----------------------------------------------------------------------------- fit
@@ -287,8 +255,11 @@ def train(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25,
     s0 = np.broadcast_to(cl.radius[:d] / math.sqrt(8.0), (R, d))
     s = A(s0)
     floor = A(np.maximum(sigma_floor * s0, 1e-6))
-    ridge_a, floor_a, ysp = A(ridge), floor, A(y_span)
-    th, tr0, va0 = _start(c, s, U, V, Uv, Vv, ysp, ridge_a, kind, order)
+    ridge_a, ysp = A(ridge), A(y_span)
+    data = (U, V, Uv, Vv, ysp, ridge_a)
+    P_prem = 2 * c.size
+    c, s, th, mse, tr0, va0 = _lm_trial(c, s, jnp.eye(P_prem, dtype=dtype), jnp.zeros(P_prem, dtype),
+                                        jnp.ones(P_prem, dtype), A(1.0), floor, *data, kind=kind, order=order)
 
     info = dict(format="jtraj.anfis", kind=kind, order=order, n_rules=R, radius=float(np.mean(used_radius)),
                 squash=squash, accept=accept, reject=reject, method=method, ridge=ridge, sigma_floor=sigma_floor,
@@ -313,40 +284,51 @@ def train(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25,
         from tqdm.auto import tqdm
 
         bar = tqdm(total=int(epochs), desc="anfis", unit="epoch", leave=False)
-    mu = A(1e-3)
+    mu = 1e-3
     ss = float(step_size)
     moves: list[int] = []  # +1 error went down, -1 up (gradient step-size rule)
-    prem = (c, s)
+    mse = float(mse)
     hist.stop_reason = "epochs"
     for ep in range(1, int(epochs) + 1):
         if method == "lm":
-            prem, th, mu, tr, va = _lm_epoch(prem, mu, U, V, Uv, Vv, ysp, ridge_a, floor_a, kind, order)
+            H, g, scale = _lm_system(c, s, th, U, V, kind=kind, order=order)
+            accepted = False
+            for _ in range(10):  # Marquardt trials: damping x4 on each rejection
+                c2, s2, th2, mse2, tr, va = _lm_trial(c, s, H, g, scale, A(mu), floor, *data, kind=kind,
+                                                      order=order)
+                mse2 = float(mse2)
+                if math.isfinite(mse2) and mse2 < mse:
+                    accepted = True
+                    break
+                mu *= 4.0
+            if not accepted:
+                hist.stop_reason = "converged (no decreasing step)"
+                break
+            mu = max(mu / 3.0, 1e-12)
         else:
-            prem, th, tr, va = _grad_epoch(prem, A(ss), U, V, Uv, Vv, ysp, ridge_a, floor_a, kind, order)
-        tr, va = float(tr), float(va)
-        if not math.isfinite(tr):
-            hist.stop_reason = "non-finite error"
-            break
-        if method == "gradient":
-            moves.append(1 if tr < hist.train_rmse[-1] else -1)
-            if len(moves) >= 4 and all(mv == 1 for mv in moves[-4:]):
+            c2, s2, th2, mse2, tr, va = _grad_trial(c, s, th, A(ss), floor, *data, kind=kind, order=order)
+            mse2 = float(mse2)
+            if not math.isfinite(mse2):
+                hist.stop_reason = "non-finite error"
+                break
+            moves.append(1 if mse2 < mse else -1)
+            if len(moves) >= 4 and moves[-4:] == [1, 1, 1, 1]:
                 ss *= 1.1
                 moves.clear()
             elif len(moves) >= 4 and moves[-4:] in ([1, -1, 1, -1], [-1, 1, -1, 1]):
                 ss *= 0.9
                 moves.clear()
+        c, s, th, mse = c2, s2, th2, mse2
+        tr, va = float(tr), float(va)
         hist.train_rmse.append(tr)
         hist.val_rmse.append(va)
         if bar is not None:
             bar.update(1)
             bar.set_postfix(train=f"{tr:.3g}", val=f"{va:.3g}")
         if va < best[0]:
-            best = (va, ep, prem, th)
+            best = (va, ep, (c, s), th)
         if ep - best[1] >= patience:
             hist.stop_reason = "early stopping"
-            break
-        if method == "lm" and float(mu) > 1e12:
-            hist.stop_reason = "converged (no decreasing step)"
             break
     if bar is not None:
         bar.close()
