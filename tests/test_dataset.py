@@ -319,3 +319,13 @@ def test_real_solver_end_to_end(tmp_path):
     np.testing.assert_array_equal(np.asarray(ref.status), data["status"])
     np.testing.assert_allclose(data["q"][:, 0], data["q_start"], atol=1e-12)
     assert data["metadata"]["identity"]["solver"] == "jtraj:solve_batch"
+
+
+@pytest.mark.slow  # compiles the solver in each of the 2 Ray workers
+@pytest.mark.filterwarnings("ignore:os.fork")
+def test_ray_real_solver_equals_single_process(tmp_path):
+    pytest.importorskip("ray")
+    spec = dataset.make_spec("serial3", 16, 2, N=10, batch=8)
+    dataset.build(spec, str(tmp_path / "single"), progress=False)
+    dataset.build(spec, str(tmp_path / "ray"), ray="local:2", progress=False)
+    assert_same(dataset.load(str(tmp_path / "single")), dataset.load(str(tmp_path / "ray")))
