@@ -17,7 +17,10 @@ Layer by layer, for one sample ``u``:
 3. normalised strengths ``beta = softmax(log w)`` (exact, stable);
 4. consequents, per output ``k``:
 
-   * ``"tsk"`` order 1 (first-order Sugeno): ``f_rk = theta_rk . [u, 1]``;
+   * ``"tsk"`` order 1 (first-order Sugeno): ``f_rk = theta_rk . [clip(u, 0, 1), 1]``
+     (the consequents' inputs are clipped to the training box, so that a query
+     outside it is not extrapolated linearly by a rule fitted far away; inside the box,
+     where all training data lie, this is the plain TSK model);
    * ``"tsk"`` order 0 (zero-order Sugeno): ``f_rk = theta_rk``;
    * ``"tsukamoto"``: monotone logistic consequent ``F(z) = 1 / (1 + exp(-(rho z - s)))``
      read backwards at the rule's firing strength, ``f_rk = F^{-1}(w_r)
@@ -69,7 +72,8 @@ def features(c, s, u, kind: str, order: int) -> Float[Array, "B R k"]:
         reg = jnp.stack([logit, jnp.ones_like(logit)], axis=-1)
         return beta[..., None] * reg
     if order == 1:
-        ua = jnp.concatenate([u, jnp.ones(u.shape[:-1] + (1,), u.dtype)], axis=-1)
+        uc = jnp.clip(u, 0.0, 1.0)
+        ua = jnp.concatenate([uc, jnp.ones(u.shape[:-1] + (1,), u.dtype)], axis=-1)
         return beta[:, :, None] * ua[:, None, :]
     return beta[:, :, None]
 
@@ -89,7 +93,8 @@ def rule_outputs(lw, u, theta, kind: str, order: int) -> Float[Array, "B R m"]:
     if order == 1:
         R, k, m = theta.shape
         W = jnp.transpose(theta[:, :-1, :], (1, 0, 2)).reshape(k - 1, R * m)
-        return (u @ W).reshape(u.shape[0], R, m) + theta[None, :, -1, :]
+        uc = jnp.clip(u, 0.0, 1.0)  # no linear extrapolation outside the training box
+        return (uc @ W).reshape(u.shape[0], R, m) + theta[None, :, -1, :]
     return jnp.broadcast_to(theta[None, :, 0, :], (u.shape[0],) + theta[:, 0, :].shape)
 
 

@@ -1,0 +1,253 @@
+"""ANFIS models of optimal-trajectory datasets (the thesis' NeFOTC, NeFuMOP, NeFIK) and a
+planner mapping, with honest splits and baselines.
+
+A dataset is any mapping with numpy arrays (``P`` pairs, ``N`` intervals, ``n``
+joints): ``q_start (P, n)``, ``q_goal (P, n)``, ``converged (P,)``, ``q (P, N+1, n)``,
+``qd (P, N+1, n)``, ``v (P, N, n)``, ``tau (P, N, m)``, ``h (P, N)`` and ``metadata``
+(with at least ``"robot"``), e.g. ``jtraj.dataset.load(path)``.
+
+Mappings (one row per time sample of each converged trajectory):
+
+* ``nefotc``: ``(q_k, qd_k) -> tau_k``, k = 0..N-1 (optimal trajectory controller);
+* ``nefumop``: ``(p_k, pd_k) -> (tau_k, h_k)`` with the task point ``p = f(q)`` and
+  ``pd = J(q) qd`` (motion planner);
+* ``nefik``: ``p_k -> q_k``, k = 0..N (inverse kinematics);
+* ``plan``: one row per trajectory, ``(q_start, q_goal) -> (v (N n), h (N))``: the
+  whole trajectory at once, which is what :class:`jtraj.online.Planner` needs (the three
+  thesis mappings carry no goal in their inputs, so they cannot plan a new start/goal
+  pair on their own).
+
+Split: the **last 10 % of the converged trajectories in dataset order** are the test
+set, never seen in training; early stopping uses the last 10 % of the remaining
+training trajectories. Baselines on the same split: linear least squares (with bias)
+and k-nearest-neighbour lookup (k = 5, inputs standardised by the training data).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+MAPPINGS = ("nefotc", "nefumop", "nefik", "plan")
+REQUIRED = ("q_start", "q_goal", "converged", "q", "qd", "tau", "h", "metadata")
+
+
+def load_data(data):
+    """``data`` itself if it is a mapping, else ``jtraj.dataset.load(data)``."""
+    if isinstance(data, (str, bytes)) or hasattr(data, "__fspath__"):
+        from jtraj import dataset
+
+        return dataset.load(str(data))
+    return data
+
+
+def _check(data):
+    missing = [k for k in REQUIRED if k not in data]
+    if missing:
+        raise ValueError(f"dataset lacks the fields {missing}")
+    if "robot" not in data["metadata"]:
+        raise ValueError("dataset metadata lacks the robot name")
+
+
+def _robot(data):
+    from jtraj import robots
+
+    return robots.get(data["metadata"]["robot"])
+
+
+def _task(robot, q, qd):
+    import jax
+
+    def one(q_, qd_):
+        return jax.jvp(robot.forward_kinematics, (q_,), (qd_,))
+
+    p, pd = jax.jit(jax.vmap(one))(q, qd)
+    return np.asarray(p), np.asarray(pd)
+
+
+def view(data, mapping: str = "nefotc"):
+    """``(X, Y, traj, input_names, output_names)`` for the converged trajectories;
+    ``traj[i]`` is the dataset index of row i's trajectory."""
+    if mapping not in MAPPINGS:
+        raise ValueError(f"mapping must be one of {MAPPINGS}, got {mapping!r}")
+    data = load_data(data)
+    _check(data)
+    conv = np.asarray(data["converged"], bool)
+    idx = np.nonzero(conv)[0]
+    if idx.size == 0:
+        raise ValueError("dataset has no converged trajectory")
+    q = np.asarray(data["q"], float)[conv]
+    qd = np.asarray(data["qd"], float)[conv]
+    tau = np.asarray(data["tau"], float)[conv]
+    h = np.asarray(data["h"], float)[conv]
+    Pc, K, n = q.shape
+    N = h.shape[1]
+    m = tau.shape[2]
+    rows = lambda a: a.reshape(a.shape[0] * a.shape[1], *a.shape[2:])  # noqa: E731
+    jn = [f"q{j + 1}" for j in range(n)]
+    jdn = [f"qd{j + 1}" for j in range(n)]
+    tn = [f"tau{j + 1}" for j in range(m)]
+    if mapping == "nefotc":
+        X = np.concatenate([rows(q[:, :-1]), rows(qd[:, :-1])], axis=1)
+        return X, rows(tau), np.repeat(idx, N), jn + jdn, tn
+    if mapping == "plan":
+        v = np.asarray(data["v"], float)[conv]
+        X = np.concatenate([np.asarray(data["q_start"], float)[conv], np.asarray(data["q_goal"], float)[conv]], 1)
+        Y = np.concatenate([v.reshape(Pc, N * n), h], axis=1)
+        names = [f"v{k}_{j + 1}" for k in range(N) for j in range(n)] + [f"h{k}" for k in range(N)]
+        return X, Y, idx, [f"q_start{j + 1}" for j in range(n)] + [f"q_goal{j + 1}" for j in range(n)], names
+    robot = _robot(data)
+    if mapping == "nefumop":
+        p, pd = _task(robot, rows(q[:, :-1]), rows(qd[:, :-1]))
+        d = p.shape[1]
+        X = np.concatenate([p, pd], axis=1)
+        Y = np.concatenate([rows(tau), rows(h[..., None])], axis=1)
+        pn = ["x", "y", "z"][:d] if d <= 3 else [f"p{i + 1}" for i in range(d)]
+        return X, Y, np.repeat(idx, N), pn + [c + "d" for c in pn], tn + ["h"]
+    p, _ = _task(robot, rows(q), np.zeros_like(rows(q)))
+    d = p.shape[1]
+    pn = ["x", "y", "z"][:d] if d <= 3 else [f"p{i + 1}" for i in range(d)]
+    return p, rows(q), np.repeat(idx, K), pn, jn
+
+
+def split(traj, test_fraction: float = 0.1):
+    """Boolean (train, test) row masks: the last ``test_fraction`` of the distinct
+    trajectories (in dataset order) are the test set (at least one, when there are two
+    or more)."""
+    ids = np.unique(traj)
+    n_test = int(round(test_fraction * ids.size))
+    if ids.size >= 2:
+        n_test = min(max(n_test, 1), ids.size - 1)
+    test_ids = ids[ids.size - n_test:] if n_test else ids[:0]
+    test = np.isin(traj, test_ids)
+    return ~test, test
+
+
+def linear_baseline(Xtr, Ytr, Xte):
+    """Predictions of the least-squares affine map fitted on (Xtr, Ytr)."""
+    A = np.c_[Xtr, np.ones(len(Xtr))]
+    W, *_ = np.linalg.lstsq(A, Ytr, rcond=None)
+    return np.c_[Xte, np.ones(len(Xte))] @ W
+
+
+def knn_baseline(Xtr, Ytr, Xte, k: int = 5, chunk: int = 2048):
+    """Mean target of the ``k`` nearest training inputs (inputs standardised by the
+    training data), computed in chunks."""
+    mu, sd = Xtr.mean(0), Xtr.std(0)
+    sd = np.where(sd > 0, sd, 1.0)
+    A, B = (Xtr - mu) / sd, (Xte - mu) / sd
+    k = min(k, len(A))
+    out = np.empty((len(B), Ytr.shape[1]))
+    sqA = np.sum(A**2, 1)
+    for s in range(0, len(B), chunk):
+        b = B[s:s + chunk]
+        d2 = np.sum(b**2, 1)[:, None] + sqA[None, :] - 2 * b @ A.T
+        nn = np.argpartition(d2, k - 1, axis=1)[:, :k]
+        out[s:s + chunk] = Ytr[nn].mean(1)
+    return out
+
+
+def _rmse(a, b):
+    return float(np.sqrt(np.mean((np.asarray(a) - np.asarray(b)) ** 2)))
+
+
+def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, radius=0.5,
+                  epochs: int = 100, kind: str = "tsk", test_fraction: float = 0.1, progress: bool = False,
+                  **options):
+    """Train an ANFIS for ``mapping`` on a dataset; return ``(model, report, history)``.
+
+    ``report`` (JSON-able) holds ``train_rmse``, ``test_rmse`` (target units, all
+    outputs pooled), ``test_rmse_per_output``, ``train_rmse_per_output``, ``n_rules``,
+    ``epochs``, ``seconds``, ``linear_test_rmse``, ``knn_test_rmse``,
+    ``ratio_to_linear`` (goal <= 0.5) and the split sizes. Other keyword options go to
+    :func:`jtraj.anfis.train`.
+    """
+    from .training import train
+
+    data = load_data(data)
+    X, Y, traj, in_names, out_names = view(data, mapping)
+    tr, te = split(traj, test_fraction)
+    if not te.any():
+        raise ValueError("need at least two converged trajectories to hold one out for testing")
+    tr_traj = traj[tr]
+    fit_rows, val_rows = split(tr_traj, 0.1)
+    Xtr, Ytr = X[tr], Y[tr]
+    if val_rows.any() and fit_rows.any():
+        validation = (Xtr[val_rows], Ytr[val_rows])
+        Xfit, Yfit = Xtr[fit_rows], Ytr[fit_rows]
+    else:
+        validation, Xfit, Yfit = 0.0, Xtr, Ytr
+    meta = data["metadata"]
+    md = dict(mapping=mapping, robot=meta.get("robot"), N=meta.get("N"), inputs=in_names, outputs=out_names)
+    t0 = time.perf_counter()
+    model, hist = train(Xfit, Yfit, n_rules=n_rules, radius=radius, epochs=epochs, kind=kind,
+                        validation=validation, metadata=md, progress=progress, **options)
+    seconds = time.perf_counter() - t0
+    Ptr = np.asarray(model.predict(Xtr)).reshape(Ytr.shape)
+    Pte = np.asarray(model.predict(X[te])).reshape(Y[te].shape)
+    lin = linear_baseline(Xtr, Ytr, X[te])
+    knn = knn_baseline(Xtr, Ytr, X[te])
+    test_rmse = _rmse(Pte, Y[te])
+    lin_rmse = _rmse(lin, Y[te])
+    report = dict(
+        mapping=mapping, robot=meta.get("robot"), kind=kind, inputs=in_names, outputs=out_names,
+        n_trajectories_train=int(np.unique(traj[tr]).size), n_trajectories_test=int(np.unique(traj[te]).size),
+        n_samples_train=int(tr.sum()), n_samples_test=int(te.sum()),
+        train_rmse=_rmse(Ptr, Ytr), test_rmse=test_rmse,
+        train_rmse_per_output={k: _rmse(Ptr[:, i], Ytr[:, i]) for i, k in enumerate(out_names)},
+        test_rmse_per_output={k: _rmse(Pte[:, i], Y[te][:, i]) for i, k in enumerate(out_names)},
+        n_rules=model.n_rules, radius=hist.radius, epochs=hist.epochs, best_epoch=hist.best_epoch,
+        stop_reason=hist.stop_reason, seconds=round(seconds, 3),
+        linear_test_rmse=lin_rmse, knn_test_rmse=_rmse(knn, Y[te]),
+        ratio_to_linear=test_rmse / lin_rmse if lin_rmse > 0 else math.inf,
+    )
+    report["goal_met"] = bool(report["ratio_to_linear"] <= 0.5)
+    return model, report, hist
+
+
+def synthetic_dataset(P: int = 40, N: int = 20, seed: int = 0, robot: str = "serial3", *, T: float = 3.0,
+                      kp: float = 4.0, kd: float = 4.0):
+    """A small dataset-shaped mapping for tests and examples (no optimisation).
+
+    Every trajectory starts at rest from a random ``q_start`` and is driven towards one
+    common goal (the centre of the joint box) by the critically damped law
+    ``v = -kp (q - q_goal) - kd qd`` over ``N`` equal periods of ``T / N``; torques by
+    the robot's inverse dynamics. ``(q, qd) -> tau`` is then a genuine function (as for
+    the thesis' single-scenario NeFOTC), unlike datasets of random start/goal pairs
+    where the goal is not among the inputs. ``converged`` is False for every seventh
+    pair (to exercise the filtering).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from jtraj import robots
+
+    rb = robots.get(robot)
+    lim = rb.limits
+    rng = np.random.default_rng(seed)
+    n = rb.n
+    lo = np.asarray(lim.q_min) if lim.q_min is not None else -np.pi * np.ones(n)
+    hi = np.asarray(lim.q_max) if lim.q_max is not None else np.pi * np.ones(n)
+    lo, hi = np.maximum(lo, -1.5), np.minimum(hi, 1.5)
+    goal = 0.5 * (lo + hi)
+    qs = rng.uniform(lo, hi, (P, n))
+    h = np.full((P, N), T / N)
+
+    def one(q0):
+        def step(state, _):
+            q, qd = state
+            v = -kp * (q - goal) - kd * qd
+            dt = T / N
+            tau = rb.generalized_to_actuator(q, rb.generalized_forces(q, qd, v))
+            return (q + dt * qd + 0.5 * dt**2 * v, qd + dt * v), (q, qd, v, tau)
+
+        (qN, qdN), (q, qd, v, tau) = jax.lax.scan(step, (q0, jnp.zeros_like(q0)), None, length=N)
+        return (jnp.concatenate([q, qN[None]]), jnp.concatenate([qd, qdN[None]]), v, tau)
+
+    q, qd, v, tau = (np.asarray(a) for a in jax.jit(jax.vmap(one))(jnp.asarray(qs)))
+    conv = np.arange(P) % 7 != 6
+    return {"index": np.arange(P), "q_start": qs, "q_goal": np.tile(goal, (P, 1)), "converged": conv,
+            "status": np.where(conv, 0, 1).astype(np.int32), "q": q, "qd": qd, "v": v, "tau": tau, "h": h,
+            "T": h.sum(1), "cost": h.sum(1), "metadata": {"robot": robot, "N": N, "weights": {}}}

@@ -1,0 +1,37 @@
+"""Plan a trajectory for a start/goal pair with a trained planner model (mapping
+``plan``), report its feasibility, and optionally refine it with the exact solver."""
+
+HELP = "plan a trajectory with a trained ANFIS planner (optionally refine it exactly)"
+
+
+def _vec(text):
+    return [float(t) for t in text.replace(",", " ").split()]
+
+
+def configure(parser):
+    parser.add_argument("--model", required=True, help="model file from `jtraj train --mapping plan`")
+    parser.add_argument("--start", required=True, type=_vec, help="start joint positions, e.g. '0,0.52,0.52'")
+    parser.add_argument("--goal", required=True, type=_vec, help="goal joint positions")
+    parser.add_argument("--refine", action="store_true", help="warm-start the exact solver from the plan")
+    parser.add_argument("--json", help="write the result (trajectory included) as JSON")
+
+
+def run(args) -> int:
+    import json
+
+    from jtraj.online import Planner
+
+    planner = Planner(args.model)
+    if len(args.start) != planner.n or len(args.goal) != planner.n:
+        raise ValueError(f"--start and --goal need {planner.n} values each")
+    out = planner.query(args.start, args.goal, refine=args.refine)
+    print(f"plan: T = {out['T']:.4f} s, feasible = {out['feasible']}, goal error {out['goal_error']:.3g} rad, "
+          f"tau over limit {out['tau_violation']:.3g}, qd over limit {out['qd_violation']:.3g}")
+    if args.refine:
+        print(f"refined: {out['refined_status']} in {out['refined_iterations']} iterations, "
+              f"{out['refined_seconds']:.2f} s (cycloidal start: {out['cycloidal_iterations']} iterations, "
+              f"{out['cycloidal_seconds']:.2f} s)")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(out, f, indent=2)
+    return 0

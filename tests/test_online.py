@@ -1,0 +1,77 @@
+"""Trajectory models (jtraj train) and the online planner (jtraj query), on a small
+synthetic dataset built here (no dependency on the dataset builder or the solver)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from jtraj import anfis
+from jtraj.anfis import trajectory
+
+
+@pytest.fixture(scope="module")
+def data():
+    return trajectory.synthetic_dataset(P=40, N=10, seed=0)
+
+
+def test_split_is_by_trajectory_and_last_ten_percent(data):
+    X, Y, traj, names_in, names_out = trajectory.view(data, "nefotc")
+    conv = np.nonzero(data["converged"])[0]
+    assert X.shape == (conv.size * 10, 6) and Y.shape == (conv.size * 10, 3)
+    assert names_in[:1] == ["q1"] and names_out == ["tau1", "tau2", "tau3"]
+    tr, te = trajectory.split(traj)
+    test_ids = np.unique(traj[te])
+    np.testing.assert_array_equal(test_ids, conv[-round(0.1 * conv.size):])
+    assert not set(np.unique(traj[tr])) & set(test_ids)
+
+
+def test_baselines_exact_on_linear_data():
+    rng = np.random.default_rng(0)
+    X = rng.random((200, 3))
+    Y = X @ np.array([[1.0], [2.0], [-1.0]]) + 0.5
+    np.testing.assert_allclose(trajectory.linear_baseline(X, Y, X[:5]), Y[:5], atol=1e-10)
+    np.testing.assert_allclose(trajectory.knn_baseline(X, Y, X[:5], k=1), Y[:5])
+
+
+def test_train_command_report_and_plot(tmp_path, data, monkeypatch):
+    from jtraj.commands import train as cmd
+
+    monkeypatch.setattr(trajectory, "load_data", lambda d: data)
+    import os
+
+    (tmp_path / "ds").mkdir()
+    args = type("A", (), dict(data=str(tmp_path / "ds"), mapping="nefotc", out=str(tmp_path / "m.anfis"),
+                              json=str(tmp_path / "r.json"), plot=str(tmp_path / "c.png"), rules=6, radius=0.5,
+                              kind="tsk", order=1, epochs=10, ridge=1e-6, no_progress=True))
+    assert cmd.run(args) == 0
+    rep = json.load(open(args.json))
+    for k in ("train_rmse", "test_rmse", "test_rmse_per_output", "n_rules", "epochs", "seconds",
+              "linear_test_rmse", "knn_test_rmse"):
+        assert k in rep
+    assert rep["n_rules"] == 6 and set(rep["test_rmse_per_output"]) == {"tau1", "tau2", "tau3"}
+    assert np.isfinite(rep["test_rmse"]) and rep["test_rmse"] < 5 * rep["linear_test_rmse"]
+    assert os.path.getsize(args.plot) > 1000
+    model = anfis.load(args.out, mapping="nefotc")
+    assert model.metadata["robot"] == "serial3"
+    with pytest.raises(ValueError, match="mapping"):
+        anfis.load(args.out, mapping="plan")
+
+
+def test_planner_one_call_with_feasibility(tmp_path, data):
+    from jtraj.online import Planner
+
+    model, rep, _ = trajectory.train_mapping(data, "plan", n_rules=4, epochs=5)
+    planner = Planner(model)
+    qs, qg = data["q_start"][0], data["q_goal"][0]
+    p = planner.plan(qs, qg)
+    assert p.q.shape == (11, 3) and p.tau.shape == (10, 3) and p.h.shape == (10,)
+    np.testing.assert_allclose(p.q[0], qs)
+    for f in ("tau_violation", "qd_violation", "goal_error", "h_violation"):
+        assert np.isfinite(float(getattr(p, f)))
+    out = planner.query(qs, qg)
+    assert isinstance(out["feasible"], bool) and out["goal_error"] >= 0
+    path = tmp_path / "otc.anfis"
+    trajectory.train_mapping(data, "nefotc", n_rules=3, epochs=1)[0].save(path)
+    with pytest.raises(ValueError, match="mapping"):
+        Planner(str(path))
