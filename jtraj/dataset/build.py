@@ -304,6 +304,13 @@ def build(spec: Spec, out: str, *, ray: str | None = None, progress: bool = True
             conv_done += int(np.sum(store.read_chunk(writer.path, c, ["converged"])["converged"]))
         if writer.resumed:
             log(f"jtraj dataset: resuming {out}: {len(done)}/{spec.n_chunks} chunks already done")
+            old = store.read_manifest(writer.path)["metadata"].get("versions", {})
+            now = _versions()
+            changed = [f"{k} {old.get(k)} -> {now.get(k)}" for k in ("jtraj", "jax", "jaxlib", "machine")
+                       if old.get(k) != now.get(k)]
+            if changed and todo:
+                log("jtraj dataset: warning: resuming with different software/hardware (" + ", ".join(changed)
+                    + "); new chunks may differ in the last bits from an uninterrupted run")
         stats = {"pairs_done": pairs_done, "converged": conv_done, "new_pairs": 0}
         bar = None
         if progress:
