@@ -25,16 +25,18 @@ def rel_err(a, b):
 def test_two_link_closed_form():
     l1, l2, m1, m2, d1, d2, I1, I2, g = 0.7, 0.5, 3.0, 1.5, 0.3, 0.2, 0.12, 0.05, 9.81
     arm = serial_planar((l1, l2), (m1, m2), (I1, I2), com=(d1, d2), gravity=g)
+    model = jax.jit(lambda q, qd: (arm.mass_matrix(q), arm.coriolis(q, qd), arm.gravity(q),
+                                   arm.forward_kinematics(q)))
     rng = np.random.default_rng(0)
     for _ in range(5):
         q, qd = rng.uniform(-np.pi, np.pi, 2), rng.uniform(-2, 2, 2)
         M, c, G = two_link_closed_form(q, qd, l1, m1, m2, d1, d2, I1, I2, g)
-        assert rel_err(arm.mass_matrix(q), M) < 1e-13
-        assert np.allclose(arm.coriolis(q, qd), c, atol=1e-13 * np.abs(M).max() * 4)
-        assert np.allclose(arm.coriolis_matrix(q, qd) @ qd, c, atol=1e-12)
-        assert rel_err(arm.gravity(q), G) < 1e-13
+        M_m, c_m, G_m, tip_m = (np.asarray(x) for x in model(q, qd))
+        assert rel_err(M_m, M) < 1e-13
+        assert np.allclose(c_m, c, atol=1e-13 * np.abs(M).max() * 4)
+        assert rel_err(G_m, G) < 1e-13
         tip = [l1 * np.cos(q[0]) + l2 * np.cos(q[0] + q[1]), l1 * np.sin(q[0]) + l2 * np.sin(q[0] + q[1])]
-        assert np.allclose(arm.forward_kinematics(q), tip, atol=1e-14)
+        assert np.allclose(tip_m, tip, atol=1e-14)
 
 
 # ----- serial chains vs Pinocchio -----------------------------------------------------
@@ -84,23 +86,38 @@ def frictionless(robot):
 
 
 @pytest.mark.parametrize("name", catalogue())
-def test_mass_matrix_spd_and_skew(name):
+def test_dynamics_structure(name):
+    """M symmetric positive definite, dM/dt - 2C skew-symmetric, C qd = c, inverse and
+    forward dynamics inverse to each other, Jacobian = finite differences of the
+    forward kinematics; all at random states, through one jitted function."""
     robot = robots.get(name)
     rng = np.random.default_rng(2)
+    eps = 1e-6
 
     @jax.jit
-    def parts(q, qd):
+    def parts(q, qd, qdd):
+        M = robot.mass_matrix(q)
         Mdot = jax.jvp(robot.mass_matrix, (q,), (qd,))[1]
-        return robot.mass_matrix(q), robot.coriolis_matrix(q, qd), Mdot, robot.coriolis(q, qd)
+        tau = robot.inverse_dynamics(q, qd, qdd)
+        fk = jax.vmap(robot.forward_kinematics)
+        dq = eps * jnp.eye(robot.n)
+        J_fd = ((fk(q + dq) - fk(q - dq)) / (2 * eps)).T
+        return (M, robot.coriolis_matrix(q, qd), Mdot, robot.coriolis(q, qd), tau,
+                robot.forward_dynamics(q, qd, tau), robot.jacobian(q), J_fd)
 
-    for _ in range(4):
-        q, qd, _ = sample_state(robot, rng)
-        M, C, Mdot, c = (np.asarray(x) for x in parts(q, qd))
-        assert np.allclose(M, M.T, rtol=0, atol=1e-12 * np.abs(M).max())
+    for _ in range(3):
+        q, qd, qdd = sample_state(robot, rng)
+        M, C, Mdot, c, tau, qdd_back, J, J_fd = (np.asarray(x) for x in parts(q, qd, qdd))
+        scale = max(np.abs(M).max(), 1.0)
+        assert np.allclose(M, M.T, rtol=0, atol=1e-12 * scale)
         assert np.linalg.eigvalsh(M).min() > 0
         S = Mdot - 2 * C
-        assert np.abs(S + S.T).max() < 1e-10 * max(np.abs(M).max(), 1.0)
-        assert np.allclose(C @ qd, c, atol=1e-10 * max(np.abs(M).max(), 1.0))
+        assert np.abs(S + S.T).max() < 1e-10 * scale
+        assert np.allclose(C @ qd, c, atol=1e-10 * scale)
+        assert tau.shape == (robot.n_actuators,)
+        if robot.name != "wmr":  # wmr: qdd must satisfy the constraint (test_wmr_reduced_equations)
+            assert rel_err(qdd_back, qdd) < 1e-9
+        assert np.abs(J - J_fd).max() < 1e-7
 
 
 @pytest.mark.parametrize("name", catalogue())
@@ -142,52 +159,31 @@ def test_energy_conservation(name):
 
 
 @pytest.mark.parametrize("name", catalogue())
-def test_inverse_forward_roundtrip_and_jacobian(name):
-    robot = robots.get(name)
-    rng = np.random.default_rng(4)
-    q, qd, qdd = sample_state(robot, rng)
-    tau, qdd_back = jax.jit(lambda q, qd, qdd: (lambda t: (t, robot.forward_dynamics(q, qd, t)))(
-        robot.inverse_dynamics(q, qd, qdd)))(q, qd, qdd)
-    assert tau.shape == (robot.n_actuators,)
-    if robot.name != "wmr":  # (wmr: qdd must satisfy the constraint; see test_wmr_reduced_equations)
-        assert rel_err(qdd_back, qdd) < 1e-9
-    # Jacobian against central finite differences
-    J = np.asarray(jax.jit(lambda q: robot.jacobian(q))(q))
-    eps = 1e-6
-    fk = jax.jit(jax.vmap(lambda q: robot.forward_kinematics(q)))
-    plus, minus = np.asarray(fk(q + eps * np.eye(robot.n))), np.asarray(fk(q - eps * np.eye(robot.n)))
-    J_fd = ((plus - minus) / (2 * eps)).T
-    assert np.abs(J - J_fd).max() < 1e-7
-
-
-@pytest.mark.parametrize("name", catalogue())
 def test_transforms_on_every_function(name):
-    """jit, vmap and grad work on every public function and give finite results."""
+    """jit, vmap and grad (with respect to the state, the torques and the robot's
+    parameters) work on every public function and give finite results (one compile)."""
     robot = robots.get(name)
     rng = np.random.default_rng(5)
     states = [sample_state(robot, rng) for _ in range(3)]
     Q, QD, QDD = (jnp.asarray(np.stack(s)) for s in zip(*states))
-    TAU = jax.jit(jax.vmap(lambda q, qd, qdd: robot.inverse_dynamics(q, qd, qdd)))(Q, QD, QDD)
+    TAU = jnp.asarray(rng.uniform(-1, 1, (3, robot.n_actuators)))
 
-    def everything(q, qd, qdd, tau):
-        return {"fk": robot.forward_kinematics(q), "J": robot.jacobian(q), "M": robot.mass_matrix(q),
-                "bias": robot.bias(q, qd), "id": robot.inverse_dynamics(q, qd, qdd),
-                "fd": robot.forward_dynamics(q, qd, tau), "w": robot.manipulability(q)}
+    def everything(r, q, qd, qdd, tau):
+        out = {"fk": r.forward_kinematics(q), "J": r.jacobian(q), "M": r.mass_matrix(q),
+               "bias": r.bias(q, qd), "id": r.inverse_dynamics(q, qd, qdd),
+               "fd": r.forward_dynamics(q, qd, tau), "w": r.manipulability(q)}
+        return sum(jnp.sum(v) for v in out.values()), out
 
-    out = jax.jit(jax.vmap(everything))(Q, QD, QDD, TAU)
+    fn = jax.value_and_grad(lambda *x: everything(robot, *x), argnums=(0, 1, 2, 3), has_aux=True)
+    (_, out), grads = jax.jit(jax.vmap(fn))(Q, QD, QDD, TAU)
     for key, val in out.items():
         assert val.shape[0] == 3 and np.all(np.isfinite(np.asarray(val))), key
-
-    def scalar(q, qd, qdd, tau):
-        return sum(jnp.sum(v) for v in everything(q, qd, qdd, tau).values())
-
-    grads = jax.jit(jax.grad(scalar, argnums=(0, 1, 2, 3)))(Q[0], QD[0], QDD[0], TAU[0])
     for g in grads:
-        assert np.all(np.isfinite(np.asarray(g)))
-    # gradient with respect to the robot's parameters (sensitivities)
+        assert g.shape[0] == 3 and np.all(np.isfinite(np.asarray(g)))
+    # gradient with respect to the robot's parameters (sensitivities) of the inverse dynamics
     g_robot = eqx.filter_jit(eqx.filter_grad(lambda r: jnp.sum(r.inverse_dynamics(Q[0], QD[0], QDD[0]))))(robot)
     leaves = [x for x in jax.tree_util.tree_leaves(g_robot) if eqx.is_array(x)]
-    assert all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
+    assert leaves and all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
 
 
 # ----- pkm2 ---------------------------------------------------------------------------
