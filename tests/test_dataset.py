@@ -127,6 +127,16 @@ def test_resume_equals_uninterrupted_run(tmp_path):
     assert s3["new_pairs"] == 0
 
 
+def test_run_killed_while_writing_its_manifest_restarts(tmp_path):
+    out = tmp_path / "d"
+    out.mkdir()
+    (out / ".lock").write_bytes(b"")
+    (out / "manifest.json.tmp-4242").write_bytes(b'{"format": "jtraj-da')
+    s = dataset.build(fake_spec(pairs=16, batch=8), str(out), progress=False)
+    assert s["complete"] and not (out / "manifest.json.tmp-4242").exists()
+    assert dataset.load(str(out))["q"].shape[0] == 16
+
+
 def test_different_parameters_are_refused_and_nothing_changes(tmp_path):
     out = str(tmp_path / "d")
     dataset.build(fake_spec(pairs=20, batch=8), out, progress=False)

@@ -44,6 +44,7 @@ LOCK = ".lock"
 CHUNKS = "chunks"
 _CHUNK_RE = re.compile(r"^chunk-(\d{6})\.h5$")
 _TMP_RE = re.compile(r"^chunk-(\d{6})\.h5\.tmp-\d+$")
+_MAN_TMP_RE = re.compile(r"^manifest\.json\.tmp-\d+$")
 
 
 def identity_hash(identity: dict) -> str:
@@ -130,7 +131,8 @@ def inspect(path: str, identity: dict) -> bool:
                     "Use the original parameters to resume, or a new --out.")
             resumed = True
         else:
-            extra = [e for e in os.listdir(apath) if e not in (LOCK, CHUNKS)]
+            # a run killed while writing its manifest leaves only the lock and a temp manifest
+            extra = [e for e in os.listdir(apath) if e not in (LOCK, CHUNKS) and not _MAN_TMP_RE.match(e)]
             chunk_dir = os.path.join(apath, CHUNKS)
             if os.path.isdir(chunk_dir) and os.listdir(chunk_dir):
                 extra.append(CHUNKS + "/...")
@@ -204,6 +206,10 @@ class Writer:
         self.close()
 
     def _clean_tmp(self):
+        for e in os.listdir(self.path):
+            if _MAN_TMP_RE.match(e):
+                with contextlib.suppress(OSError):
+                    os.remove(os.path.join(self.path, e))
         d = os.path.join(self.path, CHUNKS)
         for e in os.listdir(d):
             if _TMP_RE.match(e):  # a chunk that was in flight when a previous run died
