@@ -37,12 +37,15 @@ def plot(path: str, out: str) -> str:
     p1 = _task(robot, data["q_goal"], np.zeros_like(data["q_goal"]))[0]
     a = ax[0, 0]
     if p.shape[1] >= 2:
-        a.hist2d(p[:, 0], p[:, 1], bins=60, cmap="Greys", cmin=1)
-        a.scatter(p0[:, 0], p0[:, 1], s=4, c="tab:blue", label="start")
-        a.scatter(p1[:, 0], p1[:, 1], s=4, c="tab:orange", label="goal")
+        from matplotlib.colors import LogNorm
+
+        a.hist2d(p[:, 0], p[:, 1], bins=80, cmap="viridis", cmin=1, norm=LogNorm())
+        a.scatter(p0[:, 0], p0[:, 1], s=5, c="white", edgecolors="k", linewidths=0.3, label="start")
+        a.scatter(p1[:, 0], p1[:, 1], s=5, c="tab:orange", label="goal")
         bad = ~conv
         if bad.any():
-            a.scatter(p0[bad, 0], p0[bad, 1], s=12, marker="x", c="tab:red", label="not converged (start)")
+            a.scatter(p0[bad, 0], p0[bad, 1], s=14, marker="o", facecolors="none", edgecolors="tab:red",
+                      linewidths=0.6, label="start of a non-converged pair")
         a.set_xlabel("x [m]")
         a.set_ylabel("y [m]")
         a.set_aspect("equal", adjustable="datalim")
