@@ -1,0 +1,129 @@
+"""The ``jtraj`` command line, called in-process (``jtraj.cli.main``).
+
+The solver may not converge on these problems yet: the tests check the plumbing, the
+consistency of what is written and the bad-input paths, never convergence.
+"""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from jtraj import cli
+
+# a move that fits N = 10 intervals (N h_max = 1 s)
+START, GOAL = "0,30,30", "30,10,20"
+
+
+@pytest.fixture(autouse=True)
+def _cache(tmp_path_factory, monkeypatch):
+    monkeypatch.setenv("JTRAJ_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "jax-cache"))
+
+
+def test_help_lists_commands(capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for name in ("solve", "gradcheck", "robots"):
+        assert name in out
+    with pytest.raises(SystemExit):
+        cli.main(["solve", "--help"])
+    out = capsys.readouterr().out
+    for opt in ("--start-q", "--goal-xy", "--deg", "--json", "--plot", "--transcription", "--via"):
+        assert opt in out
+
+
+def test_solve_writes_consistent_json_and_png(tmp_path, capsys):
+    from jtraj.transcription import integrate
+
+    out_json, out_png = tmp_path / "sol.json", tmp_path / "sol.png"
+    rc = cli.main(["solve", "--robot", "serial3", "--start-q", START, "--goal-q", GOAL, "--deg", "--N", "10",
+                   "--weights", "time=1,energy=0.5", "--json", str(out_json), "--plot", str(out_png)])
+    text = capsys.readouterr().out
+    d = json.loads(out_json.read_text())
+    assert rc == (0 if d["converged"] else 1)
+    assert "status:" in text and "T =" in text and "max violation" in text and "solve" in text
+    for key in ("converged", "status", "status_message", "T", "cost", "cost_terms", "max_violation", "q", "qd",
+                "v", "tau", "h", "iterations", "solve_seconds", "compile_seconds", "robot", "N", "weights"):
+        assert key in d, key
+    assert d["robot"] == "serial3" and d["N"] == 10 and d["weights"]["energy"] == 0.5
+    assert d["solve_seconds"] > 0 and d["compile_seconds"] >= 0
+    q, qd, v, h = (np.asarray(d[k], float) for k in ("q", "qd", "v", "h"))
+    assert q.shape == (11, 3) and qd.shape == (11, 3) and v.shape == (10, 3) and h.shape == (10,)
+    assert np.asarray(d["tau"]).shape == (10, 3)
+    assert np.all(np.isfinite(q)) and np.all(np.isfinite(h))
+    # the start and goal are the requested ones, in radians
+    np.testing.assert_allclose(d["q_start"], np.deg2rad([0, 30, 30]), atol=1e-12)
+    np.testing.assert_allclose(d["q_goal"], np.deg2rad([30, 10, 20]), atol=1e-12)
+    # re-simulate the returned v and h: the states, T and the reported goal violation agree
+    q_sim, qd_sim = (np.asarray(x) for x in integrate(np.asarray(d["q_start"]), np.zeros(3), v, h))
+    np.testing.assert_allclose(q_sim, q, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(qd_sim, qd, rtol=0, atol=1e-9)
+    assert math.isclose(d["T"], h.sum(), rel_tol=1e-12)
+    goal_err = max(np.max(np.abs(q_sim[-1] - d["q_goal"])), np.max(np.abs(qd_sim[-1])))
+    assert goal_err <= d["max_violation"]["goal"] + 1e-9
+    assert d["max_violation"]["overall"] >= d["max_violation"]["goal"]
+    assert np.all(h >= 0.005 - 1e-12) and np.all(h <= 0.1 + 1e-12)
+    assert math.isclose(d["cost"], sum(d["cost_terms"].values()), rel_tol=1e-9)
+    png = out_png.read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--robot", "no_such_robot", "--start-q", START, "--goal-q", GOAL], "--robot"),
+    (["--start-q", "0,abc,30", "--goal-q", GOAL], "--start-q"),
+    (["--start-q", "nan,30,30", "--goal-q", GOAL], "--start-q"),
+    (["--start-q", START, "--goal-q", "1,2"], "--goal-q"),
+    (["--start-q", START, "--goal-q", "inf,0,0"], "--goal-q"),
+    (["--start-q", START], "goal"),
+    (["--goal-q", GOAL], "start"),
+    (["--start-q", START, "--goal-q", GOAL, "--N", "1"], "--N"),
+    (["--start-q", START, "--goal-q", GOAL, "--weights", "time=1,speed=2"], "--weights"),
+    (["--start-q", START, "--goal-q", GOAL, "--T-max", "nan"], "--T-max"),
+    (["--start-q", START, "--goal-q", GOAL, "--via", "1,x"], "--via"),
+    (["--start-q", START, "--goal-q", "170,10,20", "--deg", "--N", "10"], "--N"),  # too far for N h_max
+])
+def test_solve_bad_input_exits_2(argv, needle, capsys):
+    rc = cli.main(["solve", "--deg", *argv] if "--deg" not in argv else ["solve", *argv])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert err.startswith("jtraj solve: error:") and needle in err, err
+
+
+def test_gradcheck_command(monkeypatch, tmp_path, capsys):
+    """Command plumbing with a stubbed checker (the real check is tests/test_gradcheck.py)."""
+    from jtraj import gradcheck as gc
+
+    calls = {}
+
+    def fake(robot, **kw):
+        calls.update(kw, robot=robot)
+        res = gc.RobotResult(robot="serial3", status=status, N=kw["N"], points=kw["points"], cost_adjoint=1e-16,
+                             cost_fd=1e-10, al_adjoint=2e-16, al_fd=3e-9 if status == "ok" else 1e-3)
+        skipped = gc.RobotResult(robot="wmr", status="skipped", note="model not available yet")
+        return gc.Report(results=[res, skipped])
+
+    monkeypatch.setattr(gc, "gradcheck", fake)
+    for status, expected in (("ok", 0), ("FAIL", 1)):
+        out = tmp_path / f"{status}.json"
+        rc = cli.main(["gradcheck", "--robot", "serial3", "--N", "4", "--points", "2", "--json", str(out)])
+        text = capsys.readouterr().out
+        assert rc == expected
+        assert calls["robot"] == "serial3" and calls["N"] == 4 and calls["points"] == 2
+        assert "serial3" in text and "skipped" in text and ("PASSED" if expected == 0 else "FAILED") in text
+        d = json.loads(out.read_text())
+        assert d["passed"] is (expected == 0) and d["robots"][1]["cost_fd"] is None  # NaN -> null
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--robot", "nope"], "--robot"),
+    (["--robot", "serial3", "--N", "1"], "--N"),
+    (["--robot", "serial3", "--points", "0"], "--points"),
+    (["--robot", "serial3", "--fd-step", "-1"], "--fd-step"),
+])
+def test_gradcheck_bad_input_exits_2(argv, needle, capsys):
+    rc = cli.main(["gradcheck", *argv])
+    err = capsys.readouterr().err
+    assert rc == 2 and needle in err, err
