@@ -16,7 +16,7 @@ and only then renamed to its final name with :func:`os.replace` (atomic on POSIX
 directory is ``fsync``-ed after the rename. A ``kill -9`` at any moment therefore
 leaves either no file for a chunk or a complete one; finished chunks are never opened for
 writing again. HDF5 datasets carry Fletcher-32 checksums, so a file damaged later (disk
-fault) is detected on read. Each chunk file repeats the dataset's identity hash and its
+fault) is detected on read. Each chunk file repeats the dataset's identity (JSON), its hash and its
 pair range in its attributes, so it cannot be mixed into another dataset.
 
 Resuming. The manifest's ``identity`` holds every parameter that determines the values
@@ -162,6 +162,7 @@ class Writer:
         self.path = os.path.abspath(path)
         self.identity = identity
         self.hash = identity_hash(identity)
+        self._identity_json = json.dumps(identity, sort_keys=True)
         self._lock_fd = None
         self.resumed = inspect(path, identity)
         try:
@@ -237,6 +238,7 @@ class Writer:
             f.attrs["chunk"] = c
             f.attrs["start"] = start
             f.attrs["count"] = count
+            f.attrs["identity"] = self._identity_json  # each chunk file is readable on its own
             for k, v in arrays.items():
                 v = np.asarray(v)
                 f.create_dataset(k, data=v, fletcher32=v.size > 0, chunks=v.shape if v.size else None)
