@@ -46,7 +46,8 @@ function with respect to the controls and periods:
     dF/dh_k = dl_k/dh_k + (qd_k + h_k v_k) . p_q,k+1 + v_k . p_qd,k+1 + dG/dh_k
 
 for ``k = 0..N-1`` (``p_0`` is not needed: the start state is fixed). The recursion is
-written by hand below (:func:`discrete_adjoint`); the per-stage partial derivatives
+written by hand below (:func:`discrete_adjoint`), and so is the forward pass
+(:func:`forward_states`, not the transcription's closed form); the per-stage partial derivatives
 ``dl_k/dw_k`` come from local (per-sample) autodiff of a stage function, and for the
 augmented Lagrangian the stage function is rebuilt here from the constraints of
 :meth:`~jtraj.transcription.Transcription.stage_constraints` with the textbook
@@ -170,6 +171,17 @@ def discrete_adjoint(v, h, q, qd, dl):
     return jnp.stack(gv), jnp.stack(gh)
 
 
+def forward_states(q0, qd0, v, h):
+    """The decoupled model (1)-(2) stepped explicitly: (q, qd), each (N+1, n). Written
+    here rather than taken from :func:`jtraj.transcription.integrate`, so that a slip
+    in the transcription's recursion shows up as a disagreement."""
+    q, qd = [q0], [qd0]
+    for k in range(h.shape[0]):
+        q.append(q[k] + h[k] * qd[k] + 0.5 * h[k] ** 2 * v[k])
+        qd.append(qd[k] + h[k] * v[k])
+    return jnp.stack(q), jnp.stack(qd)
+
+
 AdjointFn = Callable[..., tuple]
 
 
@@ -181,9 +193,10 @@ def adjoint_gradients(problem, v, h, mult, mu, *, adjoint: AdjointFn = discrete_
     tr = Transcription("decoupled")
     sd = tr.stage_data(problem)
     n = problem.robot.n
-    layout = tr.layout(problem)
-    W = tr.stage_vectors(problem, layout, layout.pack(v, h))  # forward pass
-    q, qd = W[:, :n], W[:, n:2 * n]
+    q, qd = forward_states(problem.q_start, problem.qd_start, v, h)  # forward pass
+    # stage vectors w_k = (q_k, qd_k, v_k, h_k); row N carries v_N = 0, h_N = 0
+    W = jnp.concatenate([q, qd, jnp.concatenate([v, jnp.zeros((1, v.shape[1]))]),
+                         jnp.concatenate([h, jnp.zeros(1)])[:, None]], axis=1)
 
     def split(g):
         return g[:, :n], g[:, n:2 * n], g[:, 2 * n:-1], g[:, -1]
