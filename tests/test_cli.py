@@ -84,6 +84,8 @@ def test_solve_writes_consistent_json_and_png(tmp_path, capsys):
     (["--start-q", START, "--goal-q", GOAL, "--T-max", "nan"], "--T-max"),
     (["--start-q", START, "--goal-q", GOAL, "--via", "1,x"], "--via"),
     (["--start-q", START, "--goal-q", "170,10,20", "--deg", "--N", "10"], "--N"),  # too far for N h_max
+    (["--start-q", START, "--goal-xy", "1.3"], "--goal-xy"),
+    (["--start-q", START, "--goal-xy", "5,5"], "--goal-xy"),  # unreachable (runs the IK)
 ])
 def test_solve_bad_input_exits_2(argv, needle, capsys):
     rc = cli.main(["solve", "--deg", *argv] if "--deg" not in argv else ["solve", *argv])
