@@ -89,15 +89,15 @@ class SolverOptions(eqx.Module):
         guess: "cycloidal" or "trapezoidal".
     """
 
-    max_iter: int = eqx.field(static=True, default=200)
+    max_iter: int = eqx.field(static=True, default=500)
     max_outer: int = eqx.field(static=True, default=30)
-    max_inner: int = eqx.field(static=True, default=25)
-    tol_feasibility: float = eqx.field(static=True, default=1e-9)
-    tol_optimality: float = eqx.field(static=True, default=1e-7)
+    max_inner: int = eqx.field(static=True, default=40)
+    tol_feasibility: float = eqx.field(static=True, default=1e-5)
+    tol_optimality: float = eqx.field(static=True, default=1e-5)
     penalty_init: float = eqx.field(static=True, default=10.0)
-    penalty_growth: float = eqx.field(static=True, default=10.0)
-    penalty_max: float = eqx.field(static=True, default=1e9)
-    feasibility_ratio: float = eqx.field(static=True, default=0.25)
+    penalty_growth: float = eqx.field(static=True, default=4.0)
+    penalty_max: float = eqx.field(static=True, default=1e6)
+    feasibility_ratio: float = eqx.field(static=True, default=0.5)
     schedule: str = eqx.field(static=True, default="default")
     damping_init: float = eqx.field(static=True, default=1e-4)
     verify_tol: float = eqx.field(static=True, default=1e-6)
@@ -232,6 +232,7 @@ class _State(NamedTuple):
 
 
 _LADDER = 0.5 ** jnp.arange(10)
+_SHIFTS = 4.0 ** jnp.arange(7)  # x1, x4, ... x4096 the current damping
 
 
 def _newton_step(nlp: _NLP, z, mult, mu, damping):
@@ -244,13 +245,19 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping):
     Hf = jnp.where(free[:, None] & free[None, :], H, 0.0)
     Hf = Hf + jnp.diag(jnp.where(free, damping, 1.0))
     gf = jnp.where(free, g, 0.0)
-    # a second, surely positive-definite shift (Gershgorin) if the first factorisation fails
+    # Inertia correction without serialising control flow: factorise with a ladder of
+    # shifts at once and keep the smallest that is positive definite (the last, from
+    # Gershgorin's theorem, always is).
     radius = jnp.sum(jnp.abs(Hf), axis=1) - jnp.abs(jnp.diag(Hf))
-    shift = jnp.maximum(0.0, jnp.max(radius - jnp.diag(Hf))) + damping
-    L1 = jnp.linalg.cholesky(Hf)
-    ok1 = jnp.all(jnp.isfinite(L1))
-    L2 = jnp.linalg.cholesky(Hf + shift * jnp.eye(Hf.shape[0]))
-    Lc = jnp.where(ok1, L1, L2)
+    gersh = jnp.maximum(0.0, jnp.max(radius - jnp.diag(Hf))) + damping
+    shifts = jnp.concatenate([damping * _SHIFTS, gersh[None]])
+    eye = jnp.eye(Hf.shape[0], dtype=Hf.dtype)
+    Ls = jax.vmap(lambda sh: jnp.linalg.cholesky(Hf + (sh - damping) * eye))(shifts)
+    good = jax.vmap(lambda L: jnp.all(jnp.isfinite(L)))(Ls)
+    pick = jnp.argmax(good)
+    Lc = Ls[pick]
+    ok1 = pick == 0
+    used_shift = shifts[pick]
     d_free = -jax.scipy.linalg.cho_solve((Lc, True), gf)
     d = jnp.where(free, d_free, -g)
     d = jnp.where(jnp.all(jnp.isfinite(d)), d, -g)
@@ -263,7 +270,7 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping):
     z_new = jnp.where(any_ok, candidates[first], z)
     step = jnp.where(any_ok, _LADDER[first], 0.0)
     damping = jnp.where(step == 1.0, damping * 0.25, jnp.where(step >= 0.25, damping, damping * 8.0))
-    damping = jnp.where(ok1, damping, jnp.maximum(damping, 1e-6) * 10.0)
+    damping = jnp.where(ok1, damping, jnp.minimum(used_shift, gersh) * 0.5)
     damping = jnp.clip(damping, 1e-12, 1e10)
     return z_new, damping, jnp.max(jnp.abs(pg)), val, any_ok
 
@@ -271,6 +278,47 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping):
 def _stationarity(nlp: _NLP, z, mult, mu):
     g = jax.grad(nlp.al_value)(z, mult, mu)
     return jnp.max(jnp.abs(z - jnp.clip(z - g, nlp.layout.z_lo, nlp.layout.z_hi)))
+
+
+def _residual(nlp: _NLP, z, act_tol):
+    """Stacked residual of the equalities and of the nearly-active inequalities (which the
+    polish pulls onto their boundary); inactive rows are zero."""
+    eq, ineq, glob = nlp.constraints(z)
+    rows = [c.ravel() for c in jax.tree.leaves(eq)]
+    for g in jax.tree.leaves(ineq) + [glob]:
+        g = g.ravel()
+        rows.append(jnp.where(g > -act_tol, g, 0.0))
+    return jnp.concatenate(rows)
+
+
+def _polish(nlp: _NLP, z, iterations: int = 4, act_tol: float = 1e-3):
+    """Feasibility polish: a few Gauss-Newton projections of z onto the manifold of the
+    equalities and nearly-active inequalities (minimum-norm corrections, simple bounds
+    held). The AL leaves O((lambda* - lambda)/mu) violations; this removes them without
+    changing the optimum to first order. A step is kept only if the violation shrinks."""
+    lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
+
+    def viol(zz):
+        return _violation(*nlp.constraints(zz))
+
+    def body(_, carry):
+        z, v = carry
+        r = _residual(nlp, z, act_tol)
+        J = jax.jacfwd(_residual, argnums=1)(nlp, z, act_tol)
+        fixed = (z <= lo + 1e-12) | (z >= hi - 1e-12)
+        J = jnp.where(fixed[None, :], 0.0, J)
+        # normal equations in z (nz x nz, smaller than the row space); the tiny ridge
+        # selects the minimum-norm correction when J is rank deficient
+        A = J.T @ J
+        A = A + (1e-10 * (1.0 + jnp.max(jnp.diag(A)))) * jnp.eye(A.shape[0], dtype=A.dtype)
+        dz = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(A), True), J.T @ r)
+        z_new = jnp.clip(z - dz, lo, hi)
+        v_new = viol(z_new)
+        better = jnp.isfinite(v_new) & (v_new < v)
+        return jnp.where(better, z_new, z), jnp.where(better, v_new, v)
+
+    z, _ = jax.lax.fori_loop(0, iterations, body, (z, viol(z)))
+    return z
 
 
 def _init_multipliers(nlp: _NLP, z) -> Multipliers:
@@ -308,7 +356,8 @@ def _run(nlp: _NLP, z0, opts: SolverOptions):
         updated = Multipliers(new_eq, new_ineq, new_glob)
         if opts.schedule == "default":
             take_mult = jnp.asarray(True)
-            grow = viol > opts.feasibility_ratio * s.viol_prev
+            # grow the penalty only while infeasible and not shrinking fast enough
+            grow = (viol > opts.feasibility_ratio * s.viol_prev) & (viol > opts.tol_feasibility)
             eta = s.eta
         else:  # Conn-Gould-Toint as in the thesis (alpha = beta = 0.4 family)
             take_mult = viol <= s.eta
@@ -412,6 +461,7 @@ def _decoupled_states(problem, v, h):
 
 def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
     problem, tr = nlp.problem, nlp.tr
+    s = s._replace(z=_polish(nlp, s.z))
     u, h = nlp.layout.unpack(s.z)
     q, qd = tr.states(problem, u, h)
     a, tau = jax.vmap(lambda q_, qd_, u_: tr.accel_and_tau(problem, q_, qd_, u_))(q[:-1], qd[:-1], u)
