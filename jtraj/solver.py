@@ -432,20 +432,22 @@ class Solution(eqx.Module):
         return Status(int(s)).message
 
 
-def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init=None) -> Solution:
-    layout = tr.layout(problem)
-    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem))
+def initial_guess(problem: Problem, opts: SolverOptions, tr: Transcription):
+    """The default starting point (u (N, m_u), h (N,)) of ``opts.guess``: accelerations
+    for the decoupled transcription, inverse-dynamics efforts for the coupled one."""
     from .initial_guess import GUESSES
 
-    if init is None:
-        v0, h0 = GUESSES[opts.guess](problem)
-        if tr.name == "coupled":
-            q, qd = _decoupled_states(problem, v0, h0)
-            u0 = jax.vmap(problem.robot.inverse_dynamics)(q[:-1], qd[:-1], v0)
-        else:
-            u0 = v0
-    else:
-        u0, h0 = init
+    v0, h0 = GUESSES[opts.guess](problem)
+    if tr.name == "coupled":
+        q, qd = _decoupled_states(problem, v0, h0)
+        return jax.vmap(problem.robot.inverse_dynamics)(q[:-1], qd[:-1], v0), h0
+    return v0, h0
+
+
+def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init) -> Solution:
+    layout = tr.layout(problem)
+    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem))
+    u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
     valid = jnp.all(jnp.isfinite(z0)) & jnp.all(jnp.isfinite(problem.q_start)) & jnp.all(jnp.isfinite(problem.q_goal))
     z0 = jnp.where(valid, z0, jnp.clip(jnp.zeros_like(z0), layout.z_lo, layout.z_hi))
@@ -499,7 +501,14 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
 
 
 @eqx.filter_jit
+def _guess_jit(problem, opts, transcription):
+    return initial_guess(problem, opts, Transcription(transcription))
+
+
+@eqx.filter_jit
 def _solve_jit(problem, opts, transcription, init):
+    # init is always arrays (the default guess is computed by _guess_jit), so a warm
+    # start does not trigger a second compilation
     return _solve_core(problem, opts, Transcription(transcription), init)
 
 
@@ -518,7 +527,9 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     if not isinstance(problem, Problem):
         raise ValueError(f"problem must be a jtraj.Problem, got {type(problem).__name__}")
     opts = SolverOptions() if options is None else options
-    if init is not None:
+    if init is None:
+        init = _guess_jit(problem, opts, transcription)
+    else:
         init = _check_init(problem, init, transcription)
     return _solve_jit(problem, opts, transcription, init)
 
@@ -539,8 +550,13 @@ def _check_init(problem, init, transcription):
 @eqx.filter_jit
 def _solve_batch_jit(problems, opts, transcription, init):
     tr = Transcription(transcription)
-    axes = eqx.filter_vmap(lambda p, i: _solve_core(p, opts, tr, i))
-    return axes(problems, init)
+    return eqx.filter_vmap(lambda p, i: _solve_core(p, opts, tr, i))(problems, init)
+
+
+@eqx.filter_jit
+def _guess_batch_jit(problems, opts, transcription):
+    tr = Transcription(transcription)
+    return eqx.filter_vmap(lambda p: initial_guess(p, opts, tr))(problems)
 
 
 def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None = None,
@@ -588,7 +604,10 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         return Problem(robot, a, b, N=N, weights=weights, qd_start=c, qd_goal=d, T_max=t, validate=False)
 
     problems = eqx.filter_vmap(make)(q_start, q_goal, qd_start, qd_goal, T_max)
-    if init is not None:
+    if init is None:
+        # non-finite samples get a finite placeholder guess; they are flagged invalid
+        init = _guess_batch_jit(problems, opts, transcription)
+    else:
         m_u = Transcription(transcription).control_dim(make(q_start[0], q_goal[0], qd_start[0], qd_goal[0], T_max[0]))
         u, h = jnp.asarray(init[0], float), jnp.asarray(init[1], float)
         if u.shape != (B, N, m_u) or h.shape != (B, N):

@@ -1,0 +1,141 @@
+"""The ALD solver against independent references.
+
+* every trajectory reported converged is re-simulated from its own (v, h) by the
+  NumPy + Pinocchio verifier of ``benchmarks/peers/verify.py`` (no jtraj code);
+* its cost is compared with CasADi + IPOPT on the same transcription (<= 0.5 %);
+* bad input is rejected before tracing, per-sample status codes in batches.
+
+All solves share N = 10 and the default options so that the suite compiles the solver
+once for single problems and once for batches.
+"""
+
+import os
+import sys
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jtraj
+from jtraj import Status
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+
+N = 10
+W = jtraj.Weights(time=1.0, energy=0.1)
+Q0 = np.array([1.077, -0.096, 0.619])
+Q1 = np.array([1.2, -0.049, 0.9])  # feasible with N = 10 (T <= 1 s); IPOPT converges too
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return jtraj.robots.get("serial3")
+
+
+@pytest.fixture(scope="module")
+def single(robot):
+    problem = jtraj.Problem(robot, Q0, Q1, N=N, weights=W)
+    return problem, jtraj.solve(problem)
+
+
+@pytest.fixture(scope="module")
+def batch(robot):
+    rng = np.random.default_rng(3)
+    q0 = rng.uniform(-1.2, 1.2, (4, 3))
+    q1 = q0 + rng.uniform(-0.25, 0.25, (4, 3))
+    q1[3] = np.nan  # one bad sample must not poison the others
+    return q0, q1, jtraj.solve_batch(robot, q0, q1, N=N, weights=W)
+
+
+def test_single_solve_converges_and_verifies_independently(single):
+    V = pytest.importorskip("peers.verify")
+    problem, sol = single
+    assert sol.converged, sol.status_message
+    assert sol.status_message.startswith("converged")
+    assert sol.q.shape == (N + 1, 3) and sol.v.shape == (N, 3) and sol.h.shape == (N,)
+    chk = V.verify(Q0, Q1, np.asarray(sol.v), np.asarray(sol.h), tol=1e-6)
+    assert chk["ok"], chk["max_rel_violation"]
+    assert chk["goal_error"] <= 1e-6
+    assert chk["cost"] == pytest.approx(float(sol.cost), rel=1e-9)
+    np.testing.assert_allclose(chk["tau"], np.asarray(sol.tau), atol=1e-8)
+    assert float(sol.T) == pytest.approx(float(jnp.sum(sol.h)))
+    terms = {k: float(v) for k, v in sol.cost_terms.items()}
+    assert sum(terms.values()) == pytest.approx(float(sol.cost))
+    assert terms["time"] == pytest.approx(float(sol.T))
+
+
+def test_cost_matches_ipopt(single):
+    P = pytest.importorskip("peers.ipopt_peer")
+    _, sol = single
+    ref = P.solve_pair(Q0, Q1, N=N)
+    assert ref["success"]
+    # goal of the issue: at most IPOPT's cost + 0.5 %
+    assert float(sol.cost) <= ref["cost"] * 1.005
+    assert float(sol.cost) >= ref["cost"] * 0.99  # same problem: no spurious "better" optimum
+
+
+def test_warm_start_from_solution_is_immediate(single):
+    problem, sol = single
+    warm = jtraj.solve(problem, init=(sol.v, sol.h))
+    assert warm.converged
+    assert int(warm.iterations) < int(sol.iterations)
+    assert float(warm.cost) == pytest.approx(float(sol.cost), rel=1e-4)
+
+
+def test_batch_statuses_and_no_false_convergence(batch):
+    V = pytest.importorskip("peers.verify")
+    q0, q1, sol = batch
+    assert sol.q.shape == (4, N + 1, 3) and sol.status.shape == (4,)
+    status = np.asarray(sol.status)
+    assert status[3] == Status.INVALID_INPUT and not bool(sol.converged[3])
+    assert np.all(np.isfinite(np.asarray(sol.q)))  # never a NaN trajectory
+    for i in range(3):
+        if bool(sol.converged[i]):
+            chk = V.verify(q0[i], q1[i], np.asarray(sol.v[i]), np.asarray(sol.h[i]), tol=1e-6)
+            assert chk["ok"], (i, chk["max_rel_violation"], chk["goal_error"])
+    assert np.sum(np.asarray(sol.converged[:3])) >= 2
+
+
+def test_batch_matches_single(robot, batch):
+    q0, q1, sol = batch
+    one = jtraj.solve(jtraj.Problem(robot, q0[0], q1[0], N=N, weights=W))
+    assert int(one.status) == int(sol.status[0])
+    np.testing.assert_allclose(np.asarray(one.h), np.asarray(sol.h[0]), rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(N=1), "N must be"),
+    (dict(q_goal=[0.1, 0.2]), "q_goal"),
+    (dict(q_start=[np.nan, 0.0, 0.0]), "q_start"),
+    (dict(T_max=0.05), "T_max"),
+    (dict(T_max=-1.0), "T_max"),
+    (dict(N=2, q_goal=[2.0, 0.0, 0.0]), "N = 2 is too small"),
+    (dict(qd_start=[5.0, 0.0, 0.0]), "qd_start"),
+])
+def test_bad_problem_input(robot, kwargs, match):
+    args = dict(q_start=Q0, q_goal=Q1, N=N, weights=W)
+    args.update(kwargs)
+    q_start, q_goal = args.pop("q_start"), args.pop("q_goal")
+    with pytest.raises(ValueError, match=match):
+        jtraj.Problem(robot, q_start, q_goal, **args)
+
+
+def test_bad_batch_input(robot):
+    with pytest.raises(ValueError, match="q_start"):
+        jtraj.solve_batch(robot, np.zeros((2, 2)), np.zeros((2, 2)), N=N)
+    with pytest.raises(ValueError, match="q_goal"):
+        jtraj.solve_batch(robot, np.zeros((2, 3)), np.zeros((3, 3)), N=N)
+    with pytest.raises(ValueError, match="robot"):
+        jtraj.solve_batch("serial3", np.zeros((2, 3)), np.zeros((2, 3)), N=N)
+    with pytest.raises(ValueError, match="transcription"):
+        jtraj.solve(jtraj.Problem(robot, Q0, Q1, N=N), transcription="magic")
+    with pytest.raises(ValueError, match="init"):
+        jtraj.solve(jtraj.Problem(robot, Q0, Q1, N=N), init=(np.zeros((N, 2)), np.ones(N) * 0.05))
+
+
+def test_weights_validation():
+    assert jtraj.Weights.parse("time=1,energy=0.5").energy == 0.5
+    with pytest.raises(ValueError, match="weights"):
+        jtraj.Weights.parse("speed=1")
+    with pytest.raises(ValueError):
+        jtraj.Weights(time=-1.0)
