@@ -1,0 +1,188 @@
+"""jtraj's ALD solver against CasADi + IPOPT on the canonical serial3 benchmark.
+
+    python benchmarks/bench_solver.py [--pairs 64] [--batch 64] [--seed 0] [--N 20]
+                                      [--scaling] [--plot bench_solver.png] [--json out.json]
+
+Problem family (issue #3): serial3, N = 20, weights time = 1, energy = 0.1, q_start ~
+U(-1.2, 1.2)^3, q_goal = q_start + U(-0.8, 0.8)^3 (``peers.ipopt_peer.benchmark_pairs``).
+Both solvers see the same pairs in the same run. Every trajectory either side calls a
+success is re-simulated from its own (v, h) by the independent NumPy + Pinocchio
+verifier (tolerance 1e-6). Printed: verified success rates, false "converged" counts,
+cost gaps where both succeed, warm single-solve latency (median over pairs), batch
+throughput on all cores (IPOPT: one process per core; jtraj: one process, vmapped
+batches), compile time, and, with ``--scaling``, time per problem against N and B.
+Ratios are jtraj / IPOPT or IPOPT / jtraj as labelled; > 1 means jtraj is ahead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+
+def _jtraj_batch(q0, q1, N, B, weights):
+    import jax
+
+    import jtraj
+
+    robot = jtraj.robots.get("serial3")
+    P = len(q0)
+    out = {k: [] for k in ("v", "h", "cost", "converged", "status", "iterations")}
+    pad = (-P) % B
+    q0p = np.concatenate([q0, np.repeat(q0[-1:], pad, 0)])
+    q1p = np.concatenate([q1, np.repeat(q1[-1:], pad, 0)])
+    t0 = time.perf_counter()
+    sol = jtraj.solve_batch(robot, q0p[:B], q1p[:B], N=N, weights=weights)
+    jax.block_until_ready(sol.status)
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for s in range(0, len(q0p), B):
+        sol = jtraj.solve_batch(robot, q0p[s:s + B], q1p[s:s + B], N=N, weights=weights)
+        jax.block_until_ready(sol.status)
+        for k in out:
+            out[k].append(np.asarray(getattr(sol, k)))
+    wall = time.perf_counter() - t0
+    res = {k: np.concatenate(v)[:P] for k, v in out.items()}
+    res["wall"] = wall
+    res["compile_and_first_batch"] = first
+    return res
+
+
+def _jtraj_single_latency(q0, q1, N, weights, repeats=3):
+    import jax
+
+    import jtraj
+
+    robot = jtraj.robots.get("serial3")
+    problems = [jtraj.Problem(robot, a, b, N=N, weights=weights, validate=False) for a, b in zip(q0, q1)]
+    t0 = time.perf_counter()
+    jax.block_until_ready(jtraj.solve(problems[0]).status)
+    compile_s = time.perf_counter() - t0
+    times = []
+    for p in problems:
+        best = np.inf
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(jtraj.solve(p).status)
+            best = min(best, time.perf_counter() - t0)
+        times.append(best)
+    return np.array(times), compile_s
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--pairs", type=int, default=64)
+    ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--N", type=int, default=20)
+    ap.add_argument("--latency-pairs", type=int, default=8)
+    ap.add_argument("--scaling", action="store_true", help="also time N = 10..80 and B = 64..4096")
+    ap.add_argument("--plot", default=None)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args(argv)
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jtraj
+    from peers.ipopt_peer import benchmark_pairs, solve_many, solve_pair
+    from peers.verify import verify
+
+    weights = jtraj.Weights(time=1.0, energy=0.1)
+    q0, q1 = benchmark_pairs(args.pairs, args.seed)
+    print(f"serial3, N = {args.N}, weights time=1 energy=0.1, {args.pairs} pairs (seed {args.seed}), "
+          f"os.cpu_count() = {os.cpu_count()}")
+
+    ip = solve_many(q0, q1, N=args.N)
+    ip_thr = len(ip) / ip.wall_seconds
+    ip_ok = np.array([r["success"] for r in ip])
+    ip_ver = np.array([r["success"] and verify(a, b, r["v"], r["h"], tol=1e-6)["ok"] for a, b, r in zip(q0, q1, ip)])
+    ip_cost = np.array([r["cost"] for r in ip])
+
+    jt = _jtraj_batch(q0, q1, args.N, args.batch, weights)
+    jt_thr = args.pairs / jt["wall"]
+    checks = [verify(a, b, v, h, tol=1e-6) for a, b, v, h in zip(q0, q1, jt["v"], jt["h"])]
+    jt_conv = jt["converged"].astype(bool)
+    jt_ver = np.array([c["ok"] for c in checks])
+    false_conv = int(np.sum(jt_conv & ~jt_ver))
+    both = jt_conv & ip_ver
+    gap = (jt["cost"] - ip_cost) / ip_cost
+
+    L = min(args.latency_pairs, args.pairs)
+    lat, compile_single = _jtraj_single_latency(q0[:L], q1[:L], args.N, weights)
+    ip_lat = np.array([solve_pair(a, b, N=args.N)["seconds"] for a, b in zip(q0[:L], q1[:L])])
+
+    report = {
+        "pairs": args.pairs, "N": args.N, "batch": args.batch,
+        "ipopt_success": int(ip_ok.sum()), "ipopt_verified": int(ip_ver.sum()),
+        "jtraj_converged": int(jt_conv.sum()), "jtraj_verified_converged": int((jt_conv & jt_ver).sum()),
+        "jtraj_feasible_verified": int(jt_ver.sum()), "jtraj_false_converged": false_conv,
+        "cost_gap_pct_max_both": float(100 * gap[both].max()) if both.any() else None,
+        "cost_gap_pct_median_both": float(100 * np.median(gap[both])) if both.any() else None,
+        "ipopt_throughput_all_cores": ip_thr, "jtraj_throughput": jt_thr,
+        "throughput_ratio": jt_thr / ip_thr,
+        "ipopt_single_median_s": float(np.median(ip_lat)), "jtraj_single_median_s": float(np.median(lat)),
+        "latency_ratio": float(np.median(ip_lat) / np.median(lat)),
+        "jtraj_compile_single_s": compile_single, "jtraj_compile_and_first_batch_s": jt["compile_and_first_batch"],
+        "jtraj_iterations_median": float(np.median(jt["iterations"])),
+        "ipopt_iterations_median": float(np.median([r["iterations"] for r in ip])),
+        "jtraj_status_counts": {int(k): int(v) for k, v in zip(*np.unique(jt["status"], return_counts=True))},
+    }
+    print(f"  success: IPOPT {report['ipopt_verified']}/{args.pairs} verified; jtraj converged "
+          f"{report['jtraj_converged']}/{args.pairs} (verified {report['jtraj_verified_converged']}), "
+          f"feasible (verified) {report['jtraj_feasible_verified']}; false converged: {false_conv}")
+    if both.any():
+        print(f"  cost gap where both succeed ({both.sum()} pairs): median {report['cost_gap_pct_median_both']:+.4f} %, "
+              f"max {report['cost_gap_pct_max_both']:+.4f} %")
+    print(f"  throughput: IPOPT {ip_thr:.2f} pairs/s on {ip.processes} processes; jtraj {jt_thr:.2f} pairs/s "
+          f"(batch {args.batch}) -> ratio {report['throughput_ratio']:.2f}x")
+    print(f"  warm single solve (median of {L}): IPOPT {report['ipopt_single_median_s'] * 1e3:.0f} ms, jtraj "
+          f"{report['jtraj_single_median_s'] * 1e3:.0f} ms -> ratio {report['latency_ratio']:.2f}x")
+    print(f"  compile: single {compile_single:.1f} s, batch {jt['compile_and_first_batch']:.1f} s (incl. first batch)")
+    print(f"  iterations median: jtraj {report['jtraj_iterations_median']:.0f}, IPOPT {report['ipopt_iterations_median']:.0f}; "
+          f"jtraj statuses {report['jtraj_status_counts']}")
+
+    if args.scaling:
+        rows = []
+        for N in (10, 20, 40, 80):
+            r = _jtraj_batch(q0[:64], q1[:64], N, 64, weights)
+            rows.append(("N", N, r["wall"] / 64))
+            print(f"  N = {N:3d}, B = 64: {1e3 * r['wall'] / 64:.1f} ms per problem")
+        for B in (64, 256, 1024, 4096):
+            qa, qb = benchmark_pairs(B, args.seed + 1)
+            r = _jtraj_batch(qa, qb, args.N, B, weights)
+            rows.append(("B", B, r["wall"] / B))
+            print(f"  B = {B:5d}, N = {args.N}: {1e3 * r['wall'] / B:.1f} ms per problem")
+        report["scaling"] = rows
+        if args.plot:
+            import matplotlib
+
+            matplotlib.use("Agg")
+            import matplotlib.pyplot as plt
+
+            fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
+            for a, key in zip(ax, ("N", "B")):
+                xs = [r[1] for r in rows if r[0] == key]
+                ys = [1e3 * r[2] for r in rows if r[0] == key]
+                a.loglog(xs, ys, "o-", label="jtraj (vmapped)")
+                a.axhline(1e3 / ip_thr, ls="--", c="k", label="IPOPT, all cores")
+                a.set_xlabel(key)
+                a.set_ylabel("ms per problem")
+                a.legend()
+            fig.tight_layout()
+            fig.savefig(args.plot, dpi=120)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=2)
+    return report
+
+
+if __name__ == "__main__":
+    main()
