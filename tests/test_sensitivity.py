@@ -1,0 +1,80 @@
+"""jtraj.sensitivity: implicit differentiation of the optimum against re-solves.
+
+The comparison uses tight solver tolerances (1e-10): the optimal *cost* is insensitive
+to first-order errors in z (envelope theorem), but the optimal *T* is not, so central
+differences of T over a 1e-4 relative mass change (signal ~1e-5 s) need re-solves far
+more accurate than the default 1e-5 tolerance.
+"""
+
+import numpy as np
+import pytest
+
+import jtraj
+from jtraj.sensitivity import sensitivity, solve_with_multipliers
+
+START, GOAL = (0.2, -0.3, 0.4), (0.3, -0.2, 0.3)  # converges at N = 10 (the brief's
+# (0.6, 0.1, -0.1) goal needs T > N h_max = 1 s, infeasible at N = 10)
+WEIGHTS = jtraj.Weights(time=1.0, energy=0.1)
+TIGHT = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=1000)
+
+
+def _problem(**overrides):
+    return jtraj.Problem(jtraj.robots.get("serial3", **overrides), START, GOAL, N=10, weights=WEIGHTS)
+
+
+def test_unknown_parameter_names_the_accepted_ones():
+    with pytest.raises(ValueError, match="masses"):
+        sensitivity(_problem(), "payload")
+
+
+def test_unconverged_solution_is_rejected():
+    problem = _problem()
+
+    class Fake:  # a solution object that did not converge
+        converged = np.asarray(False)
+        status = np.asarray(1)
+
+    with pytest.raises(ValueError, match="converged KKT point"):
+        sensitivity(problem, "masses", solution=Fake())
+
+
+def _check_against_resolves(base_solve, resolve):
+    problem = _problem()
+    base = base_solve(problem)
+    assert bool(base.converged), base.status_message
+    d = sensitivity(problem, "masses", solution=base, options=TIGHT, details=True)
+    assert d["cost"].shape == (3,) and d["T"].shape == (3,)
+    # envelope theorem and chain rule through dz*/dtheta agree
+    np.testing.assert_allclose(d["cost"], d["cost_chain"], rtol=1e-4, atol=1e-9)
+
+    m0 = np.asarray(problem.robot.masses)
+    fd_cost, fd_T = np.zeros(3), np.zeros(3)
+    for i in range(3):
+        out = []
+        for sign in (1.0, -1.0):
+            m = m0.copy()
+            m[i] += sign * 1e-4 * m0[i]
+            s = resolve(_problem(masses=m), (base.v, base.h))
+            assert float(s.max_violation["overall"]) < 1e-8
+            out.append((float(s.cost), float(s.T)))
+        fd_cost[i] = (out[0][0] - out[1][0]) / (2e-4 * m0[i])
+        fd_T[i] = (out[0][1] - out[1][1]) / (2e-4 * m0[i])
+    np.testing.assert_allclose(d["cost"], fd_cost, rtol=0.02)
+    np.testing.assert_allclose(d["T"], fd_T, rtol=0.02)
+
+
+def test_masses_against_central_differences_of_resolves():
+    """Re-solves with the solver core that sensitivity() already compiled (same _run and
+    _finish as jtraj.solve), so the test pays for one compilation (~60 s)."""
+
+    def run(problem, init=None):
+        return solve_with_multipliers(problem, options=TIGHT, init=init)[0]
+
+    _check_against_resolves(run, run)
+
+
+@pytest.mark.slow
+def test_masses_against_central_differences_of_jtraj_solve():
+    """The same check with the public jtraj.solve for every solve (a second compilation)."""
+    _check_against_resolves(lambda p: jtraj.solve(p, options=TIGHT),
+                            lambda p, init: jtraj.solve(p, options=TIGHT, init=init))
