@@ -127,6 +127,18 @@ def test_resume_equals_uninterrupted_run(tmp_path):
     assert s3["new_pairs"] == 0
 
 
+def test_resume_after_a_code_change_warns(tmp_path, monkeypatch):
+    build_mod = sys.modules["jtraj.dataset.build"]  # (the package attribute `build` is the function)
+
+    spec = fake_spec(pairs=32, batch=16)
+    out = str(tmp_path / "d")
+    dataset.build(spec, out, progress=False, max_chunks=1)
+    monkeypatch.setattr(build_mod, "_source_hash", lambda: "edited")
+    messages = []
+    dataset.build(spec, out, progress=False, log=messages.append)
+    assert any("warning" in m and "jtraj_source" in m for m in messages), messages
+
+
 def test_run_killed_while_writing_its_manifest_restarts(tmp_path):
     out = tmp_path / "d"
     out.mkdir()

@@ -188,6 +188,25 @@ def compute_chunk(spec: Spec, c: int) -> dict:
     return out
 
 
+def _source_hash() -> str:
+    """sha256 of jtraj's Python sources (a solver edited between two runs changes it)."""
+    import hashlib
+
+    import jtraj
+
+    root = os.path.dirname(os.path.abspath(jtraj.__file__))
+    h = hashlib.sha256()
+    for dirpath, dirnames, files in os.walk(root):
+        dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
+        for f in sorted(files):
+            if f.endswith(".py"):
+                full = os.path.join(dirpath, f)
+                h.update(os.path.relpath(full, root).encode())
+                with open(full, "rb") as fh:
+                    h.update(fh.read())
+    return h.hexdigest()[:16]
+
+
 def _versions() -> dict:
     import jax
 
@@ -195,6 +214,7 @@ def _versions() -> dict:
 
     v = {"jtraj": jtraj.__version__, "jax": jax.__version__, "numpy": np.__version__,
          "python": platform.python_version(), "platform": platform.platform(), "machine": platform.machine()}
+    v["jtraj_source"] = _source_hash()
     try:
         import jaxlib
 
@@ -306,7 +326,8 @@ def build(spec: Spec, out: str, *, ray: str | None = None, progress: bool = True
             log(f"jtraj dataset: resuming {out}: {len(done)}/{spec.n_chunks} chunks already done")
             old = store.read_manifest(writer.path)["metadata"].get("versions", {})
             now = _versions()
-            changed = [f"{k} {old.get(k)} -> {now.get(k)}" for k in ("jtraj", "jax", "jaxlib", "machine")
+            changed = [f"{k} {old.get(k)} -> {now.get(k)}" for k in ("jtraj", "jtraj_source", "jax", "jaxlib",
+                                                                          "machine")
                        if old.get(k) != now.get(k)]
             if changed and todo:
                 log("jtraj dataset: warning: resuming with different software/hardware (" + ", ".join(changed)
