@@ -75,9 +75,12 @@ class SolverOptions(eqx.Module):
         max_iter: total Newton iterations (inner iterations over all outer ones).
         max_outer: maximum number of multiplier updates (history length).
         max_inner: Newton iterations per AL subproblem before a forced outer update.
-        tol_feasibility: target on the normalised constraint violation (boxes are
-            relative to their bound; the goal is absolute in rad / (qd/qd_max)).
-        tol_optimality: target on the projected gradient of the Lagrangian (scaled z).
+        tol_optimality: target on the projected gradient of the augmented Lagrangian in
+            the scaled variables z (accelerations / qdd_max, h / h_max). Measured on 16
+            serial3 benchmark pairs: 1e-4 certifies 12 of the 14 IPOPT-feasible pairs with
+            cost gaps to IPOPT <= 0.021 %; 1e-5 certifies 10 within 500 iterations.
+        tol_feasibility: the AL loop's target on the normalised violation; the final
+            feasibility polish then removes what remains, and ``verify_tol`` decides.
         penalty_init, penalty_growth, penalty_max: PHR penalty mu schedule; mu grows
             when the violation did not shrink by ``feasibility_ratio``.
         schedule: "default" (multipliers updated at every outer iteration, ALGENCAN
@@ -93,7 +96,7 @@ class SolverOptions(eqx.Module):
     max_outer: int = eqx.field(static=True, default=30)
     max_inner: int = eqx.field(static=True, default=40)
     tol_feasibility: float = eqx.field(static=True, default=1e-5)
-    tol_optimality: float = eqx.field(static=True, default=1e-5)
+    tol_optimality: float = eqx.field(static=True, default=1e-4)
     penalty_init: float = eqx.field(static=True, default=10.0)
     penalty_growth: float = eqx.field(static=True, default=4.0)
     penalty_max: float = eqx.field(static=True, default=1e6)
