@@ -330,9 +330,43 @@ def _init_multipliers(nlp: _NLP, z) -> Multipliers:
                        glob=jnp.zeros_like(glob))
 
 
-def _run(nlp: _NLP, z0, opts: SolverOptions):
-    mult0 = _init_multipliers(nlp, z0)
-    mu0 = jnp.asarray(opts.penalty_init, dtype=z0.dtype)
+def _estimate_multipliers(nlp: _NLP, z, act_tol: float = 1e-3) -> Multipliers:
+    """Least-squares multipliers at z (for warm starts): minimise
+    ||grad f + J_A^T lambda|| over the equalities and nearly-active inequalities, in the
+    free variables; inequality multipliers are clipped to >= 0, inactive ones are 0."""
+    lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
+    gf = jax.grad(lambda zz: sum(nlp.cost_terms(zz).values()))(z)
+    J = jax.jacfwd(_residual, argnums=1)(nlp, z, act_tol)
+    free = ~((z <= lo + 1e-12) | (z >= hi - 1e-12))
+    J = jnp.where(free[None, :], J, 0.0)
+    gf = jnp.where(free, gf, 0.0)
+    A = J @ J.T
+    A = A + (1e-10 * (1.0 + jnp.max(jnp.diag(A)))) * jnp.eye(A.shape[0], dtype=A.dtype)
+    lam = -jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(A), True), J @ gf)
+    lam = jnp.where(jnp.isfinite(lam), lam, 0.0)
+    eq, ineq, glob = nlp.constraints(z)
+    leaves, pos = [], 0
+    for x in jax.tree.leaves(eq):
+        leaves.append(lam[pos:pos + x.size].reshape(x.shape))
+        pos += x.size
+    n_eq = len(leaves)
+    for x in jax.tree.leaves(ineq) + [glob]:
+        leaves.append(jnp.clip(lam[pos:pos + x.size].reshape(x.shape), 0.0, 1e10))
+        pos += x.size
+    eq_m = jax.tree.unflatten(jax.tree.structure(eq), leaves[:n_eq])
+    ineq_m = jax.tree.unflatten(jax.tree.structure(ineq), leaves[n_eq:-1])
+    return Multipliers(eq=eq_m, ineq=ineq_m, glob=leaves[-1])
+
+
+def _run(nlp: _NLP, z0, opts: SolverOptions, warm=False):
+    """The AL loop from z0. With ``warm`` (a traced bool), multipliers start from their
+    least-squares estimate at z0 and the penalty at its cap / 1e2 instead of zero and
+    ``penalty_init``: a warm start near an optimum then stays there."""
+    cold = _init_multipliers(nlp, z0)
+    est = _estimate_multipliers(nlp, z0)
+    warm = jnp.asarray(warm)
+    mult0 = jax.tree.map(lambda a, b: jnp.where(warm, a, b), est, cold)
+    mu0 = jnp.where(warm, max(opts.penalty_init, opts.penalty_max * 1e-2), opts.penalty_init).astype(z0.dtype)
     state = _State(
         z=z0, mult=mult0, mu=mu0, damping=jnp.asarray(opts.damping_init, dtype=z0.dtype),
         omega=jnp.asarray(1e-2, dtype=z0.dtype), eta=jnp.asarray(1e-2, dtype=z0.dtype),
@@ -447,14 +481,14 @@ def initial_guess(problem: Problem, opts: SolverOptions, tr: Transcription):
     return v0, h0
 
 
-def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init) -> Solution:
+def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False) -> Solution:
     layout = tr.layout(problem)
     nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem))
     u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
     valid = jnp.all(jnp.isfinite(z0)) & jnp.all(jnp.isfinite(problem.q_start)) & jnp.all(jnp.isfinite(problem.q_goal))
     z0 = jnp.where(valid, z0, jnp.clip(jnp.zeros_like(z0), layout.z_lo, layout.z_hi))
-    s = _run(nlp, z0, opts)
+    s = _run(nlp, z0, opts, warm)
     return _finish(nlp, s, opts, valid)
 
 
@@ -509,10 +543,10 @@ def _guess_jit(problem, opts, transcription):
 
 
 @eqx.filter_jit
-def _solve_jit(problem, opts, transcription, init):
-    # init is always arrays (the default guess is computed by _guess_jit), so a warm
-    # start does not trigger a second compilation
-    return _solve_core(problem, opts, Transcription(transcription), init)
+def _solve_jit(problem, opts, transcription, init, warm):
+    # init is always arrays (the default guess is computed by _guess_jit) and warm a
+    # traced bool, so a warm start does not trigger a second compilation
+    return _solve_core(problem, opts, Transcription(transcription), init, warm)
 
 
 def solve(problem: Problem, *, options: SolverOptions | None = None, transcription: str = "decoupled",
@@ -530,11 +564,12 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     if not isinstance(problem, Problem):
         raise ValueError(f"problem must be a jtraj.Problem, got {type(problem).__name__}")
     opts = SolverOptions() if options is None else options
+    warm = init is not None
     if init is None:
         init = _guess_jit(problem, opts, transcription)
     else:
         init = _check_init(problem, init, transcription)
-    return _solve_jit(problem, opts, transcription, init)
+    return _solve_jit(problem, opts, transcription, init, jnp.asarray(warm))
 
 
 def _check_init(problem, init, transcription):
@@ -551,9 +586,9 @@ def _check_init(problem, init, transcription):
 
 
 @eqx.filter_jit
-def _solve_batch_jit(problems, opts, transcription, init):
+def _solve_batch_jit(problems, opts, transcription, init, warm):
     tr = Transcription(transcription)
-    return eqx.filter_vmap(lambda p, i: _solve_core(p, opts, tr, i))(problems, init)
+    return eqx.filter_vmap(lambda p, i: _solve_core(p, opts, tr, i, warm))(problems, init)
 
 
 @eqx.filter_jit
@@ -607,6 +642,7 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         return Problem(robot, a, b, N=N, weights=weights, qd_start=c, qd_goal=d, T_max=t, validate=False)
 
     problems = eqx.filter_vmap(make)(q_start, q_goal, qd_start, qd_goal, T_max)
+    warm = init is not None
     if init is None:
         # non-finite samples get a finite placeholder guess; they are flagged invalid
         init = _guess_batch_jit(problems, opts, transcription)
@@ -617,4 +653,4 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
             raise ValueError(f"init must be (u (B, N, {m_u}), h (B, N)) = ({(B, N, m_u)}, {(B, N)}), "
                              f"got ({u.shape}, {h.shape})")
         init = (u, h)
-    return _solve_batch_jit(problems, opts, transcription, init)
+    return _solve_batch_jit(problems, opts, transcription, init, jnp.asarray(warm))
