@@ -51,7 +51,7 @@ import numpy as np
 
 from .problem import Problem
 from .robots import Limits, parameter_names
-from .solver import _NLP, SolverOptions, Status, _finish, _run, _init_multipliers  # noqa: F401
+from .solver import _NLP, SolverOptions, Status, _finish, _run
 from .transcription import Transcription, integrate
 
 __all__ = ["sensitivity", "solve_with_multipliers"]
