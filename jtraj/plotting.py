@@ -65,6 +65,27 @@ def _stairs(ax, t, y, **kw):
     return ax.stairs(y, t, baseline=None, **kw)
 
 
+def _line(ax, t, y, **kw):
+    ax.plot(t, y, **kw)
+
+
+def _signals_with_limits(ax, draw, sol, guess, key, bound, ylabel, title):
+    """One panel: every joint's ``sol[key]`` (and the guess's, dashed grey-ish) drawn by
+    ``draw(ax, t, y, **style)``, with +-bound as dashed lines in the joint's colour."""
+    for j in range(sol[key].shape[1]):
+        draw(ax, sol["t"], sol[key][:, j], color=f"C{j}", label=f"{key}{j + 1}", **_OPT)
+        if guess is not None:
+            draw(ax, guess["t"], guess[key][:, j], **{**_GUESS, "color": f"C{j}", "alpha": 0.6})
+        if bound is not None:
+            b = _np(bound)[j]
+            ax.axhline(b, ls="--", color=f"C{j}", lw=0.9)
+            ax.axhline(-b, ls="--", color=f"C{j}", lw=0.9)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(fontsize=7)
+
+
 def _energy(tau, h, tau_max):
     scale = 1.0 if tau_max is None else _np(tau_max)
     return np.concatenate([[0.0], np.cumsum(h * np.sum((tau / scale) ** 2, axis=1))])
@@ -143,34 +164,12 @@ def plot_solution(problem, solution, *, guess: bool = True, title: str | None = 
     ax.legend(fontsize=7)
 
     # qd(t)
-    ax = axs[0, 2]
-    for j in range(sol["qd"].shape[1]):
-        ax.plot(sol["t"], sol["qd"][:, j], color=f"C{j}", label=f"qd{j + 1}", **_OPT)
-        if g is not None:
-            ax.plot(g["t"], g["qd"][:, j], **{**_GUESS, "color": f"C{j}", "alpha": 0.6})
-        if lim.qd_max is not None:
-            b = _np(lim.qd_max)[j]
-            ax.axhline(b, ls="--", color=f"C{j}", lw=0.8)
-            ax.axhline(-b, ls="--", color=f"C{j}", lw=0.8)
-    ax.set_xlabel("t [s]")
-    ax.set_ylabel("qd [rad/s]")
-    ax.set_title("joint velocities and limits")
-    ax.legend(fontsize=7)
+    _signals_with_limits(axs[0, 2], _line, sol, g, "qd", lim.qd_max, "qd [rad/s]",
+                         "joint velocities and limits")
 
     # tau(t)
-    ax = axs[1, 0]
-    for j in range(sol["tau"].shape[1]):
-        _stairs(ax, sol["t"], sol["tau"][:, j], color=f"C{j}", label=f"tau{j + 1}", **_OPT)
-        if g is not None:
-            _stairs(ax, g["t"], g["tau"][:, j], **{**_GUESS, "color": f"C{j}", "alpha": 0.6})
-        if lim.tau_max is not None:
-            b = _np(lim.tau_max)[j]
-            ax.axhline(b, ls="--", color=f"C{j}", lw=0.9)
-            ax.axhline(-b, ls="--", color=f"C{j}", lw=0.9)
-    ax.set_xlabel("t [s]")
-    ax.set_ylabel("tau [N m]")
-    ax.set_title("actuator efforts and limits (dashed)")
-    ax.legend(fontsize=7)
+    _signals_with_limits(axs[1, 0], _stairs, sol, g, "tau", lim.tau_max, "tau [N m]",
+                         "actuator efforts and limits (dashed)")
 
     # h_k
     ax = axs[1, 1]

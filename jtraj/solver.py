@@ -16,8 +16,12 @@ Design (why it is fast under ``vmap`` on a CPU):
 * **Bounds kept exactly.** Boxes on the controls and on h are simple bounds on z,
   handled by Bertsekas' projected Newton (no penalty, never violated); all other
   constraints enter the augmented Lagrangian (PHR for inequalities).
-* **Branch-free globalisation.** Levenberg damping plus a line search that evaluates
-  a fixed ladder of step lengths in one vectorised call.
+* **Branch-free globalisation.** Inertia correction by factorising a ladder of shifted
+  Hessians at once (the smallest positive-definite one is kept), and a line search that
+  evaluates a fixed ladder of step lengths in one vectorised call.
+* **Feasibility polish.** After the loop, a few Gauss-Newton projections onto the
+  equalities and nearly-active inequalities remove the O(1/mu) violations the AL
+  leaves; the strict verification is made after it.
 
 Shapes follow :mod:`jtraj.transcription`.
 """
@@ -259,7 +263,7 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping):
     good = jax.vmap(lambda L: jnp.all(jnp.isfinite(L)))(Ls)
     pick = jnp.argmax(good)
     Lc = Ls[pick]
-    ok1 = pick == 0
+    unshifted = pick == 0
     used_shift = shifts[pick]
     d_free = -jax.scipy.linalg.cho_solve((Lc, True), gf)
     d = jnp.where(free, d_free, -g)
@@ -273,7 +277,7 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping):
     z_new = jnp.where(any_ok, candidates[first], z)
     step = jnp.where(any_ok, _LADDER[first], 0.0)
     damping = jnp.where(step == 1.0, damping * 0.25, jnp.where(step >= 0.25, damping, damping * 8.0))
-    damping = jnp.where(ok1, damping, jnp.minimum(used_shift, gersh) * 0.5)
+    damping = jnp.where(unshifted, damping, jnp.minimum(used_shift, gersh) * 0.5)
     damping = jnp.clip(damping, 1e-12, 1e10)
     return z_new, damping, jnp.max(jnp.abs(pg)), val, any_ok
 
@@ -629,8 +633,12 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         raise ValueError("q_start must hold at least one problem (B >= 1)")
 
     def per_sample(x, name):
-        x = jnp.zeros((B, n)) if x is None else jnp.broadcast_to(jnp.asarray(x, float), (B, n))
-        return x
+        if x is None:
+            return jnp.zeros((B, n))
+        x = jnp.asarray(x, float)
+        if x.shape not in ((), (n,), (B, n)):
+            raise ValueError(f"{name} must be a scalar, ({n},) or ({B}, {n}), got shape {x.shape}")
+        return jnp.broadcast_to(x, (B, n))
 
     qd_start, qd_goal = per_sample(qd_start, "qd_start"), per_sample(qd_goal, "qd_goal")
     T_max = jnp.broadcast_to(jnp.asarray(jnp.inf if T_max is None else T_max, float), (B,))
