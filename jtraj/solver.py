@@ -171,7 +171,7 @@ class _NLP(eqx.Module):
         Hk = jax.vmap(jax.hessian(self.stage_al), in_axes=(0, 0, _stage_axes(mult), None))(W, self.sd, sm, mu)
         J = jax.jacfwd(self.W)(z)  # (N+1, nw, nz)
         g = jnp.einsum("kai,ka->i", J, c)
-        H = jnp.einsum("kai,kab,kbj->ij", J, Hk, J)
+        H = jnp.einsum("kai,kaj->ij", J, jnp.einsum("kab,kbj->kaj", Hk, J))
         # co-state (second-order) term of the recursion: d2/dz2 <c, W(z)>, c fixed
         c_fixed = jax.lax.stop_gradient(c)
         H = H + jax.hessian(lambda zz: jnp.sum(c_fixed * self.W(zz)))(z)
@@ -239,7 +239,7 @@ class _State(NamedTuple):
 
 
 _LADDER = 0.5 ** jnp.arange(10)
-_SHIFTS = 4.0 ** jnp.arange(7)  # x1, x4, ... x4096 the current damping
+_SHIFTS = 8.0 ** jnp.arange(4)  # x1, x8, x64, x512 the current damping
 
 
 def _newton_step(nlp: _NLP, z, mult, mu, damping):

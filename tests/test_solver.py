@@ -139,3 +139,42 @@ def test_weights_validation():
         jtraj.Weights.parse("speed=1")
     with pytest.raises(ValueError):
         jtraj.Weights(time=-1.0)
+
+
+@pytest.mark.parametrize("name, transcription", [
+    ("serial3_vertical", "decoupled"),
+    pytest.param("serial3", "coupled", marks=pytest.mark.slow),  # ~36 s: forward dynamics in the loop
+])
+def test_structured_hessian_matches_differences_of_the_gradient(name, transcription):
+    """The solver's stage-structured Hessian (stage Hessians + co-state term of the
+    recursion) against central differences of the autodiff gradient of the AL value
+    (a full jax.hessian would take minutes to compile here)."""
+    import jax
+
+    from jtraj.solver import _NLP, _init_multipliers
+    from jtraj.transcription import Transcription
+
+    robot = jtraj.robots.get(name)
+    p = jtraj.Problem(robot, Q0, Q1, N=8, weights=jtraj.Weights(time=1, energy=0.1, kinetic=0.2))
+    tr = Transcription(transcription)
+    lay = tr.layout(p)
+    nlp = _NLP(problem=p, tr=tr, layout=lay, sd=tr.stage_data(p))
+    z = lay.z_lo + (lay.z_hi - lay.z_lo) * jax.random.uniform(jax.random.PRNGKey(0), lay.z_lo.shape)
+    mult = jax.tree.map(lambda x: x + 0.3, _init_multipliers(nlp, z))
+    import equinox as eqx
+
+    val, g, H = eqx.filter_jit(lambda n, zz, m: n.al_derivatives(zz, m, 7.0))(nlp, z, mult)
+    grad_jit = eqx.filter_jit(lambda n, zz, m: jax.grad(n.al_value)(zz, m, 7.0))
+
+    def grad(zz, m, mu):
+        return np.asarray(grad_jit(nlp, zz, m))
+
+    assert float(val) == pytest.approx(float(nlp.al_value(z, mult, 7.0)), rel=1e-12)
+    np.testing.assert_allclose(g, grad(z, mult, 7.0), rtol=1e-11, atol=1e-11)
+    eps = 1e-5
+    E = np.eye(z.shape[0]) * eps
+    H_fd = np.stack([(grad(z + e, mult, 7.0) - grad(z - e, mult, 7.0)) / (2 * eps) for e in E], axis=1)
+    # central differences: O(eps^2) truncation, O(1e-16/eps) rounding; the PHR kinks are
+    # avoided by the random point (no constraint within eps of its switch)
+    assert np.max(np.abs(H - H_fd)) / np.max(np.abs(H_fd)) < 1e-7
+    np.testing.assert_allclose(H, H.T, atol=1e-12 * float(np.max(np.abs(H))))
