@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .problem import Problem
+from .problem import Problem, Weights
 from .transcription import Layout, StageData, Transcription
 
 # ----------------------------------------------------------------------------------------
