@@ -110,6 +110,8 @@ class Planner:
     def query(self, q_start, q_goal, *, refine: bool = False, weights=None, options=None) -> dict:
         """Plan, report feasibility, and optionally refine with the exact solver.
 
+        ``weights`` default to those of the training dataset (stored in the model's
+        metadata as ``"weights"``, e.g. ``"time=1,energy=0.1"``), else ``Weights()``.
         Returns a JSON-able dict; with ``refine`` it adds the solver's status,
         iterations, time, and the same solve from the cycloidal initial guess for
         comparison (``cycloidal_iterations``, ``cycloidal_seconds``)."""
@@ -123,6 +125,8 @@ class Planner:
         if refine:
             import jtraj
 
+            if weights is None and self.model.metadata.get("weights"):
+                weights = jtraj.Weights.parse(self.model.metadata["weights"])  # the dataset's cost
             kw = {} if weights is None else {"weights": weights}
             prob = jtraj.Problem(self.robot, np.asarray(q_start, float), np.asarray(q_goal, float), N=self.N, **kw)
             sopt = {} if options is None else {"options": options}
@@ -131,7 +135,9 @@ class Planner:
                 sol = jtraj.solve(prob, init=init, **sopt) if init is not None else jtraj.solve(prob, **sopt)
                 jax.block_until_ready(sol)
                 dt = time.perf_counter() - t1
-                out[f"{label}_status"] = str(getattr(sol, "status", ""))
+                out[f"{label}_status"] = sol.status_message
+                out[f"{label}_status_code"] = int(np.asarray(sol.status))
+                out[f"{label}_cost"] = float(np.asarray(sol.cost))
                 out[f"{label}_iterations"] = int(np.asarray(sol.iterations))
                 out[f"{label}_seconds"] = dt
                 out[f"{label}_T"] = float(np.asarray(sol.T))

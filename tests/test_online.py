@@ -75,3 +75,23 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
     trajectory.train_mapping(data, "nefotc", n_rules=3, epochs=1)[0].save(path)
     with pytest.raises(ValueError, match="mapping"):
         Planner(str(path))
+
+
+def test_goal_inputs_append_offset_to_goal(data):
+    X, Y, traj, names_in, _ = trajectory.view(data, "nefotc", goal=True)
+    X0, Y0, traj0, _, _ = trajectory.view(data, "nefotc")
+    assert names_in[6:] == ["dq_goal1", "dq_goal2", "dq_goal3"]
+    np.testing.assert_array_equal(X[:, :6], X0)
+    np.testing.assert_array_equal(Y, Y0)
+    np.testing.assert_allclose(X[:, 6:], data["q_goal"][traj] - X0[:, :3])
+    Xu, _, _, names_u, _ = trajectory.view(data, "nefumop", goal=True)
+    assert Xu.shape[1] == 6 and names_u[4:] == ["dx_goal", "dy_goal"]
+    with pytest.raises(ValueError, match="goal inputs"):
+        trajectory.view(data, "plan", goal=True)
+
+
+def test_model_records_dataset_weights_and_goal_inputs(data):
+    d = dict(data, metadata=dict(data["metadata"], weights_text="time=1,energy=0.1"))
+    model, rep, _ = trajectory.train_mapping(d, "nefotc", n_rules=3, epochs=1, goal=True)
+    assert model.metadata["weights"] == "time=1,energy=0.1" and model.metadata["goal_inputs"] is True
+    assert rep["goal_inputs"] is True and model.n_inputs == 9

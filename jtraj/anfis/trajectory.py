@@ -67,9 +67,34 @@ def _task(robot, q, qd):
     return np.asarray(p), np.asarray(pd)
 
 
-def view(data, mapping: str = "nefotc"):
+def view(data, mapping: str = "nefotc", *, goal: bool = False):
     """``(X, Y, traj, input_names, output_names)`` for the converged trajectories;
-    ``traj[i]`` is the dataset index of row i's trajectory."""
+    ``traj[i]`` is the dataset index of row i's trajectory.
+
+    ``goal=True`` (``nefotc`` and ``nefumop`` only) appends the offset to the
+    trajectory's goal to the inputs: ``q_goal - q_k`` (inputs ``dq_goal1..n``) for
+    ``nefotc``, ``p_goal - p_k`` (``dx_goal, ...``, ``p_goal = f(q_goal)``) for
+    ``nefumop``. Over a dataset of random start/goal pairs the plain mappings are not
+    functions (the same ``(q, qd)`` is crossed towards different goals with opposite
+    torques), so no regressor beats the linear baseline by much on them; with the goal
+    offset they are (see the README's ANFIS section for the figures).
+    """
+    X, Y, traj, names_in, names_out = _view(data, mapping)
+    if not goal:
+        return X, Y, traj, names_in, names_out
+    if mapping not in ("nefotc", "nefumop"):
+        raise ValueError(f"goal inputs are defined for the mappings nefotc and nefumop, not {mapping!r}")
+    data = load_data(data)
+    qg = np.asarray(data["q_goal"], float)[traj]
+    if mapping == "nefotc":
+        n = qg.shape[1]
+        return np.c_[X, qg - X[:, :n]], Y, traj, names_in + [f"dq_goal{j + 1}" for j in range(n)], names_out
+    pg, _ = _task(_robot(data), qg, np.zeros_like(qg))
+    d = pg.shape[1]
+    return (np.c_[X, pg - X[:, :d]], Y, traj, names_in + ["d" + c + "_goal" for c in names_in[:d]], names_out)
+
+
+def _view(data, mapping):
     if mapping not in MAPPINGS:
         raise ValueError(f"mapping must be one of {MAPPINGS}, got {mapping!r}")
     data = load_data(data)
@@ -155,7 +180,7 @@ def _rmse(a, b):
 
 def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, radius=0.5,
                   epochs: int = 100, kind: str = "tsk", test_fraction: float = 0.1, progress: bool = False,
-                  **options):
+                  goal: bool = False, **options):
     """Train an ANFIS for ``mapping`` on a dataset; return ``(model, report, history)``.
 
     ``report`` (JSON-able) holds ``train_rmse``, ``test_rmse`` (target units, all
@@ -167,7 +192,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     from .training import train
 
     data = load_data(data)
-    X, Y, traj, in_names, out_names = view(data, mapping)
+    X, Y, traj, in_names, out_names = view(data, mapping, goal=goal)
     tr, te = split(traj, test_fraction)
     if not te.any():
         raise ValueError("need at least two converged trajectories to hold one out for testing")
@@ -180,7 +205,10 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     else:
         validation, Xfit, Yfit = 0.0, Xtr, Ytr
     meta = data["metadata"]
-    md = dict(mapping=mapping, robot=meta.get("robot"), N=meta.get("N"), inputs=in_names, outputs=out_names)
+    md = dict(mapping=mapping, robot=meta.get("robot"), N=meta.get("N"), inputs=in_names, outputs=out_names,
+              goal_inputs=bool(goal))
+    if meta.get("weights_text"):
+        md["weights"] = meta["weights_text"]  # the cost the trajectories are optimal for (Planner refine)
     t0 = time.perf_counter()
     model, hist = train(Xfit, Yfit, n_rules=n_rules, radius=radius, epochs=epochs, kind=kind,
                         validation=validation, metadata=md, progress=progress, **options)
@@ -192,7 +220,8 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     test_rmse = _rmse(Pte, Y[te])
     lin_rmse = _rmse(lin, Y[te])
     report = dict(
-        mapping=mapping, robot=meta.get("robot"), kind=kind, inputs=in_names, outputs=out_names,
+        mapping=mapping, goal_inputs=bool(goal), robot=meta.get("robot"), kind=kind, inputs=in_names,
+        outputs=out_names,
         n_trajectories_train=int(np.unique(traj[tr]).size), n_trajectories_test=int(np.unique(traj[te]).size),
         n_samples_train=int(tr.sum()), n_samples_test=int(te.sum()),
         train_rmse=_rmse(Ptr, Ytr), test_rmse=test_rmse,
