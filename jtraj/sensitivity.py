@@ -52,7 +52,7 @@ import numpy as np
 from .problem import Problem
 from .robots import Limits, parameter_names
 from .solver import _NLP, SolverOptions, Status, _finish, _run
-from .transcription import Transcription, integrate
+from .transcription import Transcription
 
 __all__ = ["sensitivity", "solve_with_multipliers"]
 
@@ -72,11 +72,7 @@ def _solve_state(problem: Problem, opts: SolverOptions, transcription: str, init
     nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem))
     if init is None:
         v0, h0 = GUESSES[opts.guess](problem)
-        if tr.name == "coupled":
-            q, qd = integrate(problem.q_start, problem.qd_start, v0, h0)
-            u0 = jax.vmap(problem.robot.inverse_dynamics)(q[:-1], qd[:-1], v0)
-        else:
-            u0 = v0
+        u0 = tr.initial_controls(problem, v0, h0)
     else:
         u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
@@ -185,7 +181,7 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, options
                          "sensitivities need a converged KKT point")
     init = None
     if solution is not None:
-        init = (solution.v if tr.name == "decoupled" else solution.tau, solution.h)
+        init = (tr.controls_of(solution), solution.h)
     sol, mult, mu = solve_with_multipliers(problem, options=options, transcription=tr.name, init=init)
     if not bool(sol.converged):
         raise ValueError(f"the solve did not converge (status {Status(int(sol.status)).name}: "
@@ -205,7 +201,7 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, options
 
 def _implicit(problem, tr, wrt, theta0, sol, mult):
     flat_theta0 = jnp.ravel(theta0)
-    u = sol.v if tr.name == "decoupled" else sol.tau
+    u = tr.controls_of(sol)
     layout0 = tr.layout(problem)
     z = layout0.pack(u, sol.h)
     lam = _flat(mult)

@@ -174,8 +174,10 @@ class _NLP(eqx.Module):
         g = jnp.einsum("kai,ka->i", J, c)
         H = jnp.einsum("kai,kaj->ij", J, jnp.einsum("kab,kbj->kaj", Hk, J))
         # co-state (second-order) term of the recursion: d2/dz2 <c, W(z)>, c fixed
-        c_fixed = jax.lax.stop_gradient(c)
-        H = H + jax.hessian(lambda zz: jnp.sum(c_fixed * self.W(zz)))(z)
+        # (zero where W is linear in z: the collocation's states are unknowns)
+        if not self.tr.linear_stage_map:
+            c_fixed = jax.lax.stop_gradient(c)
+            H = H + jax.hessian(lambda zz: jnp.sum(c_fixed * self.W(zz)))(z)
         gval, ggrad, ghess = (self.global_al(z, mult, mu), jax.grad(self.global_al)(z, mult, mu),
                               jax.hessian(self.global_al)(z, mult, mu))
         return jnp.sum(val_k) + gval, g + ggrad, H + ghess
@@ -489,15 +491,12 @@ class Solution(eqx.Module):
 
 
 def initial_guess(problem: Problem, opts: SolverOptions, tr: Transcription):
-    """The default starting point (u (N, m_u), h (N,)) of ``opts.guess``: accelerations
-    for the decoupled transcription, inverse-dynamics efforts for the coupled one."""
+    """The default starting point (u (N, m_u), h (N,)) of ``opts.guess``, converted to
+    the transcription's controls (:meth:`Transcription.initial_controls`)."""
     from .initial_guess import GUESSES
 
     v0, h0 = GUESSES[opts.guess](problem)
-    if tr.name == "coupled":
-        q, qd = _decoupled_states(problem, v0, h0)
-        return jax.vmap(problem.robot.inverse_dynamics)(q[:-1], qd[:-1], v0), h0
-    return v0, h0
+    return tr.initial_controls(problem, v0, h0), h0
 
 
 def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False):
@@ -517,18 +516,13 @@ def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, 
     return _finish(nlp, _loop(nlp, state, opts, opts.max_iter), opts, valid)
 
 
-def _decoupled_states(problem, v, h):
-    from .transcription import integrate
-
-    return integrate(problem.q_start, problem.qd_start, v, h)
-
-
 def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
     problem, tr = nlp.problem, nlp.tr
     s = s._replace(z=_polish(nlp, s.z))
-    u, h = nlp.layout.unpack(s.z)
-    q, qd = tr.states(problem, u, h)
-    a, tau = jax.vmap(lambda q_, qd_, u_: tr.accel_and_tau(problem, q_, qd_, u_))(q[:-1], qd[:-1], u)
+    _, h = nlp.layout.unpack(s.z)
+    W = nlp.W(s.z)
+    q, qd, c, _ = jax.vmap(lambda w: tr.split_stage(problem, w))(W)
+    a, tau = jax.vmap(lambda q_, qd_, c_: tr.accel_and_tau(problem, q_, qd_, c_))(q[:-1], qd[:-1], c[:-1])
     eq, ineq, glob = nlp.constraints(s.z)
     viol = {k: jnp.max(jnp.maximum(g, 0.0)) for k, g in ineq.items()}
     # bounds kept by projection, reported for completeness (relative)
@@ -581,9 +575,11 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     Args:
         problem: a :class:`jtraj.Problem`.
         options: :class:`SolverOptions` (defaults documented there).
-        transcription: "decoupled" (thesis ALD, default) or "coupled".
-        init: optional warm start (u (N, m_u), h (N,)): accelerations for
-            "decoupled", actuator efforts for "coupled".
+        transcription: "decoupled" (thesis ALD, default), "coupled", or Chettibi's
+            "collocation", "shooting", "spline" (see :class:`jtraj.transcription.Transcription`).
+        init: optional warm start (u (N, m_u), h (N,)) in the transcription's controls
+            (accelerations for "decoupled"; ``Transcription(name).controls_of(solution)``
+            turns any Solution of that transcription into them).
     """
     Transcription(transcription)  # validates the name
     if not isinstance(problem, Problem):

@@ -3,12 +3,14 @@
 Notation and shapes (N intervals, n joints, m actuators)::
 
     z      : (N * (m_u + 1),)  scaled decision vector [u_0 .. u_{N-1}, h_0 .. h_{N-1}]
-    u_k    : (m_u,)  controls: accelerations v_k (decoupled) or efforts tau_k (coupled)
+    u_k    : (m_u,)  controls: accelerations v_k (decoupled), efforts tau_k (coupled,
+                     shooting), see :class:`Transcription` for the others
     h_k    : ()      sampling periods [s], T = sum_k h_k
     q, qd  : (N+1, n)  states, q_0 = q_start, qd_0 = qd_start
     a_k    : (n,)    accelerations: a_k = v_k (decoupled) or forward dynamics (coupled)
 
-Both transcriptions share the state recursion of Khoukhi's discrete model::
+The decoupled and coupled transcriptions share the state recursion of Khoukhi's
+discrete model::
 
     q_{k+1}  = q_k + h_k qd_k + h_k^2 / 2 a_k
     qd_{k+1} = qd_k + h_k a_k
@@ -16,6 +18,8 @@ Both transcriptions share the state recursion of Khoukhi's discrete model::
 **Decoupled (ALD, the thesis method):** u_k = v_k and tau_k = ID(q_k, qd_k, v_k). The
 state recursion is linear in v for fixed h; all nonlinearity sits in the cost and the
 torque constraints. **Coupled:** u_k = tau_k and a_k = FD(q_k, qd_k, tau_k).
+Chettibi's three transcriptions (**collocation**, **shooting**, **spline**) are
+described in :class:`Transcription`.
 
 The objective and every constraint are written *once per sample* as a function of the
 stage vector ``w_k = (q_k, qd_k, u_k, h_k)``: the NLP is a sum of stage terms composed
@@ -23,7 +27,8 @@ with the (cheap, polynomial) state recursion ``W(z)``. The solver exploits this 
 build exact Hessians from small per-stage Hessians (see :mod:`jtraj.solver`).
 Constraints are *normalised* (``g <= 0`` with O(1) scale): boxes are divided by their
 bound, so a tolerance on ``g`` is a relative tolerance on the box.
-The box on the controls (v or tau) and on h is kept exactly by the solver (projection);
+The box on the controls (v, tau, knot positions, collocation states) and on h is kept
+exactly by the solver (projection);
 all other constraints enter the augmented Lagrangian.
 """
 
@@ -41,7 +46,7 @@ from .problem import Problem
 
 _BIG = 1e6  # "no bound" stand-in for scaling when a box is absent
 
-TRANSCRIPTIONS = ("decoupled", "coupled")
+TRANSCRIPTIONS = ("decoupled", "coupled", "collocation", "shooting", "spline")
 
 
 class StageData(NamedTuple):
@@ -80,7 +85,29 @@ class Layout(eqx.Module):
 
 @dataclasses.dataclass(frozen=True)
 class Transcription:
-    """A transcription: the meaning of the controls. ``name`` in TRANSCRIPTIONS."""
+    """A transcription: what the controls ``u_k`` mean. ``name`` in TRANSCRIPTIONS.
+
+    ========== ================================ ======================================
+    name       u_k (scaled in z)                states / accelerations
+    ========== ================================ ======================================
+    decoupled  v_k (accelerations)              Khoukhi's recursion; tau = ID(q, qd, v)
+    coupled    tau_k                            Khoukhi's recursion with a = FD(q, qd, tau)
+    collocation (tau_k, q_{k+1}, qd_{k+1})     unknowns; midpoint-rule defects are
+                                                equalities (Chettibi's method 1)
+    shooting   tau_k (held over the interval)   one RK4 step of the continuous dynamics
+                                                per interval (Chettibi's method 2)
+    spline     q_{k+1} (knot positions)         clamped cubic spline through the knots
+                                                (C2); tau = ID at the knots (method 3)
+    ========== ================================ ======================================
+
+    Every transcription fills the same stage vector ``w_k = (q_k, qd_k, c_k, h_k)``
+    whose control slot ``c_k`` is ``u_k``, except the spline's, which holds the knot
+    acceleration ``qdd_k`` (all N+1 knots: the spline's acceleration is piecewise
+    linear, so its bound and the torque bound are checked where they peak, at knots,
+    up to the torque's variation between knots). The collocation's states are decision
+    variables: its "re-simulation" check is that the defects vanish (within the
+    verification tolerance), not a replay of the recursion.
+    """
 
     name: str = "decoupled"
 
@@ -88,56 +115,139 @@ class Transcription:
         if self.name not in TRANSCRIPTIONS:
             raise ValueError(f"transcription must be one of {TRANSCRIPTIONS}, got {self.name!r}")
 
+    @property
+    def linear_stage_map(self) -> bool:
+        """Whether W(z) is linear (its second derivative, a Hessian term, vanishes)."""
+        return self.name == "collocation"
+
     # -- controls ------------------------------------------------------------------------
     def control_dim(self, problem: Problem) -> int:
-        if self.name == "decoupled":
-            return problem.robot.n
+        n = problem.robot.n
         tau_max = problem.robot.limits.tau_max
-        return problem.robot.n if tau_max is None else tau_max.shape[0]
+        m = n if tau_max is None else tau_max.shape[0]
+        return {"decoupled": n, "spline": n, "coupled": m, "shooting": m, "collocation": m + 2 * n}[self.name]
+
+    def _control_box(self, problem: Problem):
+        """(scale, lo, hi) of one u_k in physical units / scale."""
+        robot, lim = problem.robot, problem.robot.limits
+        n = robot.n
+        m = n if lim.tau_max is None else lim.tau_max.shape[0]
+
+        def sym(bound, size):
+            if bound is None:
+                return jnp.ones(size), -_BIG * jnp.ones(size), _BIG * jnp.ones(size)
+            return jnp.asarray(bound, float), -jnp.ones(size), jnp.ones(size)
+
+        def joints(scale=1.0):
+            scale = jnp.broadcast_to(jnp.asarray(scale, float), (n,))
+            if lim.q_min is None:
+                return scale, -_BIG * jnp.ones(n), _BIG * jnp.ones(n)
+            return scale, jnp.asarray(lim.q_min, float) / scale, jnp.asarray(lim.q_max, float) / scale
+
+        if self.name == "decoupled":
+            return sym(lim.qdd_max, n)
+        if self.name in ("coupled", "shooting"):
+            return sym(lim.tau_max, m)
+        if self.name == "spline":
+            # knots scaled by the displacement that saturates the acceleration over one
+            # period: the Newton system is then O(1) in every direction
+            return joints(1.0 if lim.qdd_max is None else lim.qdd_max * lim.h_max**2)
+        parts = [sym(lim.tau_max, m), joints(), sym(lim.qd_max, n)]
+        return tuple(jnp.concatenate([p[i] for p in parts]) for i in range(3))
 
     def layout(self, problem: Problem) -> Layout:
         lim = problem.robot.limits
         N, m_u = problem.N, self.control_dim(problem)
-        bound = lim.qdd_max if self.name == "decoupled" else lim.tau_max
-        u_scale = jnp.full((m_u,), 1.0) if bound is None else bound
-        u_lo, u_hi = (-_BIG * jnp.ones(m_u), _BIG * jnp.ones(m_u)) if bound is None else (-jnp.ones(m_u), jnp.ones(m_u))
+        u_scale, u_lo, u_hi = self._control_box(problem)
+        lo, hi = jnp.tile(u_lo, (N, 1)), jnp.tile(u_hi, (N, 1))
+        if self.name == "spline":  # the last knot is the goal: a fixed variable
+            lo, hi = lo.at[-1].set(problem.q_goal / u_scale), hi.at[-1].set(problem.q_goal / u_scale)
         h_scale = jnp.asarray(lim.h_max, dtype=float)
-        z_lo = jnp.concatenate([jnp.tile(u_lo, N), jnp.full((N,), lim.h_min / lim.h_max)])
-        z_hi = jnp.concatenate([jnp.tile(u_hi, N), jnp.ones(N)])
+        z_lo = jnp.concatenate([lo.ravel(), jnp.full((N,), lim.h_min / lim.h_max)])
+        z_hi = jnp.concatenate([hi.ravel(), jnp.ones(N)])
         return Layout(N=N, m_u=m_u, u_scale=u_scale, h_scale=h_scale, z_lo=z_lo, z_hi=z_hi)
 
-    def accel_and_tau(self, problem: Problem, q, qd, u):
-        """(a, tau) at one sample from the control u."""
+    def accel_and_tau(self, problem: Problem, q, qd, c):
+        """(a, tau) at one sample from its control slot c (see the class docstring)."""
         robot = problem.robot
+        if self.name in ("decoupled", "spline"):
+            return c, robot.inverse_dynamics(q, qd, c)
+        if self.name == "collocation":
+            n = robot.n
+            m = c.shape[0] - 2 * n
+            tau, q1, qd1 = c[:m], c[m:m + n], c[m + n:]
+            return robot.forward_dynamics((q + q1) / 2, (qd + qd1) / 2, tau), tau
+        return robot.forward_dynamics(q, qd, c), c
+
+    def initial_controls(self, problem: Problem, v, h):
+        """u (N, m_u) of this transcription from an acceleration profile (v, h) run
+        through the decoupled recursion (how the default guesses are made)."""
         if self.name == "decoupled":
-            return u, robot.inverse_dynamics(q, qd, u)
-        return robot.forward_dynamics(q, qd, u), u
+            return v
+        q, qd = integrate(problem.q_start, problem.qd_start, v, h)
+        if self.name == "spline":
+            return q[1:]
+        tau = jax.vmap(problem.robot.inverse_dynamics)(q[:-1], qd[:-1], v)
+        if self.name == "collocation":
+            return jnp.concatenate([tau, q[1:], qd[1:]], axis=1)
+        return tau
+
+    def controls_of(self, solution):
+        """u (N, m_u) of a :class:`jtraj.Solution` of this transcription (warm starts)."""
+        if self.name == "decoupled":
+            return solution.v
+        if self.name == "spline":
+            return solution.q[1:]
+        if self.name == "collocation":
+            return jnp.concatenate([solution.tau, solution.q[1:], solution.qd[1:]], axis=1)
+        return solution.tau
 
     # -- states ----------------------------------------------------------------------------
     def states(self, problem: Problem, u, h):
         """(q, qd), each (N+1, n), from controls u (N, m_u) and periods h (N,)."""
+        return self._states_and_slot(problem, u, h)[:2]
+
+    def _states_and_slot(self, problem: Problem, u, h):
+        """(q, qd, c): states (N+1, n) and the control slot of the stage vectors
+        (N+1, m_u'); row N of c is zero except for the spline (the last knot's qdd)."""
+        q0, qd0 = problem.q_start, problem.qd_start
+        u_ext = jnp.concatenate([u, jnp.zeros((1, u.shape[1]))])
         if self.name == "decoupled":
-            return integrate(problem.q_start, problem.qd_start, u, h)
+            return (*integrate(q0, qd0, u, h), u_ext)
+        if self.name == "spline":
+            return clamped_spline(q0, qd0, problem.qd_goal, u, h)
+        if self.name == "collocation":
+            n = problem.robot.n
+            m = u.shape[1] - 2 * n
+            q = jnp.concatenate([q0[None], u[:, m:m + n]])
+            qd = jnp.concatenate([qd0[None], u[:, m + n:]])
+            return q, qd, u_ext
+        fd = problem.robot.forward_dynamics
 
         def step(carry, uh):
             q, qd = carry
             uk, hk = uh
-            a, _ = self.accel_and_tau(problem, q, qd, uk)
-            nxt = (q + hk * qd + 0.5 * hk**2 * a, qd + hk * a)
+            if self.name == "coupled":
+                a = fd(q, qd, uk)
+                nxt = (q + hk * qd + 0.5 * hk**2 * a, qd + hk * a)
+            else:  # shooting: classical RK4 on (q, qd)' = (qd, FD(q, qd, tau))
+                k1q, k1v = qd, fd(q, qd, uk)
+                k2q, k2v = qd + 0.5 * hk * k1v, fd(q + 0.5 * hk * k1q, qd + 0.5 * hk * k1v, uk)
+                k3q, k3v = qd + 0.5 * hk * k2v, fd(q + 0.5 * hk * k2q, qd + 0.5 * hk * k2v, uk)
+                k4q, k4v = qd + hk * k3v, fd(q + hk * k3q, qd + hk * k3v, uk)
+                nxt = (q + hk / 6 * (k1q + 2 * k2q + 2 * k3q + k4q), qd + hk / 6 * (k1v + 2 * k2v + 2 * k3v + k4v))
             return nxt, nxt
 
-        _, (qs, qds) = jax.lax.scan(step, (problem.q_start, problem.qd_start), (u, h))
-        return (jnp.concatenate([problem.q_start[None], qs]),
-                jnp.concatenate([problem.qd_start[None], qds]))
+        _, (qs, qds) = jax.lax.scan(step, (q0, qd0), (u, h))
+        return jnp.concatenate([q0[None], qs]), jnp.concatenate([qd0[None], qds]), u_ext
 
     def stage_vectors(self, problem: Problem, layout: Layout, z):
-        """W(z): the stage vectors w_k = (q_k, qd_k, u_k, h_k), shape (N+1, 2n + m_u + 1).
-        Row N carries zero control and period (only terminal terms apply there)."""
+        """W(z): the stage vectors w_k = (q_k, qd_k, c_k, h_k), shape (N+1, 2n + m_u + 1).
+        Row N carries a zero period (only terminal terms apply there)."""
         u, h = layout.unpack(z)
-        q, qd = self.states(problem, u, h)
-        u_ext = jnp.concatenate([u, jnp.zeros((1, u.shape[1]))])
+        q, qd, c = self._states_and_slot(problem, u, h)
         h_ext = jnp.concatenate([h, jnp.zeros(1)])
-        return jnp.concatenate([q, qd, u_ext, h_ext[:, None]], axis=1)
+        return jnp.concatenate([q, qd, c, h_ext[:, None]], axis=1)
 
     def split_stage(self, problem: Problem, w):
         n = problem.robot.n
@@ -171,11 +281,13 @@ class Transcription:
             g = jnp.stack([x / bound - 1.0, -x / bound - 1.0], axis=-1)
             return jnp.where(mask > 0, g, -1.0)
 
-        if self.name == "decoupled":
-            if lim.tau_max is not None:
-                ineq["tau"] = box(tau, lim.tau_max, sd.is_interval)
-        elif lim.qdd_max is not None:
-            ineq["qdd"] = box(a, lim.qdd_max, sd.is_interval)
+        # the spline's knot accelerations and torques exist at all N+1 knots
+        at = jnp.ones_like(sd.is_interval) if self.name == "spline" else sd.is_interval
+        if self.name in ("decoupled", "spline"):
+            if lim.tau_max is not None:  # otherwise tau is a control, boxed exactly
+                ineq["tau"] = box(tau, lim.tau_max, at)
+        if self.name != "decoupled" and lim.qdd_max is not None:
+            ineq["qdd"] = box(a, lim.qdd_max, at)
         if lim.qd_max is not None:
             ineq["qd"] = box(qd, lim.qd_max, sd.is_inner)
         if lim.q_min is not None:
@@ -197,6 +309,11 @@ class Transcription:
         if extra is not None:
             ineq["path"] = jnp.where(sd.is_inner > 0, extra(q), -1.0)
         qd_scale = 1.0 if lim.qd_max is None else lim.qd_max
+        if self.name == "collocation":  # midpoint-rule defects of interval k
+            n = robot.n
+            q1, qd1 = u[-2 * n:-n], u[-n:]
+            eq["defect"] = sd.is_interval * jnp.concatenate(
+                [q1 - q - h * (qd + qd1) / 2, (qd1 - qd - h * a) / qd_scale])
         eq["goal"] = sd.is_final * jnp.concatenate([q - problem.q_goal, (qd - problem.qd_goal) / qd_scale])
         extra_eq = getattr(robot, "path_equalities", None)
         if extra_eq is not None:
@@ -248,3 +365,32 @@ def integrate(q0, qd0, v, h):
     dq = h[:, None] * qd[:-1] + 0.5 * (h**2)[:, None] * v
     q = q0 + S @ dq
     return q, qd
+
+
+def clamped_spline(q0, qd0, qdN, knots, h):
+    """Clamped cubic spline through ``q0, knots[0], ..., knots[-1]`` with end velocities
+    ``qd0, qdN`` and interval lengths ``h``: (q, qd, qdd) at the N+1 knots.
+
+    The knot velocities solve the C2 continuity conditions (tridiagonal, diagonally
+    dominant; solved densely, N is small), for interior knots i::
+
+        h_i qd_{i-1} + 2 (h_{i-1} + h_i) qd_i + h_{i-1} qd_{i+1}
+            = 3 (h_i d_{i-1} + h_{i-1} d_i),   d_k = (q_{k+1} - q_k) / h_k
+
+    and the acceleration at the start of interval k is
+    ``6 d_k / h_k - (4 qd_k + 2 qd_{k+1}) / h_k`` (at its end
+    ``-6 d_k / h_k + (2 qd_k + 4 qd_{k+1}) / h_k``; equal at interior knots)."""
+    q = jnp.concatenate([q0[None], knots])
+    N = h.shape[0]
+    d = (q[1:] - q[:-1]) / h[:, None]
+    if N == 1:
+        qd = jnp.stack([qd0, qdN])
+    else:
+        hl, hr = h[:-1], h[1:]  # h_{i-1}, h_i for i = 1..N-1
+        rhs = 3 * (hr[:, None] * d[:-1] + hl[:, None] * d[1:])
+        rhs = rhs.at[0].add(-hr[0] * qd0).at[-1].add(-hl[-1] * qdN)
+        A = jnp.diag(2 * (hl + hr)) + jnp.diag(hr[1:], -1) + jnp.diag(hl[:-1], 1)
+        qd = jnp.concatenate([qd0[None], jnp.linalg.solve(A, rhs), qdN[None]])
+    a_start = 6 * d / h[:, None] - (4 * qd[:-1] + 2 * qd[1:]) / h[:, None]
+    a_end = -6 * d[-1] / h[-1] + (2 * qd[-2] + 4 * qd[-1]) / h[-1]
+    return q, qd, jnp.concatenate([a_start, a_end[None]])

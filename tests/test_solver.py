@@ -144,6 +144,8 @@ def test_weights_validation():
 @pytest.mark.parametrize("name, transcription", [
     ("serial3_vertical", "decoupled"),
     pytest.param("serial3", "coupled", marks=pytest.mark.slow),  # ~36 s: forward dynamics in the loop
+    pytest.param("serial3", "spline", marks=pytest.mark.slow),
+    pytest.param("serial3", "collocation", marks=pytest.mark.slow),
 ])
 def test_structured_hessian_matches_differences_of_the_gradient(name, transcription):
     """The solver's stage-structured Hessian (stage Hessians + co-state term of the
@@ -159,7 +161,13 @@ def test_structured_hessian_matches_differences_of_the_gradient(name, transcript
     tr = Transcription(transcription)
     lay = tr.layout(p)
     nlp = _NLP(problem=p, tr=tr, layout=lay, sd=tr.stage_data(p))
-    z = lay.z_lo + (lay.z_hi - lay.z_lo) * jax.random.uniform(jax.random.PRNGKey(0), lay.z_lo.shape)
+    # a random point around the default guess (unbounded variables, like the spline's
+    # knots, get a spread of 1 in their scaled units)
+    from jtraj.solver import SolverOptions, initial_guess
+
+    z0 = lay.pack(*initial_guess(p, SolverOptions(), tr))
+    spread = jnp.minimum(lay.z_hi - lay.z_lo, 2.0)
+    z = jnp.clip(z0 + spread * (jax.random.uniform(jax.random.PRNGKey(0), z0.shape) - 0.5), lay.z_lo, lay.z_hi)
     mult = jax.tree.map(lambda x: x + 0.3, _init_multipliers(nlp, z))
     import equinox as eqx
 

@@ -28,8 +28,9 @@ def configure(parser):
     parser.add_argument("--N", type=int, default=20, help="number of sampling intervals (default 20)")
     parser.add_argument("--weights", default="time=1,energy=1",
                         help="cost weights, keys time, energy, kinetic, singularity (default 'time=1,energy=1')")
-    parser.add_argument("--transcription", default="decoupled", choices=("decoupled", "coupled"),
-                        help="decoupled (ALD, default) or coupled")
+    parser.add_argument("--transcription", default="decoupled", choices=("decoupled", "coupled", "collocation", "shooting", "spline"),
+                        help="decoupled (thesis ALD, default), coupled, or Chettibi's collocation "
+                             "(midpoint rule), shooting (RK4) and spline (clamped cubic knots)")
     parser.add_argument("--T-max", type=float, default=None, help="upper bound on the total time [s]")
     parser.add_argument("--via", action="append", default=[], metavar="X,Y",
                         help="imposed passage point of the tip (repeatable)")
