@@ -1,6 +1,7 @@
 """ANFIS benchmark: Jang's Mackey-Glass accuracy, training time, query latency.
 
     .venv/bin/python benchmarks/bench_anfis.py [--samples 2000] [--repeat 2000]
+        [--data DATASET [--mappings nefotc,nefumop,nefik,plan] [--rules R] [--goal-inputs [relative]]]
 
 Prints
 * Mackey-Glass (Jang 1993 set-up, 16 rules, first-order TSK) train and check RMSE
@@ -9,7 +10,11 @@ Prints
   16 rules, cold (compilation included) and warm (goal <= 10 s);
 * single-query latency of ``model.predict(x)`` (jitted, float64; goal <= 200 us) and
   of the float32 copy, median over ``--repeat`` calls;
-* batch throughput (queries/s) for a batch of 10,000.
+* batch throughput (queries/s) for a batch of 10,000;
+* with ``--data``, the trajectory models of a ``jtraj dataset`` (converged trajectories
+  only; test split = last 10 % of them in dataset order): ANFIS test RMSE against the
+  linear least-squares and 5-nearest-neighbour baselines fitted on the same split
+  (goal: ANFIS <= 0.5 x linear), training seconds and rules.
 
 All in float64 unless said; the machine's CPU (2 cores here) is what is measured.
 """
@@ -49,7 +54,15 @@ def main(argv=None):
     ap.add_argument("--samples", type=int, default=2000)
     ap.add_argument("--repeat", type=int, default=2000)
     ap.add_argument("--epochs", type=int, default=100)
+    ap.add_argument("--data", help="also benchmark the trajectory models of this dataset")
+    ap.add_argument("--mappings", default="nefotc,nefumop,nefik,plan")
+    ap.add_argument("--rules", type=int, default=None, help="rules of the trajectory models (default: radius 0.5)")
+    ap.add_argument("--ridge", type=float, default=1e-6, help="relative ridge (as jtraj train)")
+    ap.add_argument("--goal-inputs", nargs="?", const="append", default=None, choices=["append", "relative"],
+                    help="nefotc / nefumop with the offset to the goal (see jtraj train --help)")
     args = ap.parse_args(argv)
+    if args.data:
+        trajectory_models(args)
 
     Xtr, ytr, Xck, yck = datasets.jang_mackey_glass()
     t0 = time.perf_counter()
@@ -91,6 +104,20 @@ def main(argv=None):
     Xb = jnp.asarray(np.resize(Xck, (B, 4)))
     med_b, _ = latency(model.predict, Xb, 50)
     print(f"batch of {B}: {med_b * 1e3:.2f} ms, {B / med_b:,.0f} queries/s")
+
+
+def trajectory_models(args):
+    from jtraj.anfis import trajectory
+
+    data = trajectory.load_data(args.data)
+    for mapping in args.mappings.split(","):
+        goal = args.goal_inputs if args.goal_inputs and mapping in ("nefotc", "nefumop") else False
+        _, r, _ = trajectory.train_mapping(data, mapping, n_rules=args.rules, epochs=args.epochs, ridge=args.ridge,
+                                           goal=goal)
+        print(f"{mapping}{f' (goal inputs: {goal})' if goal else ''}: {r['n_rules']} rules, {r['epochs']} epochs, {r['seconds']:.1f} s, "
+              f"{r['n_trajectories_train']}/{r['n_trajectories_test']} train/test trajectories; test RMSE ANFIS "
+              f"{r['test_rmse']:.4g}, linear {r['linear_test_rmse']:.4g}, 5-NN {r['knn_test_rmse']:.4g}; "
+              f"ANFIS / linear {r['ratio_to_linear']:.3f} (goal <= 0.5)", flush=True)
 
 
 if __name__ == "__main__":

@@ -86,6 +86,9 @@ def test_goal_inputs_append_offset_to_goal(data):
     np.testing.assert_allclose(X[:, 6:], data["q_goal"][traj] - X0[:, :3])
     Xu, _, _, names_u, _ = trajectory.view(data, "nefumop", goal=True)
     assert Xu.shape[1] == 6 and names_u[4:] == ["dx_goal", "dy_goal"]
+    Xr, _, _, names_r, _ = trajectory.view(data, "nefotc", goal="relative")
+    assert names_r == ["dq_goal1", "dq_goal2", "dq_goal3", "qd1", "qd2", "qd3"]
+    np.testing.assert_array_equal(Xr, np.c_[X[:, 6:], X[:, 3:6]])
     with pytest.raises(ValueError, match="goal inputs"):
         trajectory.view(data, "plan", goal=True)
 
@@ -95,3 +98,5 @@ def test_model_records_dataset_weights_and_goal_inputs(data):
     model, rep, _ = trajectory.train_mapping(d, "nefotc", n_rules=3, epochs=1, goal=True)
     assert model.metadata["weights"] == "time=1,energy=0.1" and model.metadata["goal_inputs"] is True
     assert rep["goal_inputs"] is True and model.n_inputs == 9
+    model, rep, _ = trajectory.train_mapping(d, "nefotc", n_rules=3, epochs=1, goal="relative")
+    assert model.metadata["goal_inputs"] == "relative" and model.n_inputs == 6

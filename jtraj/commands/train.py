@@ -27,10 +27,11 @@ def configure(parser):
     parser.add_argument("--epochs", type=int, default=100)
     parser.add_argument("--ridge", type=float, default=1e-6,
                         help="relative ridge of the least squares (1e-10 overfits sparse trajectory data)")
-    parser.add_argument("--goal-inputs", action="store_true",
+    parser.add_argument("--goal-inputs", nargs="?", const="append", default=None, choices=["append", "relative"],
                         help="nefotc / nefumop: append the offset to the trajectory's goal (q_goal - q, or "
-                             "p_goal - p) to the inputs; without it these mappings are not functions over a "
-                             "dataset of random start/goal pairs")
+                             "p_goal - p) to the inputs ('append', the default of the bare flag), or replace "
+                             "the position by it ('relative'); without it these mappings are not functions "
+                             "over a dataset of random start/goal pairs")
     parser.add_argument("--no-progress", action="store_true")
 
 
@@ -45,7 +46,7 @@ def run(args) -> int:
     model, report, hist = trajectory.train_mapping(
         args.data, args.mapping, n_rules=args.rules, radius=args.radius, epochs=args.epochs, kind=args.kind,
         order=args.order, ridge=args.ridge, progress=not args.no_progress,
-        goal=bool(getattr(args, "goal_inputs", False)))
+        goal=getattr(args, "goal_inputs", None) or False)
     model.save(args.out)
     report["model"] = os.path.abspath(args.out)
     if args.plot:
