@@ -114,7 +114,8 @@ def trajectory_models(args):
         goal = args.goal_inputs if args.goal_inputs and mapping in ("nefotc", "nefumop") else False
         _, r, _ = trajectory.train_mapping(data, mapping, n_rules=args.rules, epochs=args.epochs, ridge=args.ridge,
                                            goal=goal)
-        print(f"{mapping}{f' (goal inputs: {goal})' if goal else ''}: {r['n_rules']} rules, {r['epochs']} epochs, {r['seconds']:.1f} s, "
+        print(f"{mapping}{f' (goal inputs: {goal})' if goal else ''}: {r['n_rules']} rules, {r['epochs']} epochs, "
+              f"{r['seconds']:.1f} s, "
               f"{r['n_trajectories_train']}/{r['n_trajectories_test']} train/test trajectories; test RMSE ANFIS "
               f"{r['test_rmse']:.4g}, linear {r['linear_test_rmse']:.4g}, 5-NN {r['knn_test_rmse']:.4g}; "
               f"ANFIS / linear {r['ratio_to_linear']:.3f} (goal <= 0.5)", flush=True)

@@ -21,7 +21,8 @@ the ``(v, h)`` of the training trajectory whose (q_start, q_goal) is nearest (a
 lookup baseline for the warm start); with ``--primal`` each warm start also once with
 its primal point only (``*_primal``: multipliers zero and ``penalty_init`` as in a cold
 start, whereas ``jtraj.solve(init=...)`` also estimates multipliers and starts the
-penalty at ``penalty_max / 100``, which assumes the guess is near an optimum). Compilation is excluded (one untimed solve of
+penalty at ``penalty_max / 100``, which assumes the guess is near an optimum).
+Compilation is excluded (one untimed solve of
 each kind first). Printed: success rates (strict ``converged``; and ``converged or
 FEASIBLE_NOT_OPTIMAL``), Newton iterations and wall time (mean, median; ratios
 warm / cold), and the final cost difference where both converged.
@@ -212,7 +213,8 @@ def main(argv=None):
                        cost_rel_diff_max_abs=float(np.abs(rel).max()),
                        lower_cost_pairs=int((rel < -1e-6).sum()), higher_cost_pairs=int((rel > 1e-6).sum()))
         summary[f"{lab}_vs_cycloidal"] = cmp
-        line = (f"{lab} / cycloidal: iterations {it_ratio:.3f}x (mean), per-pair median {cmp['iterations_ratio_per_pair_median']:.3f}x, "
+        line = (f"{lab} / cycloidal: iterations {it_ratio:.3f}x (mean), "
+                f"per-pair median {cmp['iterations_ratio_per_pair_median']:.3f}x, "
                 f"fewer iterations on {cmp['fewer_iterations_pairs']}/{P}; wall time {t_ratio:.3f}x (total); "
                 f"success {s['converged']}/{P} vs {c['converged']}/{P}")
         if len(both):

@@ -11,6 +11,7 @@ Tolerances (float64, conftest enables x64):
 import json
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -184,6 +185,25 @@ def test_save_load_roundtrip(tmp_path, mg_model, mackey_glass):
     assert back.metadata["n_rules"] == 16 and back.kind == model.kind
     with pytest.raises(ValueError, match="mapping"):
         anfis.load(path, mapping="nefotc")
+
+
+def test_clip_outputs_bounds_predictions_and_survives_save(tmp_path):
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-1, 1, (300, 2))
+    Y = np.c_[np.tanh(4 * X[:, 0]), X[:, 0] * X[:, 1]]
+    model = anfis.fit(X, Y, n_rules=6, epochs=5, order=1)
+    Xq = rng.uniform(-3, 3, (2000, 2))  # far outside the training box too
+    raw = np.asarray(model.predict(Xq))
+    clipped = model.with_clip()
+    P = np.asarray(clipped.predict(Xq))
+    lo, hi = np.asarray(model.y_lo), np.asarray(model.y_lo + model.y_span)
+    assert np.all(P >= lo - 1e-12) and np.all(P <= hi + 1e-12)
+    np.testing.assert_allclose(P, np.clip(raw, lo, hi), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(jax.jit(clipped.predict_fn())(jnp.asarray(Xq))), P, rtol=1e-12)
+    clipped.save(tmp_path / "c.anfis")
+    back = anfis.load(tmp_path / "c.anfis")
+    assert back.clip_outputs
+    np.testing.assert_array_equal(np.asarray(back.predict(Xq)), P)
 
 
 def test_load_rejects_other_version_and_junk(tmp_path, mg_model):

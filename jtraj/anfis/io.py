@@ -24,7 +24,8 @@ def save(path, model: Model) -> None:
     """Write ``model`` to ``path`` (parent directories must exist)."""
     header = dict(format=FORMAT, version=FORMAT_VERSION, kind=model.kind, order=model.order,
                   scalar_output=model.scalar_output, n_rules=model.n_rules, n_inputs=model.n_inputs,
-                  n_outputs=model.n_outputs, dtype=str(model.centers.dtype), metadata=model.metadata)
+                  n_outputs=model.n_outputs, dtype=str(model.centers.dtype), metadata=model.metadata,
+                  clip_outputs=bool(model.clip_outputs))
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "wb") as f:
         f.write(json.dumps(header, sort_keys=True).encode() + b"\n")
@@ -68,7 +69,8 @@ def load(path, *, mapping: str | None = None) -> Model:
     z = lambda *shape: jnp.zeros(shape, dt)  # noqa: E731
     skeleton = Model(z(R, d), z(R, d), z(R, n_coef(kind, order, d), m), z(d), z(d), z(m), z(m), kind=kind,
                      order=order, scalar_output=bool(header["scalar_output"]),
-                     info=json.dumps(meta, sort_keys=True))
+                     info=json.dumps(meta, sort_keys=True),
+                     clip_outputs=bool(header.get("clip_outputs", False)))  # absent before clipping existed
     with open(path, "rb") as f:
         f.readline()
         try:

@@ -106,13 +106,16 @@ def forward(c, s, theta, u, kind: str, order: int) -> Float[Array, "B m"]:
     return jnp.einsum("br,brm->bm", beta, f)
 
 
-@partial(jax.jit, static_argnames=("kind", "order", "single", "squeeze"))
-def _predict(c, s, theta, x_lo, x_span, y_lo, y_span, X, kind, order, single, squeeze):
+@partial(jax.jit, static_argnames=("kind", "order", "single", "squeeze", "clip"))
+def _predict(c, s, theta, x_lo, x_span, y_lo, y_span, X, kind, order, single, squeeze, clip=False):
     X = jnp.asarray(X, c.dtype)
     if single:
         X = X[None, :]
     u = (X - x_lo) / x_span
-    Y = forward(c, s, theta, u, kind, order) * y_span + y_lo
+    v = forward(c, s, theta, u, kind, order)
+    if clip:
+        v = jnp.clip(v, 0.0, 1.0)
+    Y = v * y_span + y_lo
     if single:
         Y = Y[0]
     return Y[..., 0] if squeeze else Y
@@ -123,9 +126,13 @@ class Model(eqx.Module):
 
     Fields (unit-hypercube units): ``centers (R, d)``, ``sigmas (R, d)``,
     ``theta (R, k, m)`` consequent coefficients, scalings ``x_lo, x_span (d,)`` and
-    ``y_lo, y_span (m,)``; static ``kind``, ``order``, ``scalar_output`` (Y was 1-D) and
+    ``y_lo, y_span (m,)``; static ``kind``, ``order``, ``scalar_output`` (Y was 1-D),
     ``info`` (a JSON string: hyperparameters, training figures, user metadata such as
-    the trajectory mapping).
+    the trajectory mapping) and ``clip_outputs``: predictions clipped into the range of
+    the training targets (``[y_lo, y_lo + y_span]``; off by default, as in MATLAB; the
+    trajectory models turn it on: their targets are bounded by the robot's limits, and
+    a first-order rule can swing far outside them where its normalised weight is small
+    but not negligible).
     """
 
     centers: Array
@@ -139,6 +146,7 @@ class Model(eqx.Module):
     order: int = eqx.field(static=True, default=1)
     scalar_output: bool = eqx.field(static=True, default=False)
     info: str = eqx.field(static=True, default="{}")
+    clip_outputs: bool = eqx.field(static=True, default=False)
 
     # ----- sizes ----------------------------------------------------------------------
     @property
@@ -164,6 +172,10 @@ class Model(eqx.Module):
         meta.update(kv)
         return _replace(self, info=json.dumps(meta, sort_keys=True))
 
+    def with_clip(self, clip: bool = True) -> "Model":
+        """Copy with :attr:`clip_outputs` set to ``clip``."""
+        return _replace(self, clip_outputs=bool(clip))
+
     def astype(self, dtype) -> "Model":
         """Copy with every array cast to ``dtype`` (e.g. float32 for faster queries)."""
         return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), self)
@@ -181,7 +193,7 @@ class Model(eqx.Module):
         if len(shape) not in (1, 2) or shape[-1] != self.centers.shape[1]:
             raise ValueError(f"X must have shape ({self.n_inputs},) or (B, {self.n_inputs}), got {shape}")
         return _predict(self.centers, self.sigmas, self.theta, self.x_lo, self.x_span, self.y_lo, self.y_span, X,
-                        self.kind, self.order, len(shape) == 1, self.scalar_output)
+                        self.kind, self.order, len(shape) == 1, self.scalar_output, self.clip_outputs)
 
     __call__ = predict
 
@@ -190,11 +202,12 @@ class Model(eqx.Module):
         inside other jitted code (e.g. the online planner)."""
         c, s, th, xl, xs, yl, ys = (self.centers, self.sigmas, self.theta, self.x_lo, self.x_span,
                                     self.y_lo, self.y_span)
-        kind, order = self.kind, self.order
+        kind, order, clip = self.kind, self.order, self.clip_outputs
 
         def f(X):
             u = (X - xl) / xs
-            return forward(c, s, th, u, kind, order) * ys + yl
+            v = forward(c, s, th, u, kind, order)
+            return (jnp.clip(v, 0.0, 1.0) if clip else v) * ys + yl
         return f
 
     def firing(self, X) -> Array:
@@ -227,6 +240,6 @@ class Model(eqx.Module):
 
 def _replace(model: Model, **changes) -> Model:
     fields = {k: getattr(model, k) for k in ("centers", "sigmas", "theta", "x_lo", "x_span", "y_lo", "y_span",
-                                              "kind", "order", "scalar_output", "info")}
+                                              "kind", "order", "scalar_output", "info", "clip_outputs")}
     fields.update(changes)
     return Model(**fields)

@@ -192,7 +192,7 @@ def train(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25,
           reject: float = 0.15, kind: str = "tsk", order: int = 1, epochs: int = 100,
           validation=0.1, seed: int = 0, method: str = "lm", ridge: float = 1e-10,
           sigma_floor: float = 0.4, patience: int = 20, step_size: float = 0.01,
-          metadata: dict | None = None, progress=False) -> tuple[Model, History]:
+          metadata: dict | None = None, progress=False, clip_outputs: bool = False) -> tuple[Model, History]:
     """Fit an ANFIS and return ``(model, history)``; see :func:`fit` for arguments."""
     t0 = time.perf_counter()
     if kind not in KINDS:
@@ -270,7 +270,7 @@ def train(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25,
     def make(c, s, th, extra=None):
         meta = dict(info, **(extra or {}))
         return Model(c, s, th, A(x_lo), A(x_span), A(y_lo), A(y_span), kind=kind, order=order,
-                     scalar_output=scalar, info=json.dumps(meta, sort_keys=True))
+                     scalar_output=scalar, info=json.dumps(meta, sort_keys=True), clip_outputs=bool(clip_outputs))
 
     hist = History(radius=float(np.mean(used_radius)))
     hist.initial = make(c, s, th, {"epochs": 0})
@@ -360,7 +360,9 @@ def fit(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25, a
     pass an ``(X_val, Y_val)`` pair to choose it yourself, 0 to disable). Other
     options: ``order``, ``method``, ``ridge`` (relative ridge of the least squares,
     1e-10), ``sigma_floor`` (0.4, relative to the initial width), ``patience`` (20), ``step_size`` (0.01, gradient
-    method), ``metadata`` (dict stored in the model), ``progress`` (tqdm bar).
+    method), ``metadata`` (dict stored in the model), ``progress`` (tqdm bar),
+    ``clip_outputs`` (False; predictions clipped into the training targets' range, see
+    :class:`Model`; training itself is unaffected).
 
     Raises ValueError for mismatched lengths, NaN/inf in the data, fewer samples than
     rules, or a radius that yields no rule.

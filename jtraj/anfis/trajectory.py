@@ -76,7 +76,8 @@ def view(data, mapping: str = "nefotc", *, goal: bool | str = False):
     to the trajectory's goal to the inputs: ``q_goal - q_k`` (inputs ``dq_goal1..n``)
     for ``nefotc``, ``p_goal - p_k`` (``dx_goal, ...``, ``p_goal = f(q_goal)``) for
     ``nefumop``; ``goal="relative"`` replaces the position by that offset
-    (``(q_goal - q_k, qd_k) -> tau_k``: goal-relative coordinates, fewer inputs). Over a dataset of random start/goal pairs the plain mappings are not
+    (``(q_goal - q_k, qd_k) -> tau_k``: goal-relative coordinates, fewer inputs).
+    Over a dataset of random start/goal pairs the plain mappings are not
     functions (the same ``(q, qd)`` is crossed towards different goals with opposite
     torques), so no regressor beats the linear baseline by much on them; with the goal
     offset they are (see the README's ANFIS section for the figures).
@@ -197,8 +198,9 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     outputs pooled), ``test_rmse_per_output``, ``train_rmse_per_output``, ``n_rules``,
     ``epochs``, ``seconds``, ``linear_test_rmse``, ``knn_test_rmse``,
     ``ratio_to_linear`` (goal <= 0.5) and the split sizes. Other keyword options go to
-    :func:`jtraj.anfis.train`. ``goal``: see :func:`view`. For ``plan``, ``n_rules``
-    defaults to ``PLAN_RULES`` (8): clustering with a radius in its high-dimensional
+    :func:`jtraj.anfis.train` (``clip_outputs`` defaults to True here). ``goal``: see
+    :func:`view`. For ``plan``, ``n_rules`` defaults to ``PLAN_RULES`` (8): clustering
+    with a radius in its high-dimensional
     joint input-output space makes every trajectory a rule.
     """
     from .training import train
@@ -226,6 +228,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     if meta.get("weights_text"):
         md["weights"] = meta["weights_text"]  # the cost the trajectories are optimal for (Planner refine)
     t0 = time.perf_counter()
+    options.setdefault("clip_outputs", True)  # targets bounded by the robot's limits (see Model)
     model, hist = train(Xfit, Yfit, n_rules=n_rules, radius=radius, epochs=epochs, kind=kind,
                         validation=validation, metadata=md, progress=progress, **options)
     seconds = time.perf_counter() - t0

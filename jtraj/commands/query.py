@@ -33,7 +33,8 @@ def run(args) -> int:
           f"tau over limit {out['tau_violation']:.3g}, qd over limit {out['qd_violation']:.3g}")
     if args.refine:
         print(f"refined ({out['refined_warm']} warm start): {out['refined_status']} in "
-              f"{out['refined_iterations']} iterations, {out['refined_seconds']:.2f} s (cycloidal start: {out['cycloidal_iterations']} iterations, "
+              f"{out['refined_iterations']} iterations, {out['refined_seconds']:.2f} s "
+              f"(cycloidal start: {out['cycloidal_iterations']} iterations, "
               f"{out['cycloidal_seconds']:.2f} s, compilation included when not cached)")
     if args.json:
         with open(args.json, "w") as f:
