@@ -61,6 +61,51 @@ def table(rows, header=("quantity", "jtraj", "published", "explanation")) -> str
     return "\n".join(lines)
 
 
+def timed_solve(problem, **kwargs):
+    """(solution, wall seconds) of ``jtraj.solve(problem, **kwargs)``, blocking on the result."""
+    import jax
+
+    import jtraj
+
+    t0 = time.perf_counter()
+    sol = jtraj.solve(problem, **kwargs)
+    jax.block_until_ready(sol.T)
+    return sol, time.perf_counter() - t0
+
+
+def solve_with_restart(problem, init=None, restarts: int = 1):
+    """Solve, then, while the status is not CONVERGED, re-solve warm-started from the last
+    point (same compiled solver: a warm start is a traced flag). Returns (solution, wall
+    seconds of the first call (compilation included), of the last call, and a list of
+    the statuses of every try). The last try is kept unless an earlier one is better
+    (converged, or a smaller violation)."""
+    import jtraj
+
+    sol, t_first = timed_solve(problem, init=init)
+    tries, t_last = [jtraj.Status(int(sol.status)).name], t_first
+    for _ in range(restarts):
+        if bool(sol.converged):
+            break
+        new, t_last = timed_solve(problem, init=(sol.v, sol.h))
+        tries.append(jtraj.Status(int(new.status)).name)
+        if bool(new.converged) or float(new.max_violation["overall"]) <= float(sol.max_violation["overall"]):
+            sol = new
+    return sol, t_first, t_last, tries
+
+
+def status_text(sol, seconds=None) -> str:
+    """``STATUS (n Newton it., m outer[, s s])`` of a single solution."""
+    import jtraj
+
+    text = f"{jtraj.Status(int(sol.status)).name} ({int(sol.iterations)} Newton it., {int(sol.outer_iterations)} outer"
+    return text + ("" if seconds is None else f", {seconds:.2f} s") + ")"
+
+
+def wall_and_cpu(t_start: float) -> str:
+    """``Script wall time W s (process CPU C s)`` since ``t_start`` (a perf_counter value)."""
+    return f"Script wall time {time.perf_counter() - t_start:.0f} s (process CPU {time.process_time():.0f} s)."
+
+
 def machine() -> str:
     return f"{platform.machine()}, {os.cpu_count()} CPU cores visible, Python {platform.python_version()}"
 
