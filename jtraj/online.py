@@ -124,9 +124,7 @@ class Planner:
         ``penalty_max / 100``: right for a guess near an optimum, but the plan is not
         (median goal error ~0.3 rad), and on 60 held-out serial3 pairs (README, ANFIS)
         ``"full"`` converged on 2/60 against 43/60 from the cycloidal start, ``"primal"``
-        on 45/60 with 0.85x the iterations. ``"primal"`` uses the solver's private
-        ``_solve_jit`` (``jtraj.solve`` has no switch for it); if that is unavailable it
-        falls back to ``"full"`` and says so in ``refined_warm``."""
+        on 45/60 with 0.85x the iterations (``jtraj.solve(..., warm=)``)."""
         if warm not in ("primal", "full"):
             raise ValueError(f"warm must be 'primal' or 'full', got {warm!r}")
         t0 = time.perf_counter()
@@ -165,18 +163,8 @@ class Planner:
 
 
 def _warm_solve(problem, init, options, warm):
-    """``(solution, mode)``: ``jtraj.solve`` from ``init``, with the primal point only
-    (multipliers and penalty of a cold start) when ``warm == "primal"``."""
+    """``(solution, mode)``: ``jtraj.solve`` from ``init`` with ``warm`` ("primal":
+    multipliers and penalty of a cold start; "full": estimated at ``init``)."""
     import jtraj
 
-    if warm == "primal":
-        try:
-            from jtraj import solver
-
-            opts = jtraj.SolverOptions() if options is None else options
-            init = solver._check_init(problem, init, "decoupled")
-            return solver._solve_jit(problem, opts, "decoupled", init, jnp.asarray(False)), "primal"
-        except (AttributeError, TypeError):  # private API changed: use the public warm start
-            pass
-    sol = jtraj.solve(problem, init=init) if options is None else jtraj.solve(problem, init=init, options=options)
-    return sol, "full"
+    return jtraj.solve(problem, init=init, options=options, warm=warm), warm

@@ -80,6 +80,12 @@ def test_warm_start_from_solution_is_immediate(single):
     assert warm.converged
     assert int(warm.iterations) < int(sol.iterations)
     assert float(warm.cost) == pytest.approx(float(sol.cost), rel=1e-4)
+    # primal-only warm start: cold multipliers and penalty, same compiled solver
+    primal = jtraj.solve(problem, init=(sol.v, sol.h), warm="primal")
+    assert primal.converged
+    assert float(primal.cost) == pytest.approx(float(sol.cost), rel=1e-4)
+    with pytest.raises(ValueError, match="warm"):
+        jtraj.solve(problem, init=(sol.v, sol.h), warm="dual")
 
 
 def test_batch_statuses_and_no_false_convergence(batch):
