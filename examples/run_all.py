@@ -47,11 +47,13 @@ def write_section(name: str, markdown: str) -> None:
 
 
 def setup() -> None:
-    """Common setup for example scripts: float64, Agg backend, figures folder."""
+    """Common setup for example scripts: float64, Agg backend, figures folder, and the
+    CLI's persistent compilation cache (~/.cache/jtraj/jax or $JTRAJ_CACHE_DIR): the
+    first run compiles (most of its time), later runs of unchanged code load."""
     os.environ.setdefault("MPLBACKEND", "Agg")
-    import jax
+    from jtraj.cli import setup_jax
 
-    jax.config.update("jax_enable_x64", True)
+    setup_jax(x64=True)
     FIGURES.mkdir(exist_ok=True)
 
 
