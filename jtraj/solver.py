@@ -655,8 +655,9 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     handing finished slots to pending problems brings the cost to about the mean (one
     compilation, since the slot count is fixed). Each problem takes the iterations it
     takes in a one-shot batch (results equal up to rounding at another batch width).
-    Measured (serial3, N = 20, 128 pairs, 2 cores): 551 ms per problem one-shot,
-    485 ms with 32 slots."""
+    Measured (serial3, N = 20, 2 cores): 128 pairs, 551 ms per problem one-shot, 485 ms
+    with 32 slots; the 64-pair benchmark, 1.36 pairs/s one-shot, 1.47 with 32 slots
+    (hence the default)."""
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
     B = int(valid.shape[0])
     idx = np.arange(slots)
@@ -683,7 +684,7 @@ def _guess_batch_jit(problems, opts, transcription):
 def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None = None,
                 qd_start=None, qd_goal=None, T_max=None, options: SolverOptions | None = None,
                 transcription: str = "decoupled", init: tuple[Any, Any] | None = None,
-                slots: int | None = 64, segment: int = 25) -> Solution:
+                slots: int | None = 32, segment: int = 25) -> Solution:
     """Solve B problems sharing one robot, N and weights in one vmapped, compiled call.
 
     Args:
