@@ -16,9 +16,11 @@ Design (why it is fast under ``vmap`` on a CPU):
 * **Bounds kept exactly.** Boxes on the controls and on h are simple bounds on z,
   handled by Bertsekas' projected Newton (no penalty, never violated); all other
   constraints enter the augmented Lagrangian (PHR for inequalities).
-* **Branch-free globalisation.** Inertia correction by factorising a ladder of shifted
-  Hessians at once (the smallest positive-definite one is kept), and a line search that
-  evaluates a fixed ladder of step lengths in one vectorised call.
+* **Branch-free globalisation (a parallel trust region).** A geometric ladder of
+  Levenberg shifts, up to a Gershgorin bound that is always positive definite, is
+  factorised at once; every positive-definite shift gives a direction, tried at a few
+  step lengths in one vectorised evaluation of the augmented Lagrangian. No iteration
+  is spent only on raising the damping after a failed line search.
 * **Feasibility polish.** After the loop, a few Gauss-Newton projections onto the
   equalities and nearly-active inequalities remove the O(1/mu) violations the AL
   leaves; the strict verification is made after it.
