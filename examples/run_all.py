@@ -1,7 +1,8 @@
 """Regenerate examples/RESULTS.md and examples/figures/ by running every example script.
 
-    python examples/run_all.py            # all experiments
+    python examples/run_all.py            # all experiments, one script per CPU core at a time
     python examples/run_all.py serial3    # only some
+    python examples/run_all.py --jobs 1   # one after the other
 
 Each example script writes its own section of RESULTS.md (between marker comments)
 with :func:`write_section`, so a single script can be re-run alone. Every script runs in
@@ -37,13 +38,20 @@ otherwise. Figures are in `examples/figures/`.
 
 
 def write_section(name: str, markdown: str) -> None:
-    """Replace (or append) the section of experiment ``name`` in RESULTS.md."""
+    """Replace (or append) the section of experiment ``name`` in RESULTS.md (under a file
+    lock: run_all runs scripts concurrently; the file is replaced atomically)."""
+    import fcntl
+
     begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
     block = f"{begin}\n{markdown.strip()}\n{end}\n"
-    text = RESULTS.read_text() if RESULTS.exists() else _HEADER
-    pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end) + r"\n?", re.S)
-    text = pattern.sub(lambda _: block, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + block
-    RESULTS.write_text(text)
+    with open(RESULTS.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        text = RESULTS.read_text() if RESULTS.exists() else _HEADER
+        pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end) + r"\n?", re.S)
+        text = pattern.sub(lambda _: block, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + block
+        tmp = RESULTS.with_suffix(".md.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, RESULTS)
 
 
 def setup() -> None:
@@ -113,28 +121,47 @@ def machine() -> str:
 
 
 def main(argv: list[str]) -> int:
+    """Run the experiments, ``--jobs J`` at a time (default: one per CPU core; most of a
+    script's time is single-threaded XLA compilation, so two scripts on two cores take
+    about half the wall time of one after the other)."""
+    jobs = os.cpu_count() or 1
+    if argv[:1] == ["--jobs"]:
+        jobs, argv = max(1, int(argv[1])), argv[2:]
     names = argv or EXPERIMENTS
-    timings = []
-    failed = []
+    timings, running, failed = {}, {}, []
+    pending = []
     for name in names:
-        script = HERE / f"{name}.py"
-        if not script.exists():
+        if (HERE / f"{name}.py").exists():
+            pending.append(name)
+        else:
             print(f"[run_all] {name}: no script yet (examples/{name}.py), skipped", flush=True)
-            timings.append((name, None, "missing"))
-            continue
-        t0 = time.perf_counter()
-        print(f"[run_all] {name} ...", flush=True)
-        rc = subprocess.call([sys.executable, str(script)], cwd=HERE.parent)
-        dt = time.perf_counter() - t0
-        print(f"[run_all] {name}: exit {rc} in {dt:.0f} s", flush=True)
-        timings.append((name, dt, "ok" if rc == 0 else f"exit {rc}"))
-        if rc:
-            failed.append(name)
-    rows = [(n, "-" if t is None else f"{t:.0f}", s) for n, t, s in timings]
-    total = sum(t for _, t, _ in timings if t is not None)
+            timings[name] = (None, "missing")
+    t_all = time.perf_counter()
+    while pending or running:
+        while pending and len(running) < jobs:
+            name = pending.pop(0)
+            print(f"[run_all] {name} ...", flush=True)
+            log = open(FIGURES.parent / f".{name}.log", "w")
+            proc = subprocess.Popen([sys.executable, str(HERE / f"{name}.py")], cwd=HERE.parent,
+                                    stdout=log, stderr=subprocess.STDOUT)
+            running[name] = (proc, time.perf_counter(), log)
+        time.sleep(1.0)
+        for name, (proc, t0, log) in list(running.items()):
+            rc = proc.poll()
+            if rc is None:
+                continue
+            log.close()
+            dt = time.perf_counter() - t0
+            print(f"[run_all] {name}: exit {rc} in {dt:.0f} s (output: examples/.{name}.log)", flush=True)
+            timings[name] = (dt, "ok" if rc == 0 else f"exit {rc}")
+            if rc:
+                failed.append(name)
+            del running[name]
+    total = time.perf_counter() - t_all
+    rows = [(n, "-" if timings[n][0] is None else f"{timings[n][0]:.0f}", timings[n][1]) for n in names]
     write_section("run_all", "## Run times of the last `run_all.py`\n\n"
                   + table(rows, header=("experiment", "wall s", "result"))
-                  + f"\n\nTotal {total:.0f} s on {machine()}.")
+                  + f"\n\nTotal wall time {total:.0f} s with {jobs} scripts at a time on {machine()}.")
     return 1 if failed else 0
 
 
