@@ -42,19 +42,11 @@ import numpy as np  # noqa: E402
 
 
 def _solve(prob, init, options, primal_only=False):
-    import jax.numpy as jnp
-
     import jtraj
-    from jtraj import solver
 
     t0 = time.perf_counter()
-    if primal_only:
-        # private API: the same compiled solve with the warm start's primal point only
-        # (multipliers 0, penalty_init, as for a cold start); jtraj.solve has no switch
-        sol = solver._solve_jit(prob, options, "decoupled", solver._check_init(prob, init, "decoupled"),
-                                jnp.asarray(False))
-    else:
-        sol = jtraj.solve(prob, init=init, options=options)
+    # primal_only: the warm start's primal point with cold multipliers and penalty
+    sol = jtraj.solve(prob, init=init, options=options, warm="primal" if primal_only else "full")
     jax.block_until_ready(sol.status)
     dt = time.perf_counter() - t0
     st = int(np.asarray(sol.status))
@@ -81,7 +73,7 @@ def main(argv=None):
     ap.add_argument("--knn", action="store_true", help="also warm-start from the nearest training trajectory")
     ap.add_argument("--primal", action="store_true",
                     help="also warm-start with the primal point only (multipliers and penalty as for a cold "
-                         "start; through the private jtraj.solver._solve_jit)")
+                         "start: jtraj.solve(..., warm='primal'))")
     ap.add_argument("--json", help="write per-pair results and the summary")
     args = ap.parse_args(argv)
 

@@ -15,11 +15,10 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import FIGURES, setup, table, write_section  # noqa: E402
+from run_all import FIGURES, setup, table, timed_solve, write_section  # noqa: E402
 
 setup()
 
-import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jtraj  # noqa: E402
@@ -59,14 +58,8 @@ def main():
     tau_max = np.asarray(robot.limits.tau_max)
     results = {}
     for name in TRANSCRIPTIONS:
-        t0 = time.perf_counter()
-        sol = jtraj.solve(problem, transcription=name)
-        jax.block_until_ready(sol.T)
-        t_first = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        sol = jtraj.solve(problem, transcription=name)
-        jax.block_until_ready(sol.T)
-        t_solve = time.perf_counter() - t0
+        _, t_first = timed_solve(problem, transcription=name)
+        sol, t_solve = timed_solve(problem, transcription=name)
         ratio = np.abs(np.asarray(sol.tau)) / tau_max
         sat = float(np.mean(np.max(ratio, axis=1) >= 0.9))
         n_params = Transcription(name).layout(problem).nz - (robot.n if name == "spline" else 0)

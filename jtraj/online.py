@@ -141,15 +141,15 @@ class Planner:
                 weights = jtraj.Weights.parse(self.model.metadata["weights"])  # the dataset's cost
             kw = {} if weights is None else {"weights": weights}
             prob = jtraj.Problem(self.robot, np.asarray(q_start, float), np.asarray(q_goal, float), N=self.N, **kw)
-            sopt = {} if options is None else {"options": options}
             # cycloidal first: in a fresh process it pays the compilation (shared with the
             # warm solve), so refined_seconds is a compiled solve's time
             for label, init in (("cycloidal", None), ("refined", (p.v, p.h))):
                 t1 = time.perf_counter()
                 if init is None:
-                    sol = jtraj.solve(prob, **sopt)
+                    sol = jtraj.solve(prob, options=options)
                 else:
-                    sol, out["refined_warm"] = _warm_solve(prob, init, options, warm)
+                    sol = jtraj.solve(prob, init=init, options=options, warm=warm)
+                    out["refined_warm"] = warm
                 jax.block_until_ready(sol)
                 dt = time.perf_counter() - t1
                 out[f"{label}_status"] = sol.status_message
@@ -161,10 +161,3 @@ class Planner:
                 out[f"{label}_converged"] = bool(np.asarray(sol.converged))
         return out
 
-
-def _warm_solve(problem, init, options, warm):
-    """``(solution, mode)``: ``jtraj.solve`` from ``init`` with ``warm`` ("primal":
-    multipliers and penalty of a cold start; "full": estimated at ``init``)."""
-    import jtraj
-
-    return jtraj.solve(problem, init=init, options=options, warm=warm), warm
