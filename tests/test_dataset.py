@@ -18,6 +18,7 @@ import pytest
 from jtraj import dataset
 from jtraj.cli import main as cli_main
 from jtraj.dataset import sampling, store
+from jtraj.dataset.build import H_MAX_FACTOR
 
 FAKE = "jtraj.dataset.testing:fake_solve_batch"
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -323,6 +324,31 @@ def test_ray_local_cluster_two_workers_equals_single_process(tmp_path):
 
 
 # ----------------------------------------------------------------------------- real solver
+
+def test_sampling_period_bound_is_part_of_the_dataset(tmp_path):
+    """The dataset's h_max: twice the robot's by default, the robot's own on request, a
+    number otherwise; it reaches the solved problems and the metadata, and is refused
+    when not above h_min."""
+    from jtraj import robots
+
+    own = robots.get("serial3").limits
+    auto = fake_spec(pairs=8, batch=8)
+    assert auto.h_max == H_MAX_FACTOR * own.h_max
+    assert auto.robot_model().limits.h_max == auto.h_max
+    assert fake_spec(pairs=8, batch=8, h_max="robot").robot_model().limits.h_max == own.h_max
+    spec = fake_spec(pairs=8, batch=8, h_max=0.13)
+    dataset.build(spec, str(tmp_path / "d"), progress=False)
+    data = dataset.load(str(tmp_path / "d"))
+    assert data["metadata"]["limits"]["h_max"] == 0.13
+    assert data["metadata"]["identity"]["robot_model"]["limits"]["h_max"] == 0.13
+    assert "h in [0.005, 0.13] s" in dataset.summary(str(tmp_path / "d"))
+    # another bound into the same path is another dataset: refused
+    with pytest.raises(ValueError):
+        dataset.build(fake_spec(pairs=8, batch=8, h_max=0.14), str(tmp_path / "d"), progress=False)
+    for bad in (own.h_min, -1.0, float("nan"), "fast", True):
+        with pytest.raises(ValueError, match="h_max"):
+            fake_spec(pairs=8, batch=8, h_max=bad)
+
 
 def test_real_solver_end_to_end(tmp_path):
     import jtraj

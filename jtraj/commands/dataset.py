@@ -44,6 +44,9 @@ def configure(parser):
                         help="minimum |goal - start| (rad in joint space, task units in task space; default 0.05)")
     parser.add_argument("--ik-method", default="weighted", help="IK method for --space task (default weighted)")
     parser.add_argument("--max-iter", type=int, default=None, help="solver iteration limit (SolverOptions.max_iter)")
+    parser.add_argument("--h-max", default="auto",
+                        help="sampling-period bound [s]: auto (default: twice the robot's, so that the bound "
+                             "does not decide which pairs are feasible), robot (the robot's own), or seconds")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--solver", default="jtraj:solve_batch", help=argparse.SUPPRESS)  # tests: module:function
 
@@ -61,6 +64,15 @@ def _action(args):
     if len(act) != 2:
         raise ValueError(f"usage: jtraj dataset {act[0]} PATH")
     return act[0], act[1]
+
+
+def _h_max(text: str):
+    if text in ("auto", "robot"):
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"--h-max must be auto, robot or a number of seconds, got {text!r}") from None
 
 
 def run(args) -> int:
@@ -92,7 +104,7 @@ def run(args) -> int:
                              batch=DEFAULT_BATCH if args.batch is None else args.batch, space=args.space,
                              start_range=args.start_range, step_range=args.step_range,
                              min_separation=args.min_separation, ik_method=args.ik_method, options=options,
-                             solver=args.solver)
+                             solver=args.solver, h_max=_h_max(args.h_max))
     stats = dataset.build(spec, args.out, ray=args.ray, progress=not args.no_progress)
     P = stats["pairs_done"]
     rate = stats["pairs_per_s"]

@@ -117,6 +117,7 @@ def summary(path: str) -> str:
     lines = [f"dataset {data.path}",
              f"  robot {md['robot']} (n = {md['n']}), N = {md['N']}, weights {md['weights_text']}, "
              f"seed {md['seed']}, batch {md['batch']}",
+             f"  h in [{md['limits']['h_min']:g}, {md['limits']['h_max']:g}] s (T <= {md['N'] * md['limits']['h_max']:g} s)",
              f"  sampling: {md['sampling']['space']} space, {md['sampling']['law']}",
              f"  created {md['created']} with jtraj {md['versions'].get('jtraj')}, jax {md['versions'].get('jax')}",
              f"  chunks {len(data.chunks)}/{md['chunks']}" + ("" if data.complete else " (incomplete: re-run to resume)")]

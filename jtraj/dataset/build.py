@@ -31,6 +31,12 @@ from . import sampling, store
 DEFAULT_SOLVER = "jtraj:solve_batch"
 DEFAULT_BATCH = 64
 DEFAULT_WEIGHTS = "time=1,energy=0.1"
+#: default sampling-period bound of a dataset, as a multiple of the robot's own h_max.
+#: The robots' bounds come from single published scenarios; with N = 20 serial3's caps
+#: T at 2 s, and 8 of 96 pairs of the default joint-space law need 2.0-2.6 s (IPOPT:
+#: Infeasible_Problem_Detected at h_max = 0.1 s; all 8 solve at 0.2 s). A dataset
+#: wants its bounds not to decide which pairs exist, hence twice the robot's bound.
+H_MAX_FACTOR = 2.0
 
 
 def _plain(x):
@@ -68,6 +74,7 @@ class Spec:
     distribution: sampling.Distribution = field(default_factory=sampling.Distribution)
     options: tuple = ()  # (name, value) overrides of SolverOptions
     solver: str = DEFAULT_SOLVER
+    h_max: float | None = None  # sampling-period bound [s] replacing the robot's (None: the robot's)
 
     @property
     def n_chunks(self) -> int:
@@ -78,7 +85,8 @@ class Spec:
 
     # cached per process (a Ray worker reuses them across chunks)
     def robot_model(self):
-        return _cached(("robot", self.robot), lambda: _robots().get(self.robot))
+        overrides = {} if self.h_max is None else {"h_max": self.h_max}
+        return _cached(("robot", self.robot, self.h_max), lambda: _robots().get(self.robot, **overrides))
 
     def weights_obj(self):
         import jtraj
@@ -232,8 +240,12 @@ def _versions() -> dict:
 
 def make_spec(robot: str, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=DEFAULT_BATCH, space="joint",
               start_range=1.2, step_range=0.8, min_separation=0.05, ik_method="weighted", options=None,
-              solver=DEFAULT_SOLVER) -> Spec:
-    """Validated :class:`Spec` (raises ``ValueError`` naming the bad argument; no compute)."""
+              solver=DEFAULT_SOLVER, h_max="auto") -> Spec:
+    """Validated :class:`Spec` (raises ``ValueError`` naming the bad argument; no compute).
+
+    ``h_max``: the sampling-period bound [s] of the dataset's problems: ``"auto"``
+    (default) is :data:`H_MAX_FACTOR` times the robot's own bound, ``"robot"`` keeps the
+    robot's, a number sets it (it must exceed the robot's h_min)."""
     from jtraj import robots
 
     if not isinstance(robot, str) or robot not in robots.names():
@@ -259,8 +271,19 @@ def make_spec(robot: str, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=D
     opts = tuple(sorted((options or {}).items()))
     jtraj.SolverOptions(**dict(opts))  # validates
     resolve_solver(solver)
+    limits = robots.get(robot).limits
+    if isinstance(h_max, str):
+        if h_max not in ("auto", "robot"):
+            raise ValueError(f"h_max must be 'auto', 'robot' or a number of seconds, got {h_max!r}")
+        h_max = H_MAX_FACTOR * float(limits.h_max) if h_max == "auto" else None
+    elif h_max is not None:
+        if isinstance(h_max, bool) or not isinstance(h_max, (int, float, np.integer, np.floating)) \
+                or not (math.isfinite(h_max) and h_max > float(limits.h_min)):
+            raise ValueError(f"h_max must be a number of seconds above the robot's h_min = {limits.h_min}, "
+                             f"got {h_max!r}")
+        h_max = float(h_max)
     spec = Spec(robot=robot, pairs=pairs, seed=seed, N=N, weights=weights, batch=batch, distribution=dist,
-                options=opts, solver=solver)
+                options=opts, solver=solver, h_max=h_max)
     sampling.check(spec.robot_model(), dist)
     return spec
 
