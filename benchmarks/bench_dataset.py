@@ -53,13 +53,13 @@ def measure_jtraj(B, chunks, seed, N, solver):
         size = sum(os.path.getsize(os.path.join(out, "chunks", f)) for f in os.listdir(os.path.join(out, "chunks")))
     return {"batch": B, "pairs": pairs, "timed_pairs": s["new_pairs"], "seconds": s["seconds"],
             "pairs_per_s": s["pairs_per_s"], "first_chunk_s": first, "converged_fraction": conv,
-            "bytes_per_pair": size / pairs}, (q0, q1)
+            "bytes_per_pair": size / pairs, "h_max": spec.robot_model().limits.h_max}, (q0, q1)
 
 
-def measure_ipopt(q0, q1, processes, N):
+def measure_ipopt(q0, q1, processes, N, h_max):
     from peers.ipopt_peer import solve_many
 
-    res = solve_many(q0, q1, processes=processes, N=N)
+    res = solve_many(q0, q1, processes=processes, N=N, h_max=h_max)
     ok = np.array([r["success"] for r in res])
     return {"pairs": len(res), "processes": res.processes, "seconds": res.wall_seconds,
             "setup_seconds": res.setup_seconds, "pairs_per_s": len(res) / res.wall_seconds,
@@ -130,7 +130,8 @@ def main(argv=None) -> dict:
     ipopt = None
     if not args.no_ipopt:
         m = min(n_ipopt, len(pairs[0]))
-        ipopt = measure_ipopt(pairs[0][:m], pairs[1][:m], args.processes, args.N)
+        # the same problems: the dataset's period bound (twice the robot's by default)
+        ipopt = measure_ipopt(pairs[0][:m], pairs[1][:m], args.processes, args.N, results[0]["h_max"])
         print(f"IPOPT peer: {ipopt['pairs_per_s']:.2f} pairs/s on {ipopt['processes']} processes "
               f"({ipopt['pairs']} pairs in {ipopt['seconds']:.1f} s, setup {ipopt['setup_seconds']:.1f} s), "
               f"success {100 * ipopt['success_fraction']:.1f} %")

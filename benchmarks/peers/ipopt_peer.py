@@ -95,10 +95,11 @@ def inverse_dynamics_function(masses: Sequence[float] = MASSES) -> ca.Function:
 
 # ---------------------------------------------------------------- NLP construction
 class _Peer:
-    """The built solver and helpers for one setting (N, weights, masses)."""
+    """The built solver and helpers for one setting (N, weights, masses, h_max)."""
 
-    def __init__(self, N: int, weights: tuple[float, float, float], masses: tuple[float, ...]):
-        self.N, self.weights, self.masses = N, weights, masses
+    def __init__(self, N: int, weights: tuple[float, float, float], masses: tuple[float, ...],
+                 h_max: float = H_MAX):
+        self.N, self.weights, self.masses, self.h_max = N, weights, masses, h_max
         w_time, w_energy, w_kin = weights
         idf = inverse_dynamics_function(masses)
         v = ca.SX.sym("v", NDOF, N)  # column k = v_k
@@ -123,7 +124,7 @@ class _Peer:
         self.lbg = np.concatenate([-tmax, np.full(NDOF * (N - 1), -QD_MAX), np.zeros(2 * NDOF)])
         self.ubg = np.concatenate([tmax, np.full(NDOF * (N - 1), QD_MAX), np.zeros(2 * NDOF)])
         self.lbx = np.concatenate([np.full(NDOF * N, -QDD_MAX), np.full(N, H_MIN)])
-        self.ubx = np.concatenate([np.full(NDOF * N, QDD_MAX), np.full(N, H_MAX)])
+        self.ubx = np.concatenate([np.full(NDOF * N, QDD_MAX), np.full(N, h_max)])
         self.solver = ca.nlpsol("S", "ipopt", {"x": x, "p": p, "f": cost, "g": g}, dict(IPOPT_OPTIONS))
         self.traj = ca.Function("traj", [x, p],
                                 [ca.horzcat(*qs).T, ca.horzcat(*qds).T, ca.horzcat(*taus).T, cost],
@@ -136,7 +137,7 @@ class _Peer:
     def solve(self, q_start, q_goal, init=None) -> dict:
         q_start = np.asarray(q_start, float).reshape(NDOF)
         q_goal = np.asarray(q_goal, float).reshape(NDOF)
-        v0, h0 = cycloidal_init(q_start, q_goal, self.N) if init is None else init
+        v0, h0 = cycloidal_init(q_start, q_goal, self.N, self.h_max) if init is None else init
         x0 = self.pack(v0, h0)
         p = np.concatenate([q_start, q_goal])
         t0 = time.perf_counter()
@@ -161,7 +162,7 @@ class _Peer:
 _CACHE: dict[tuple, _Peer] = {}
 
 
-def _key(N, weights, masses) -> tuple:
+def _key(N, weights, masses, h_max=H_MAX) -> tuple:
     weights = tuple(float(w) for w in weights)
     if len(weights) != 3:
         raise ValueError(f"weights must be (w_time, w_energy, w_kin), got {weights}")
@@ -170,18 +171,21 @@ def _key(N, weights, masses) -> tuple:
         raise ValueError(f"masses must be {NDOF} positive numbers, got {masses}")
     if int(N) != N or N < 1:
         raise ValueError(f"N must be a positive integer, got {N}")
-    return int(N), weights, masses
+    h_max = float(h_max)
+    if not (math.isfinite(h_max) and h_max > H_MIN):
+        raise ValueError(f"h_max must be a number above h_min = {H_MIN}, got {h_max}")
+    return int(N), weights, masses, h_max
 
 
-def get_peer(N: int = 20, weights=CANONICAL_WEIGHTS, masses=None) -> _Peer:
+def get_peer(N: int = 20, weights=CANONICAL_WEIGHTS, masses=None, h_max=H_MAX) -> _Peer:
     """The cached built solver for these settings (built on first use in this process)."""
-    key = _key(N, weights, masses)
+    key = _key(N, weights, masses, h_max)
     if key not in _CACHE:
         _CACHE[key] = _Peer(*key)
     return _CACHE[key]
 
 
-def cycloidal_init(q_start, q_goal, N: int = 20) -> tuple[np.ndarray, np.ndarray]:
+def cycloidal_init(q_start, q_goal, N: int = 20, h_max: float = H_MAX) -> tuple[np.ndarray, np.ndarray]:
     """The canonical cycloidal initial guess ``(v (N,3), h (N,))``.
 
     T_j = max(2|dq_j|/qd_max, sqrt(2 pi |dq_j|/qdd_max)), T = max_j T_j clipped to
@@ -191,14 +195,14 @@ def cycloidal_init(q_start, q_goal, N: int = 20) -> tuple[np.ndarray, np.ndarray
     dq = np.asarray(q_goal, float).reshape(NDOF) - np.asarray(q_start, float).reshape(NDOF)
     a = np.abs(dq)
     T = float(np.max(np.maximum(2 * a / QD_MAX, np.sqrt(2 * math.pi * a / QDD_MAX))))
-    T = N * H_MIN if T == 0 else min(max(T, N * H_MIN), N * H_MAX)
+    T = N * H_MIN if T == 0 else min(max(T, N * H_MIN), N * h_max)
     t = np.arange(N) * T / N
     v = dq[None, :] * (2 * math.pi / T**2) * np.sin(2 * math.pi * t / T)[:, None]
     return v, np.full(N, T / N)
 
 
 def solve_pair(q_start, q_goal, N: int = 20, weights=CANONICAL_WEIGHTS, init=None,
-               masses=None) -> dict:
+               masses=None, h_max=H_MAX) -> dict:
     """Solve one start -> goal problem with IPOPT (solver built once per process/settings).
 
     Args:
@@ -207,13 +211,15 @@ def solve_pair(q_start, q_goal, N: int = 20, weights=CANONICAL_WEIGHTS, init=Non
         weights: (w_time, w_energy, w_kin).
         init: optional starting point ``(v (N,3), h (N,))``; default :func:`cycloidal_init`.
         masses: optional override of the link masses (3,) [kg].
+        h_max: upper bound of the periods [s] (default the robot's 0.1; jtraj datasets
+            use twice that by default).
 
     Returns a dict: v (N,3), h (N,), q (N+1,3), qd (N+1,3), tau (N,3), T (= sum h),
     cost, success (Solve_Succeeded or Solved_To_Acceptable_Level), strict_success
     (Solve_Succeeded only), status (IPOPT's return_status), iterations, seconds (wall
     time of the solver call), ipopt_seconds (IPOPT's t_wall_total), q_start, q_goal.
     """
-    return get_peer(N, weights, masses).solve(q_start, q_goal, init)
+    return get_peer(N, weights, masses, h_max).solve(q_start, q_goal, init)
 
 
 # ---------------------------------------------------------------- multiprocessing
@@ -240,12 +246,12 @@ def _worker_init(settings, barrier):
 
 def _worker_solve(job):
     q_start, q_goal, init = job
-    N, weights, masses = _WORKER_SETTINGS
-    return solve_pair(q_start, q_goal, N=N, weights=weights, init=init, masses=masses)
+    N, weights, masses, h_max = _WORKER_SETTINGS
+    return solve_pair(q_start, q_goal, N=N, weights=weights, init=init, masses=masses, h_max=h_max)
 
 
 def solve_many(q_starts, q_goals, *, processes: int | None = None, N: int = 20,
-               weights=CANONICAL_WEIGHTS, masses=None, inits=None,
+               weights=CANONICAL_WEIGHTS, masses=None, inits=None, h_max=H_MAX,
                start_method: str = "spawn", single_thread: bool = True) -> SolveBatch:
     """Solve many pairs on ``processes`` worker processes (default ``os.cpu_count()``).
 
@@ -266,7 +272,7 @@ def solve_many(q_starts, q_goals, *, processes: int | None = None, N: int = 20,
     inits = [None] * n if inits is None else list(inits)
     if len(inits) != n:
         raise ValueError(f"inits has {len(inits)} entries for {n} pairs")
-    settings = _key(N, weights, masses)
+    settings = _key(N, weights, masses, h_max)
     processes = max(1, min(int(processes or os.cpu_count() or 1), max(n, 1)))
     jobs = list(zip(q_starts, q_goals, inits))
     batch = SolveBatch()
@@ -276,7 +282,8 @@ def solve_many(q_starts, q_goals, *, processes: int | None = None, N: int = 20,
         get_peer(*settings)
         batch.setup_seconds = time.perf_counter() - t0
         t0 = time.perf_counter()
-        batch.extend(solve_pair(a, b, *settings[:2], init=i, masses=settings[2]) for a, b, i in jobs)
+        batch.extend(solve_pair(a, b, *settings[:2], init=i, masses=settings[2], h_max=settings[3])
+                     for a, b, i in jobs)
         batch.wall_seconds = time.perf_counter() - t0
         return batch
     ctx = mp.get_context(start_method)
