@@ -85,7 +85,7 @@ class SolverOptions(eqx.Module):
             (on 96 serial3 dataset pairs: 15 -> 57, 25 -> 70, 40 -> 76, 60 -> 82 of the
             88 IPOPT-feasible pairs converged, same mean iterations for 40 and 60).
         tol_optimality: target on the projected gradient of the augmented Lagrangian in
-            the scaled variables z (accelerations / qdd_max, h / h_max). Measured on 16
+            the scaled variables z (accelerations / qdd_max, h / (h_max / 4)). Measured on 16
             serial3 benchmark pairs: 1e-4 certifies 12 of the 14 IPOPT-feasible pairs with
             cost gaps to IPOPT <= 0.021 %; 1e-5 certifies 10 within 500 iterations.
         tol_feasibility: the AL loop's target on the normalised violation; the final
