@@ -386,15 +386,13 @@ def _ls_multipliers(nlp: _NLP, z, act_tol: float = 1e-3):
 def _estimate_multipliers(nlp: _NLP, z, act_tol: float = 1e-3) -> Multipliers:
     """:func:`_ls_multipliers` in the multipliers' tree structure (for warm starts)."""
     lam = _ls_multipliers(nlp, z, act_tol)[0]
-    eq, ineq, glob = nlp.constraints(z)
+    # the rows of _residual are the leaves of (eq, ineq, glob) in this order
+    shapes = Multipliers(*nlp.constraints(z))
     leaves, pos = [], 0
-    for x in jax.tree.leaves(eq) + jax.tree.leaves(ineq) + [glob]:
+    for x in jax.tree.leaves(shapes):
         leaves.append(lam[pos:pos + x.size].reshape(x.shape))
         pos += x.size
-    n_eq = len(jax.tree.leaves(eq))
-    eq_m = jax.tree.unflatten(jax.tree.structure(eq), leaves[:n_eq])
-    ineq_m = jax.tree.unflatten(jax.tree.structure(ineq), leaves[n_eq:-1])
-    return Multipliers(eq=eq_m, ineq=ineq_m, glob=leaves[-1])
+    return jax.tree.unflatten(jax.tree.structure(shapes), leaves)
 
 
 def _kkt_error(nlp: _NLP, z, act_tol: float = 1e-3):
