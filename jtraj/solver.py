@@ -170,10 +170,14 @@ class _NLP(eqx.Module):
         """Value, gradient and exact Hessian of the AL in z, from per-stage pieces."""
         sm = _stage_mult(mult)
         W = self.W(z)
-        val_k = jax.vmap(self.stage_al, in_axes=(0, 0, _stage_axes(mult), None))(W, self.sd, sm, mu)
-        grad_fn = jax.grad(self.stage_al)
-        c = jax.vmap(grad_fn, in_axes=(0, 0, _stage_axes(mult), None))(W, self.sd, sm, mu)
-        Hk = jax.vmap(jax.hessian(self.stage_al), in_axes=(0, 0, _stage_axes(mult), None))(W, self.sd, sm, mu)
+
+        def value_grad(w, sdk, mk, mu_):
+            v, gw = jax.value_and_grad(self.stage_al)(w, sdk, mk, mu_)
+            return gw, (v, gw)
+
+        # one forward-over-reverse pass per stage gives value, gradient and Hessian
+        Hk, (val_k, c) = jax.vmap(jax.jacfwd(value_grad, has_aux=True), in_axes=(0, 0, _stage_axes(mult), None))(
+            W, self.sd, sm, mu)
         J = jax.jacfwd(self.W)(z)  # (N+1, nw, nz)
         g = jnp.einsum("kai,ka->i", J, c)
         H = jnp.einsum("kai,kaj->ij", J, jnp.einsum("kab,kbj->kaj", Hk, J))
@@ -181,7 +185,15 @@ class _NLP(eqx.Module):
         # (zero where W is linear in z: the collocation's states are unknowns)
         if not self.tr.linear_stage_map:
             c_fixed = jax.lax.stop_gradient(c)
-            H = H + jax.hessian(lambda zz: jnp.sum(c_fixed * self.W(zz)))(z)
+            grad_cw = jax.grad(lambda zz: jnp.sum(c_fixed * self.W(zz)))
+            if self.tr.linear_in_controls:
+                # W is linear in the controls: the control-control block vanishes and
+                # only the columns of the N periods are differentiated (N, not nz, passes)
+                nu = self.layout.N * self.layout.m_u
+                cols = jax.jacfwd(lambda zh: grad_cw(jnp.concatenate([z[:nu], zh])))(z[nu:])  # (nz, N)
+                H = H.at[:, nu:].add(cols).at[nu:, :nu].add(cols[:nu].T)
+            else:
+                H = H + jax.jacfwd(grad_cw)(z)
         gval, ggrad, ghess = (self.global_al(z, mult, mu), jax.grad(self.global_al)(z, mult, mu),
                               jax.hessian(self.global_al)(z, mult, mu))
         return jnp.sum(val_k) + gval, g + ggrad, H + ghess

@@ -126,6 +126,13 @@ class Transcription:
         """Whether W(z) is linear (its second derivative, a Hessian term, vanishes)."""
         return self.name == "collocation"
 
+    @property
+    def linear_in_controls(self) -> bool:
+        """Whether W(z) is linear in the controls for fixed periods (the recursion and the
+        spline are; forward dynamics are not): the Hessian's co-state term then has no
+        control-control block."""
+        return self.name in ("decoupled", "spline", "collocation")
+
     # -- controls ------------------------------------------------------------------------
     def control_dim(self, problem: Problem) -> int:
         n = problem.robot.n

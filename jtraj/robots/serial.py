@@ -93,7 +93,7 @@ class SerialPlanar(Robot):
             return (f, n), n
 
         xs = (f_link, e, self.lengths, self.com, self.inertias, a)
-        _, tau = jax.lax.scan(backward, (jnp.zeros(2), jnp.zeros(())), xs, reverse=True)
+        _, tau = jax.lax.scan(backward, (jnp.zeros(2), jnp.zeros(())), xs, reverse=True, unroll=True)
         return tau
 
 
