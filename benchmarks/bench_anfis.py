@@ -56,7 +56,7 @@ def main(argv=None):
     ap.add_argument("--epochs", type=int, default=100)
     ap.add_argument("--data", help="also benchmark the trajectory models of this dataset")
     ap.add_argument("--mappings", default="nefotc,nefumop,nefik,plan")
-    ap.add_argument("--rules", type=int, default=None, help="rules of the trajectory models (default: radius 0.5)")
+    ap.add_argument("--rules", type=int, default=None, help="rules of the trajectory models (default: radius chosen on the validation split)")
     ap.add_argument("--ridge", type=float, default=1e-6, help="relative ridge (as jtraj train)")
     ap.add_argument("--goal-inputs", nargs="?", const="append", default=None, choices=["append", "relative"],
                     help="nefotc / nefumop with the offset to the goal (see jtraj train --help)")

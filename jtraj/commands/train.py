@@ -11,6 +11,8 @@ of their inputs (the goal is missing), and no regressor gets far below the linea
 baseline on them; --goal-inputs adds the offset to the goal (see README, ANFIS).
 """
 
+import argparse
+
 HELP = "train an ANFIS (NeFOTC, NeFuMOP, NeFIK or planner) on a dataset"
 
 
@@ -21,7 +23,9 @@ def configure(parser):
     parser.add_argument("--json", help="report file (JSON)")
     parser.add_argument("--plot", help="training curves and memberships (PNG)")
     parser.add_argument("--rules", type=int, default=None, help="number of rules (radius found by bisection)")
-    parser.add_argument("--radius", type=float, default=0.5, help="clustering radius when --rules is not given")
+    parser.add_argument("--radius", type=_radius, default="auto",
+                        help="clustering radius when --rules is not given; 'auto' (default) picks the best of "
+                             "0.4, 0.6, 0.9, 1.4 on the validation split")
     parser.add_argument("--kind", default="tsk", choices=["tsk", "tsukamoto"])
     parser.add_argument("--order", type=int, default=1, choices=[0, 1], help="Sugeno order (tsk)")
     parser.add_argument("--epochs", type=int, default=100)
@@ -33,6 +37,18 @@ def configure(parser):
                              "the position by it ('relative'); without it these mappings are not functions "
                              "over a dataset of random start/goal pairs")
     parser.add_argument("--no-progress", action="store_true")
+
+
+def _radius(text):
+    if text == "auto":
+        return text
+    try:
+        r = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--radius must be 'auto' or a number, got {text!r}") from None
+    if not 0 < r:
+        raise argparse.ArgumentTypeError(f"--radius must be positive, got {text!r}")
+    return r
 
 
 def run(args) -> int:
