@@ -58,6 +58,30 @@ def test_train_command_report_and_plot(tmp_path, data, monkeypatch):
         anfis.load(args.out, mapping="plan")
 
 
+def test_auto_radius_keeps_the_lowest_validation_error(data):
+    model, rep, hist = trajectory.train_mapping(data, "nefotc", epochs=5)
+    sel = rep["radius_selection"]
+    assert set(sel) == {str(r) for r in trajectory.RADIUS_CANDIDATES}
+    best = min(sel, key=lambda r: sel[r]["validation_rmse"])
+    assert rep["radius"] == pytest.approx(float(best)) and rep["n_rules"] == sel[best]["n_rules"]
+    assert min(hist.val_rmse) == pytest.approx(sel[best]["validation_rmse"])
+    # a larger radius never yields more rules
+    counts = [sel[str(r)]["n_rules"] for r in trajectory.RADIUS_CANDIDATES]
+    assert counts == sorted(counts, reverse=True)
+
+
+def test_train_command_rejects_a_bad_radius():
+    import argparse
+
+    from jtraj.commands import train as cmd
+
+    parser = argparse.ArgumentParser()
+    cmd.configure(parser)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--data", "d", "--out", "m", "--radius", "wide"])
+    assert parser.parse_args(["--data", "d", "--out", "m"]).radius == "auto"
+
+
 def test_planner_one_call_with_feasibility(tmp_path, data):
     from jtraj.online import Planner
 
