@@ -1,7 +1,8 @@
 """Reference peers for jtraj's benchmarks (independent of jtraj).
 
 * :mod:`.ipopt_peer` -- the canonical serial3 ALD problem in CasADi + IPOPT:
-  :func:`solve_pair`, :func:`solve_many`, :func:`cycloidal_init`, :func:`benchmark_pairs`.
+  :func:`solve_pair`, :func:`solve_many`, :func:`cycloidal_init`.
+* :mod:`.pairs` -- :func:`benchmark_pairs`, the canonical problem family (NumPy only).
 * :mod:`.verify` -- NumPy + Pinocchio verifier: :func:`verify`, :func:`verify_batch`.
 
 Names are imported lazily so that IPOPT workers do not load Pinocchio and vice versa.
@@ -11,7 +12,7 @@ import importlib
 
 _NAMES = {
     "solve_pair": "ipopt_peer", "solve_many": "ipopt_peer", "cycloidal_init": "ipopt_peer",
-    "benchmark_pairs": "ipopt_peer", "get_peer": "ipopt_peer", "SolveBatch": "ipopt_peer",
+    "benchmark_pairs": "pairs", "get_peer": "ipopt_peer", "SolveBatch": "ipopt_peer",
     "verify": "verify", "verify_batch": "verify", "rnea": "verify", "simulate": "verify",
 }
 

@@ -45,6 +45,8 @@ from typing import Sequence
 import casadi as ca
 import numpy as np
 
+from .pairs import benchmark_pairs  # noqa: F401  (re-exported: the family IPOPT is run on)
+
 # ---------------------------------------------------------------- the serial3 robot
 LENGTHS = (1.0, 0.8, 0.45)  # m
 MASSES = (10.0, 8.0, 4.0)  # kg
@@ -307,13 +309,3 @@ def solve_many(q_starts, q_goals, *, processes: int | None = None, N: int = 20,
             else:
                 os.environ[k] = val
     return batch
-
-
-def benchmark_pairs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """The benchmark family: q_start ~ U(-1.2, 1.2)^3, q_goal = q_start + U(-0.8, 0.8)^3.
-
-    Pair i does not depend on n (the first 8 of 64 are the 8 of ``benchmark_pairs(8)``).
-    """
-    u = np.random.default_rng(seed).random((n, 2, NDOF))
-    q0 = -1.2 + 2.4 * u[:, 0]
-    return q0, q0 + (-0.8 + 1.6 * u[:, 1])
