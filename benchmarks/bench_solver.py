@@ -9,8 +9,9 @@ Both solvers see the same pairs in the same run. Every trajectory either side ca
 success is re-simulated from its own (v, h) by the independent NumPy + Pinocchio
 verifier (tolerance 1e-6). Printed: verified success rates, false "converged" counts,
 cost gaps where both succeed, warm single-solve latency (median over pairs), batch
-throughput on all cores (IPOPT: one process per core; jtraj: one process, vmapped
-batches), compile time, and, with ``--scaling``, time per problem against N and B.
+throughput on all cores (IPOPT: one process per core; jtraj: vmapped batches, one
+single-threaded process per core, ``--workers``), compile time, and, with ``--scaling``,
+time per problem against N and B (one process).
 Ratios are jtraj / IPOPT or IPOPT / jtraj as labelled; > 1 means jtraj is ahead.
 """
 
@@ -27,29 +28,53 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
-def _jtraj_batch(q0, q1, N, B, weights):
+KEYS = ("v", "h", "cost", "converged", "status", "iterations")
+
+
+def _solve_chunk(q0, q1, N, weights):
+    """One solve_batch call (runs in a worker process or here); numpy arrays."""
     import jax
 
+    jax.config.update("jax_enable_x64", True)
     import jtraj
 
-    robot = jtraj.robots.get("serial3")
+    sol = jtraj.solve_batch(jtraj.robots.get("serial3"), q0, q1, N=N, weights=jtraj.Weights(**weights))
+    return {k: np.asarray(getattr(sol, k)) for k in KEYS}
+
+
+def _jtraj_batch(q0, q1, N, B, weights, workers=1):
+    """Throughput of solve_batch on chunks of B pairs: in this process (workers = 1) or in
+    ``workers`` single-threaded processes pinned one per core (jtraj.dataset's local
+    backend; one JAX process does not use several cores well). The first chunk per worker
+    (compilation, or loading it from the persistent cache) is timed apart."""
     P = len(q0)
-    out = {k: [] for k in ("v", "h", "cost", "converged", "status", "iterations")}
     pad = (-P) % B
     q0p = np.concatenate([q0, np.repeat(q0[-1:], pad, 0)])
     q1p = np.concatenate([q1, np.repeat(q1[-1:], pad, 0)])
-    t0 = time.perf_counter()
-    sol = jtraj.solve_batch(robot, q0p[:B], q1p[:B], N=N, weights=weights)
-    jax.block_until_ready(sol.status)
-    first = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    for s in range(0, len(q0p), B):
-        sol = jtraj.solve_batch(robot, q0p[s:s + B], q1p[s:s + B], N=N, weights=weights)
-        jax.block_until_ready(sol.status)
-        for k in out:
-            out[k].append(np.asarray(getattr(sol, k)))
-    wall = time.perf_counter() - t0
-    res = {k: np.concatenate(v)[:P] for k, v in out.items()}
+    chunks = [(q0p[s:s + B], q1p[s:s + B], N, weights) for s in range(0, len(q0p), B)]
+    if workers == 1:
+        t0 = time.perf_counter()
+        _solve_chunk(*chunks[0])
+        first = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        parts = [_solve_chunk(*c) for c in chunks]
+        wall = time.perf_counter() - t0
+    else:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        from jtraj.dataset._local import init_worker
+
+        ctx = mp.get_context("spawn")
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=init_worker,
+                                 initargs=(ctx.Value("i", 0),)) as pool:
+            t0 = time.perf_counter()
+            list(pool.map(_solve_chunk, *zip(*[chunks[0]] * workers)))  # one warm-up per worker
+            first = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            parts = list(pool.map(_solve_chunk, *zip(*chunks)))
+            wall = time.perf_counter() - t0
+    res = {k: np.concatenate([p[k] for p in parts])[:P] for k in KEYS}
     res["wall"] = wall
     res["compile_and_first_batch"] = first
     return res
@@ -83,10 +108,16 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--N", type=int, default=20)
     ap.add_argument("--latency-pairs", type=int, default=8)
+    ap.add_argument("--workers", type=int, default=None,
+                    help="jtraj batch processes, one single-threaded JAX per core (default: all cores, as IPOPT)")
     ap.add_argument("--scaling", action="store_true", help="also time N = 10..80 and B = 64..4096")
     ap.add_argument("--plot", default=None)
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
+    if args.workers is None:
+        from jtraj.dataset._local import available_cpus
+
+        args.workers = available_cpus()
 
     import jax
 
@@ -106,7 +137,7 @@ def main(argv=None):
     ip_ver = np.array([r["success"] and verify(a, b, r["v"], r["h"], tol=1e-6)["ok"] for a, b, r in zip(q0, q1, ip)])
     ip_cost = np.array([r["cost"] for r in ip])
 
-    jt = _jtraj_batch(q0, q1, args.N, args.batch, weights)
+    jt = _jtraj_batch(q0, q1, args.N, args.batch, dict(time=1.0, energy=0.1), args.workers)
     jt_thr = args.pairs / jt["wall"]
     checks = [verify(a, b, v, h, tol=1e-6) for a, b, v, h in zip(q0, q1, jt["v"], jt["h"])]
     jt_conv = jt["converged"].astype(bool)
@@ -120,7 +151,7 @@ def main(argv=None):
     ip_lat = np.array([solve_pair(a, b, N=args.N)["seconds"] for a, b in zip(q0[:L], q1[:L])])
 
     report = {
-        "pairs": args.pairs, "N": args.N, "batch": args.batch,
+        "pairs": args.pairs, "N": args.N, "batch": args.batch, "jtraj_workers": args.workers,
         "ipopt_success": int(ip_ok.sum()), "ipopt_verified": int(ip_ver.sum()),
         "jtraj_converged": int(jt_conv.sum()), "jtraj_verified_converged": int((jt_conv & jt_ver).sum()),
         "jtraj_feasible_verified": int(jt_ver.sum()), "jtraj_false_converged": false_conv,
@@ -142,7 +173,7 @@ def main(argv=None):
         print(f"  cost gap where both succeed ({both.sum()} pairs): median {report['cost_gap_pct_median_both']:+.4f} %, "
               f"max {report['cost_gap_pct_max_both']:+.4f} %")
     print(f"  throughput: IPOPT {ip_thr:.2f} pairs/s on {ip.processes} processes; jtraj {jt_thr:.2f} pairs/s "
-          f"(batch {args.batch}) -> ratio {report['throughput_ratio']:.2f}x")
+          f"(batch {args.batch}, {args.workers} processes) -> ratio {report['throughput_ratio']:.2f}x")
     print(f"  warm single solve (median of {L}): IPOPT {report['ipopt_single_median_s'] * 1e3:.0f} ms, jtraj "
           f"{report['jtraj_single_median_s'] * 1e3:.0f} ms -> ratio {report['latency_ratio']:.2f}x")
     print(f"  compile: single {compile_single:.1f} s, batch {jt['compile_and_first_batch']:.1f} s (incl. first batch)")
@@ -152,12 +183,12 @@ def main(argv=None):
     if args.scaling:
         rows = []
         for N in (10, 20, 40, 80):
-            r = _jtraj_batch(q0[:64], q1[:64], N, 64, weights)
+            r = _jtraj_batch(q0[:64], q1[:64], N, 64, dict(time=1.0, energy=0.1))
             rows.append(("N", N, r["wall"] / 64))
             print(f"  N = {N:3d}, B = 64: {1e3 * r['wall'] / 64:.1f} ms per problem")
         for B in (64, 256, 1024, 4096):
             qa, qb = benchmark_pairs(B, args.seed + 1)
-            r = _jtraj_batch(qa, qb, args.N, B, weights)
+            r = _jtraj_batch(qa, qb, args.N, B, dict(time=1.0, energy=0.1))
             rows.append(("B", B, r["wall"] / B))
             print(f"  B = {B:5d}, N = {args.N}: {1e3 * r['wall'] / B:.1f} ms per problem")
         report["scaling"] = rows

@@ -312,6 +312,18 @@ def test_kill_9_mid_run_then_resume_equals_uninterrupted(tmp_path):
         assert json.load(f)["identity"]["pairs"] == 64
 
 
+def test_local_worker_processes_equal_this_process(tmp_path):
+    spec = fake_spec(pairs=40, batch=8)
+    dataset.build(spec, str(tmp_path / "one"), workers=1, progress=False)
+    s = dataset.build(spec, str(tmp_path / "two"), workers=2, progress=False)
+    assert s["complete"] and s["new_pairs"] == 40
+    assert_same(dataset.load(str(tmp_path / "one")), dataset.load(str(tmp_path / "two")))
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="workers"):
+            dataset.build(spec, str(tmp_path / "bad"), workers=bad, progress=False)
+    assert not os.path.exists(tmp_path / "bad")
+
+
 @pytest.mark.slow  # ~35 s on 2 cores: starts a local Ray instance
 @pytest.mark.filterwarnings("ignore:os.fork")
 def test_ray_local_cluster_two_workers_equals_single_process(tmp_path):

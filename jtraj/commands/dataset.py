@@ -1,7 +1,7 @@
 """Generate, inspect and plot datasets of optimal trajectories.
 
   jtraj dataset [build] --robot serial3 --pairs 10000 --seed 0 --out runs/s3 [--N 20]
-                [--weights time=1,energy=0.1] [--space joint|task] [--batch 64] [--ray auto]
+                [--weights time=1,energy=0.1] [--space joint|task] [--batch 64] [--workers K | --ray auto]
   jtraj dataset info PATH
   jtraj dataset plot PATH [--out overview.png]
 
@@ -12,9 +12,10 @@ uniform over the reachable workspace through inverse kinematics), solves them wi
 jtraj.solve_batch in chunks of --batch pairs and writes every finished chunk atomically
 into the directory store PATH (manifest.json + chunks/chunk-XXXXXX.h5). Every pair is
 kept with its status; failures are flagged, not dropped. Re-running the same command
-resumes an interrupted run (a kill loses at most the chunk in flight); other parameters
-into an existing dataset are refused. --ray auto|HOST:PORT|local[:K] distributes the
-chunks over a Ray cluster with identical results.
+resumes an interrupted run (a kill loses at most the chunks in flight); other parameters
+into an existing dataset are refused. Chunks are solved by one single-threaded worker
+process per CPU (--workers K to choose; 1 solves in this process); --ray
+auto|HOST:PORT|local[:K] distributes them over a Ray cluster instead, with identical results.
 """
 
 import argparse
@@ -38,6 +39,9 @@ def configure(parser):
                         help="pairs per chunk = solve_batch size (default 64; part of the dataset's identity)")
     parser.add_argument("--ray", metavar="ADDRESS", default=None,
                         help="distribute over Ray: auto, HOST:PORT, ray://HOST:PORT, or local[:K] (start one here)")
+    parser.add_argument("--workers", type=_workers, default=None,
+                        help="local worker processes, single-threaded JAX, one per core (default: one per "
+                             "available CPU; 1 solves in this process); ignored with --ray")
     parser.add_argument("--start-range", type=float, default=1.2, help="joint-space start range +-a (default 1.2)")
     parser.add_argument("--step-range", type=float, default=0.8, help="joint-space step range +-b (default 0.8)")
     parser.add_argument("--min-separation", type=float, default=0.05,
@@ -49,6 +53,16 @@ def configure(parser):
                              "does not decide which pairs are feasible), robot (the robot's own), or seconds")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--solver", default="jtraj:solve_batch", help=argparse.SUPPRESS)  # tests: module:function
+
+
+def _workers(text):
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--workers must be a positive integer, got {text!r}") from None
+    if k < 1:
+        raise argparse.ArgumentTypeError(f"--workers must be a positive integer, got {text!r}")
+    return k
 
 
 def _action(args):
@@ -105,7 +119,8 @@ def run(args) -> int:
                              start_range=args.start_range, step_range=args.step_range,
                              min_separation=args.min_separation, ik_method=args.ik_method, options=options,
                              solver=args.solver, h_max=_h_max(args.h_max))
-    stats = dataset.build(spec, args.out, ray=args.ray, progress=not args.no_progress)
+    stats = dataset.build(spec, args.out, ray=args.ray, workers=getattr(args, 'workers', None),
+                          progress=not args.no_progress)
     P = stats["pairs_done"]
     rate = stats["pairs_per_s"]
     print(f"{args.out}: {P}/{spec.pairs} pairs, converged {stats['converged']} "

@@ -16,15 +16,6 @@ import os
 import socket
 
 
-def _task(spec, c):
-    from jtraj.cli import setup_jax
-
-    setup_jax()  # float64 and the compilation cache, as in the CLI process
-    from jtraj.dataset.build import compute_chunk
-
-    return c, compute_chunk(spec, c)
-
-
 def _probe(address: str, timeout: float = 5.0) -> None:
     target = address.split("://", 1)[-1]
     host, sep, port = target.rpartition(":")
@@ -46,7 +37,9 @@ class RayBackend:
         self.ray = ray
         self.started_here = started_here
         self.cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
-        self.remote = ray.remote(num_cpus=1, max_retries=3)(_task)
+        from .build import worker_task
+
+        self.remote = ray.remote(num_cpus=1, max_retries=3)(worker_task)
 
     def run(self, spec, chunks, finish):
         ray = self.ray
@@ -74,7 +67,10 @@ def connect(address: str) -> RayBackend:
         raise ValueError("--ray needs the 'ray' package: pip install 'jtraj[ray]' (or pip install ray)") from None
     address = str(address).strip()
     kwargs = dict(ignore_reinit_error=True, log_to_driver=False, include_dashboard=False)
-    env = {"env_vars": {"JAX_ENABLE_X64": "1"}}
+    from ._local import SINGLE_THREAD_FLAGS
+
+    # one CPU per task: a single-threaded JAX per worker (see jtraj.dataset._local)
+    env = {"env_vars": {"JAX_ENABLE_X64": "1", "XLA_FLAGS": SINGLE_THREAD_FLAGS}}
     if ray.is_initialized():
         return RayBackend(started_here=False)
     if address.startswith("local"):

@@ -8,8 +8,10 @@ by one call of ``solve_batch`` on a batch padded to ``B`` rows (the last pair re
 padding rows are dropped) so that every chunk runs the same compiled program. That is
 why a resumed or Ray-distributed run equals an uninterrupted single-process one.
 
-Memory is bounded by the chunks in flight (one locally, ``2 x workers`` with Ray), never
-by the number of pairs.
+Chunks are solved by local worker processes (one single-threaded JAX per core, see
+:mod:`jtraj.dataset._local`), in this process (``workers=1``) or on Ray. Memory is bounded
+by the chunks in flight (one per local worker, ``2 x CPUs`` with Ray), never by the
+number of pairs.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import sampling, store
+from . import _local, sampling, store
 
 DEFAULT_SOLVER = "jtraj:solve_batch"
 DEFAULT_BATCH = 64
@@ -196,6 +198,15 @@ def compute_chunk(spec: Spec, c: int) -> dict:
     return out
 
 
+def worker_task(spec: Spec, c: int):
+    """``(c, compute_chunk(spec, c))`` in a worker process (Ray task or local process):
+    float64 and the compilation cache set up as in the CLI process first."""
+    from jtraj.cli import setup_jax
+
+    setup_jax()
+    return c, compute_chunk(spec, c)
+
+
 def _source_hash() -> str:
     """sha256 of jtraj's Python sources (a solver edited between two runs changes it)."""
     import hashlib
@@ -323,17 +334,21 @@ def _check_ray(address):
     return _ray.connect(address)
 
 
-def build(spec: Spec, out: str, *, ray: str | None = None, progress: bool = True, max_chunks: int | None = None,
-          log=None) -> dict:
+def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None = None, progress: bool = True,
+          max_chunks: int | None = None, log=None) -> dict:
     """Build (or resume) the dataset ``spec`` at ``out``. Returns a summary dict.
 
     ``ray``: ``None`` (this process), ``"auto"``, ``"local"``/``"local:K"`` (start a
     local Ray instance with K CPUs) or a cluster address ``host:port``/``ray://host:port``.
+    ``workers``: without Ray, the number of local worker processes (single-threaded
+    JAX, one per core; ``None``: one per available CPU); 1 solves in this process.
     ``max_chunks`` stops after that many new chunks (tests).
     """
     log = log or (lambda s: print(s, file=sys.stderr))
     ident = spec.identity()
     store.inspect(out, ident)  # read-only checks first
+    if workers is not None and (not isinstance(workers, int) or isinstance(workers, bool) or workers < 1):
+        raise ValueError(f"workers must be a positive integer or None, got {workers!r}")
     backend = _check_ray(ray) if ray else None  # then the cluster; both before any compute
     writer = store.Writer(out, ident, metadata(spec))
     try:
@@ -376,6 +391,10 @@ def build(spec: Spec, out: str, *, ray: str | None = None, progress: bool = True
                 bar.update(k)
                 bar.set_postfix_str(_postfix(stats))
 
+        if todo and backend is None:
+            k = min(len(todo), _local.available_cpus() if workers is None else workers)
+            if k > 1:
+                backend = _local.ProcessBackend(k)
         if todo:
             if backend is None:
                 for c in todo:
@@ -401,4 +420,4 @@ def _postfix(stats):
 
 
 def default_processes() -> int:
-    return os.cpu_count() or 1
+    return _local.available_cpus()
