@@ -7,15 +7,17 @@ IPOPT peer on all cores, measured in the same run.
 
 For each batch size B the benchmark builds a serial3, N = 20, weights time=1,energy=0.1
 joint-space dataset through :func:`jtraj.dataset.build` into a temporary directory:
-first one chunk (compilation + first solve: reported as ``first_chunk_s``), then the
-remaining ``--chunks`` chunks by *resuming* the same dataset; the resumed part gives the
-steady-state pairs/s, end to end including sampling and storage. The IPOPT peer
+first one chunk per worker process (compilation + first solve in each: reported as
+``first_chunk_s``), then the remaining ``--chunks`` chunks by *resuming* the same dataset
+(worker start-up included); the resumed part gives the steady-state pairs/s, end to end
+including sampling and storage. jtraj runs ``--workers`` single-threaded worker
+processes (default one per core, as ``jtraj dataset``). The IPOPT peer
 (:func:`benchmarks.peers.ipopt_peer.solve_many`, one process per core, NLP built once
 per process) solves the first ``--ipopt-pairs`` pairs of the same dataset; its pairs/s is
 the solve phase (pool start and NLP builds excluded, which favours IPOPT).
 
 Projected CPU-hours for a million pairs = 1e6 / (pairs/s) / 3600 x cores used (JAX uses
-all cores of the process; the peer one per process on all cores).
+all cores, one worker process per core; the peer one process per core).
 
 Writes ``bench_dataset.json`` and ``bench_dataset.png`` into ``--out-dir``.
 """
@@ -36,24 +38,25 @@ sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.dirname(HERE))
 
 
-def measure_jtraj(B, chunks, seed, N, solver):
+def measure_jtraj(B, chunks, seed, N, solver, workers):
     from jtraj import dataset
 
-    pairs = B * (1 + chunks)
+    # the first `workers` chunks warm every worker's compilation cache (timed apart)
+    pairs = B * (workers + chunks)
     spec = dataset.make_spec("serial3", pairs, seed, N=N, batch=B, solver=solver)
     with tempfile.TemporaryDirectory(prefix="bench_dataset_") as tmp:
         out = os.path.join(tmp, "d")
         t0 = time.perf_counter()
-        dataset.build(spec, out, progress=False, max_chunks=1)
+        dataset.build(spec, out, progress=False, max_chunks=workers, workers=workers)
         first = time.perf_counter() - t0
-        s = dataset.build(spec, out, progress=True)
+        s = dataset.build(spec, out, progress=True, workers=workers)
         data = dataset.load(out)
         conv = float(np.mean(data["converged"]))
         q0, q1 = data["q_start"].copy(), data["q_goal"].copy()
         size = sum(os.path.getsize(os.path.join(out, "chunks", f)) for f in os.listdir(os.path.join(out, "chunks")))
     return {"batch": B, "pairs": pairs, "timed_pairs": s["new_pairs"], "seconds": s["seconds"],
             "pairs_per_s": s["pairs_per_s"], "first_chunk_s": first, "converged_fraction": conv,
-            "bytes_per_pair": size / pairs, "h_max": spec.robot_model().limits.h_max}, (q0, q1)
+            "bytes_per_pair": size / pairs, "h_max": spec.robot_model().limits.h_max, "workers": workers}, (q0, q1)
 
 
 def measure_ipopt(q0, q1, processes, N, h_max):
@@ -101,6 +104,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--chunks", type=int, default=None, help="timed chunks per batch size (default 2; quick 1)")
     ap.add_argument("--ipopt-pairs", type=int, default=None, help="pairs for the IPOPT peer (default 64; quick 16)")
     ap.add_argument("--processes", type=int, default=None, help="IPOPT processes (default all cores)")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="jtraj worker processes, one single-threaded JAX each (default all cores)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--N", type=int, default=20)
     ap.add_argument("--no-ipopt", action="store_true")
@@ -117,9 +122,12 @@ def main(argv=None) -> dict:
     import jax
 
     cores = os.cpu_count() or 1
+    from jtraj.dataset._local import available_cpus
+
+    workers = args.workers or available_cpus()
     results, pairs = [], None
     for B in batches:
-        r, qq = measure_jtraj(B, chunks, args.seed, args.N, args.solver)
+        r, qq = measure_jtraj(B, chunks, args.seed, args.N, args.solver, workers)
         r["N"] = args.N
         results.append(r)
         if pairs is None or len(qq[0]) > len(pairs[0]):

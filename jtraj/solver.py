@@ -735,7 +735,7 @@ def _guess_batch_jit(problems, opts, transcription):
 def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None = None,
                 qd_start=None, qd_goal=None, T_max=None, options: SolverOptions | None = None,
                 transcription: str = "decoupled", init: tuple[Any, Any] | None = None,
-                slots: int | None = 32, segment: int = 25) -> Solution:
+                slots: int | None | str = "auto", segment: int = 25) -> Solution:
     """Solve B problems sharing one robot, N and weights in one vmapped, compiled call.
 
     Args:
@@ -747,7 +747,9 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         slots, segment: when B > slots, the batch is solved by ``slots`` vmapped lanes
             in segments of ``segment`` iterations, each lane taking the next pending
             problem when its own finishes (same results, cost ~ mean instead of max
-            iterations; compiled once for ``slots``). ``slots=None`` solves all B at once.
+            iterations; compiled once for ``slots``). ``slots=None`` solves all B at once "auto" (default): 32 on a CPU
+            (measured best on 2 cores), 1024 on an accelerator (an H200 ran 491 pairs/s at
+            B = 1024 with 1024 slots; 832 at B = 16,384 with 4096).
 
     Returns a :class:`Solution` whose fields carry a leading batch axis. Samples with
     non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch
@@ -797,8 +799,10 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
             raise ValueError(f"init must be (u (B, N, {m_u}), h (B, N)) = ({(B, N, m_u)}, {(B, N)}), "
                              f"got ({u.shape}, {h.shape})")
         init = (u, h)
-    if slots is not None and (not isinstance(slots, int) or slots < 1):
-        raise ValueError(f"slots must be a positive integer or None, got {slots!r}")
+    if slots == "auto":
+        slots = 32 if jax.default_backend() == "cpu" else 1024
+    if slots is not None and (not isinstance(slots, int) or isinstance(slots, bool) or slots < 1):
+        raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
     if not isinstance(segment, int) or segment < 1:
         raise ValueError(f"segment must be a positive integer, got {segment!r}")
     if slots is not None and B > slots:

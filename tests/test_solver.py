@@ -133,6 +133,9 @@ def test_bad_batch_input(robot):
         jtraj.solve_batch(robot, np.zeros((2, 3)), np.zeros((3, 3)), N=N)
     with pytest.raises(ValueError, match="robot"):
         jtraj.solve_batch("serial3", np.zeros((2, 3)), np.zeros((2, 3)), N=N)
+    for slots in (0, True, "many"):
+        with pytest.raises(ValueError, match="slots"):
+            jtraj.solve_batch(robot, np.zeros((2, 3)), np.ones((2, 3)), N=N, slots=slots)
     with pytest.raises(ValueError, match="transcription"):
         jtraj.solve(jtraj.Problem(robot, Q0, Q1, N=N), transcription="magic")
     with pytest.raises(ValueError, match="init"):

@@ -28,6 +28,14 @@ def available_cpus() -> int:
         return os.cpu_count() or 1
 
 
+def default_workers() -> int:
+    """One worker per available CPU; 1 (this process) when JAX's default backend is an
+    accelerator (a GPU solves a whole chunk at once; workers would compete for it)."""
+    import jax
+
+    return available_cpus() if jax.default_backend() == "cpu" else 1
+
+
 def init_worker(counter):
     """Process-pool initializer: die with the parent, pin to one CPU (the counter-th),
     single-threaded XLA. Must run before JAX creates its CPU client."""

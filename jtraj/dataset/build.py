@@ -341,7 +341,8 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
     ``ray``: ``None`` (this process), ``"auto"``, ``"local"``/``"local:K"`` (start a
     local Ray instance with K CPUs) or a cluster address ``host:port``/``ray://host:port``.
     ``workers``: without Ray, the number of local worker processes (single-threaded
-    JAX, one per core; ``None``: one per available CPU); 1 solves in this process.
+    JAX, one per core; ``None``: one per available CPU, or 1 when JAX's default backend
+    is an accelerator); 1 solves in this process.
     ``max_chunks`` stops after that many new chunks (tests).
     """
     log = log or (lambda s: print(s, file=sys.stderr))
@@ -392,7 +393,7 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
                 bar.set_postfix_str(_postfix(stats))
 
         if todo and backend is None:
-            k = min(len(todo), _local.available_cpus() if workers is None else workers)
+            k = min(len(todo), _local.default_workers() if workers is None else workers)
             if k > 1:
                 backend = _local.ProcessBackend(k)
         if todo:
