@@ -110,8 +110,8 @@ def verify(q_start, q_goal, v, h, *, qd_start=0.0, tau_max=TAU_MAX, qd_max=QD_MA
         tau=_box(tau, tau_max),
         v=_box(v, qdd_max),
         qd=_box(qd[1:], qd_max),
-        h=float(max(np.max(np.maximum(h_min - h, 0.0)) / h_min,
-                    np.max(np.maximum(h - h_max, 0.0)) / h_max)) if len(h) else 0.0,
+        # relative to h_max on both sides, as jtraj reports it (h_min may be 0)
+        h=float(np.max(np.maximum(np.maximum(h_min - h, h - h_max), 0.0)) / h_max) if len(h) else 0.0,
     )
     w_time, w_energy, w_kin = weights
     stage = w_time + w_energy * np.sum((tau / tau_max) ** 2, axis=1) + w_kin * np.sum(qd[:-1] ** 2, axis=1)
