@@ -119,7 +119,7 @@ def run(args) -> int:
                              start_range=args.start_range, step_range=args.step_range,
                              min_separation=args.min_separation, ik_method=args.ik_method, options=options,
                              solver=args.solver, h_max=_h_max(args.h_max))
-    stats = dataset.build(spec, args.out, ray=args.ray, workers=getattr(args, 'workers', None),
+    stats = dataset.build(spec, args.out, ray=args.ray, workers=getattr(args, "workers", None),
                           progress=not args.no_progress)
     P = stats["pairs_done"]
     rate = stats["pairs_per_s"]

@@ -419,6 +419,3 @@ def _postfix(stats):
     n = stats["pairs_done"]
     return f"converged {100.0 * stats['converged'] / n:.1f}%" if n else "converged -"
 
-
-def default_processes() -> int:
-    return _local.available_cpus()
