@@ -10,7 +10,7 @@ joint-space dataset through :func:`jtraj.dataset.build` into a temporary directo
 first one chunk per worker process (compilation + first solve in each: reported as
 ``first_chunk_s``), then the remaining ``--chunks`` chunks by *resuming* the same dataset
 (worker start-up included); the resumed part gives the steady-state pairs/s, end to end
-including sampling and storage. jtraj runs ``--workers`` single-threaded worker
+including sampling and storage. jtraj runs ``--workers`` pinned worker
 processes (default one per core, as ``jtraj dataset``). The IPOPT peer
 (:func:`benchmarks.peers.ipopt_peer.solve_many`, one process per core, NLP built once
 per process) solves the first ``--ipopt-pairs`` pairs of the same dataset; its pairs/s is
@@ -105,7 +105,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--ipopt-pairs", type=int, default=None, help="pairs for the IPOPT peer (default 64; quick 16)")
     ap.add_argument("--processes", type=int, default=None, help="IPOPT processes (default all cores)")
     ap.add_argument("--workers", type=int, default=None,
-                    help="jtraj worker processes, one single-threaded JAX each (default all cores)")
+                    help="jtraj worker processes, one pinned to each core (default all cores)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--N", type=int, default=20)
     ap.add_argument("--no-ipopt", action="store_true")

@@ -10,7 +10,7 @@ success is re-simulated from its own (v, h) by the independent NumPy + Pinocchio
 verifier (tolerance 1e-6). Printed: verified success rates, false "converged" counts,
 cost gaps where both succeed, warm single-solve latency (median over pairs), batch
 throughput on all cores (IPOPT: one process per core; jtraj: vmapped batches, one
-single-threaded process per core, ``--workers``), compile time, and, with ``--scaling``,
+process pinned to each core, ``--workers``), compile time, and, with ``--scaling``,
 time per problem against N and B (one process).
 Ratios are jtraj / IPOPT or IPOPT / jtraj as labelled; > 1 means jtraj is ahead.
 """
@@ -44,7 +44,7 @@ def _solve_chunk(q0, q1, N, weights):
 
 def _jtraj_batch(q0, q1, N, B, weights, workers=1):
     """Throughput of solve_batch on chunks of B pairs: in this process (workers = 1) or in
-    ``workers`` single-threaded processes pinned one per core (jtraj.dataset's local
+    ``workers`` processes pinned one per core (jtraj.dataset's local
     backend; one JAX process does not use several cores well). The first chunk per worker
     (compilation, or loading it from the persistent cache) is timed apart."""
     P = len(q0)
@@ -109,7 +109,7 @@ def main(argv=None):
     ap.add_argument("--N", type=int, default=20)
     ap.add_argument("--latency-pairs", type=int, default=8)
     ap.add_argument("--workers", type=int, default=None,
-                    help="jtraj batch processes, one single-threaded JAX per core (default: all cores, as IPOPT)")
+                    help="jtraj batch processes, one pinned to each core (default: all cores, as IPOPT)")
     ap.add_argument("--scaling", action="store_true", help="also time N = 10..80 and B = 64..4096")
     ap.add_argument("--plot", default=None)
     ap.add_argument("--json", default=None)

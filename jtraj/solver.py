@@ -257,8 +257,11 @@ class _State(NamedTuple):
     history: Array  # (max_outer, 3): cost, violation, penalty
 
 
-_LADDER = jnp.linspace(0.0, 1.0, 6)  # exponents of the geometric shift ladder
-_STEPS = jnp.array([1.0, 0.5, 0.25, 0.1, 0.03, 0.01])
+# NumPy, not jnp: a jnp constant made at import takes the dtype of that moment (float32
+# when x64 is enabled after ``import jtraj``), which changed the iterates between processes
+# that enabled x64 before and after the import (Ray workers against the CLI)
+_LADDER = np.linspace(0.0, 1.0, 6)  # exponents of the geometric shift ladder
+_STEPS = np.array([1.0, 0.5, 0.25, 0.1, 0.03, 0.01])
 
 
 def _newton_step(nlp: _NLP, z, mult, mu, damping):
@@ -281,7 +284,8 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping):
     gersh = jnp.maximum(0.0, jnp.max(radius - jnp.diag(Hf))) + damping
     # geometric ladder from damping / 8 to the Gershgorin bound (always PD)
     low = damping / 8.0
-    shifts = low * (jnp.maximum(gersh, 8.0 * low) / low) ** _LADDER
+    steps, ladder = jnp.asarray(_STEPS, z.dtype), jnp.asarray(_LADDER, z.dtype)
+    shifts = low * (jnp.maximum(gersh, 8.0 * low) / low) ** ladder
     eye = jnp.eye(Hf.shape[0], dtype=Hf.dtype)
     shift_free = jnp.where(free, 1.0, 0.0)
     Ls = jax.vmap(lambda sh: jnp.linalg.cholesky(Hf + sh * jnp.diag(shift_free)))(shifts)
@@ -294,8 +298,8 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping):
     d_held = -g[None, :] / (jnp.abs(jnp.diag(H))[None, :] + shifts[:, None])
     d = jnp.where(free[None, :], d_free, d_held)  # (S, nz)
     d = jnp.where(jnp.all(jnp.isfinite(d), axis=1, keepdims=True), d, -g[None, :])
-    S, K = shifts.shape[0], _STEPS.shape[0]
-    candidates = jnp.clip(z[None, None, :] + _STEPS[None, :, None] * d[:, None, :], lo, hi).reshape(S * K, -1)
+    S, K = shifts.shape[0], steps.shape[0]
+    candidates = jnp.clip(z[None, None, :] + steps[None, :, None] * d[:, None, :], lo, hi).reshape(S * K, -1)
     values = jax.vmap(nlp.al_value, in_axes=(0, None, None))(candidates, mult, mu)
     decrease = jnp.einsum("i,ki->k", g, candidates - z[None, :])
     ok = (values <= val + 1e-4 * decrease) & jnp.isfinite(values) & jnp.repeat(good, K)
@@ -303,11 +307,11 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping):
     # benchmark); close to one (projected gradient < 1e-3) the least-damped direction
     # that takes a long step (>= 1/4) does, which keeps Newton's fast local convergence
     # (the lowest value is then decided by rounding)
-    long_ok = ok & (jnp.tile(_STEPS, S) >= 0.25) & (jnp.max(jnp.abs(pg)) < 1e-3)
+    long_ok = ok & (jnp.tile(steps, S) >= 0.25) & (jnp.max(jnp.abs(pg)) < 1e-3)
     best = jnp.where(jnp.any(long_ok), jnp.argmax(long_ok), jnp.argmin(jnp.where(ok, values, jnp.inf)))
     any_ok = jnp.any(ok)
     z_new = jnp.where(any_ok, candidates[best], z)
-    step = _STEPS[best % K]
+    step = steps[best % K]
     used = shifts[best // K]
     damping = jnp.where(any_ok, jnp.where(step == 1.0, used * 0.5, used * 2.0), shifts[-1])
     damping = jnp.clip(jnp.where(jnp.isfinite(damping), damping, 1e10), 1e-12, 1e10)

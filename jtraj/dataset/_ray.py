@@ -67,10 +67,7 @@ def connect(address: str) -> RayBackend:
         raise ValueError("--ray needs the 'ray' package: pip install 'jtraj[ray]' (or pip install ray)") from None
     address = str(address).strip()
     kwargs = dict(ignore_reinit_error=True, log_to_driver=False, include_dashboard=False)
-    from ._local import SINGLE_THREAD_FLAGS
-
-    # one CPU per task: a single-threaded JAX per worker (see jtraj.dataset._local)
-    env = {"env_vars": {"JAX_ENABLE_X64": "1", "XLA_FLAGS": SINGLE_THREAD_FLAGS}}
+    env = {"env_vars": {"JAX_ENABLE_X64": "1"}}
     if ray.is_initialized():
         return RayBackend(started_here=False)
     if address.startswith("local"):

@@ -8,7 +8,7 @@ by one call of ``solve_batch`` on a batch padded to ``B`` rows (the last pair re
 padding rows are dropped) so that every chunk runs the same compiled program. That is
 why a resumed or Ray-distributed run equals an uninterrupted single-process one.
 
-Chunks are solved by local worker processes (one single-threaded JAX per core, see
+Chunks are solved by local worker processes (one pinned to each core, see
 :mod:`jtraj.dataset._local`), in this process (``workers=1``) or on Ray. Memory is bounded
 by the chunks in flight (one per local worker, ``2 x CPUs`` with Ray), never by the
 number of pairs.
@@ -340,7 +340,7 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
 
     ``ray``: ``None`` (this process), ``"auto"``, ``"local"``/``"local:K"`` (start a
     local Ray instance with K CPUs) or a cluster address ``host:port``/``ray://host:port``.
-    ``workers``: without Ray, the number of local worker processes (single-threaded
+    ``workers``: without Ray, the number of local worker processes (pinned
     JAX, one per core; ``None``: one per available CPU, or 1 when JAX's default backend
     is an accelerator); 1 solves in this process.
     ``max_chunks`` stops after that many new chunks (tests).
