@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import signal
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 
 def available_cpus() -> int:
     """CPUs this process may run on (affinity-aware)."""
@@ -71,7 +72,14 @@ class ProcessBackend:
                 pending.add(self.pool.submit(worker_task, spec, todo.pop(0)))
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for fut in done:
-                c, arrays = fut.result()
+                try:
+                    c, arrays = fut.result()
+                except BrokenProcessPool as err:
+                    raise RuntimeError(
+                        "a dataset worker process died before returning its chunk (finished chunks are "
+                        "kept; re-run to resume). Workers are started with 'spawn': a script that calls "
+                        "jtraj.dataset.build must do so under 'if __name__ == \"__main__\":', or pass "
+                        "workers=1") from err
                 finish(c, arrays)
 
     def close(self):

@@ -342,7 +342,8 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
     local Ray instance with K CPUs) or a cluster address ``host:port``/``ray://host:port``.
     ``workers``: without Ray, the number of local worker processes (pinned
     JAX, one per core; ``None``: one per available CPU, or 1 when JAX's default backend
-    is an accelerator); 1 solves in this process.
+    is an accelerator); 1 solves in this process. Workers are spawned: a script calling
+    ``build`` with more than one must do so under ``if __name__ == "__main__":``.
     ``max_chunks`` stops after that many new chunks (tests).
     """
     log = log or (lambda s: print(s, file=sys.stderr))
