@@ -29,6 +29,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
 KEYS = ("v", "h", "cost", "converged", "status", "iterations")
+WEIGHTS = dict(time=1.0, energy=0.1)  # the benchmark's cost (plain values: sent to workers)
 
 
 def _solve_chunk(q0, q1, N, weights):
@@ -60,14 +61,9 @@ def _jtraj_batch(q0, q1, N, B, weights, workers=1):
         parts = [_solve_chunk(*c) for c in chunks]
         wall = time.perf_counter() - t0
     else:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
+        from jtraj.dataset._local import worker_pool
 
-        from jtraj.dataset._local import init_worker
-
-        ctx = mp.get_context("spawn")
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=init_worker,
-                                 initargs=(ctx.Value("i", 0),)) as pool:
+        with worker_pool(workers) as pool:
             t0 = time.perf_counter()
             list(pool.map(_solve_chunk, *zip(*[chunks[0]] * workers)))  # one warm-up per worker
             first = time.perf_counter() - t0
@@ -126,7 +122,7 @@ def main(argv=None):
     from peers.ipopt_peer import benchmark_pairs, solve_many, solve_pair
     from peers.verify import verify
 
-    weights = jtraj.Weights(time=1.0, energy=0.1)
+    weights = jtraj.Weights(**WEIGHTS)
     q0, q1 = benchmark_pairs(args.pairs, args.seed)
     print(f"serial3, N = {args.N}, weights time=1 energy=0.1, {args.pairs} pairs (seed {args.seed}), "
           f"os.cpu_count() = {os.cpu_count()}")
@@ -137,7 +133,7 @@ def main(argv=None):
     ip_ver = np.array([r["success"] and verify(a, b, r["v"], r["h"], tol=1e-6)["ok"] for a, b, r in zip(q0, q1, ip)])
     ip_cost = np.array([r["cost"] for r in ip])
 
-    jt = _jtraj_batch(q0, q1, args.N, args.batch, dict(time=1.0, energy=0.1), args.workers)
+    jt = _jtraj_batch(q0, q1, args.N, args.batch, WEIGHTS, args.workers)
     jt_thr = args.pairs / jt["wall"]
     checks = [verify(a, b, v, h, tol=1e-6) for a, b, v, h in zip(q0, q1, jt["v"], jt["h"])]
     jt_conv = jt["converged"].astype(bool)
@@ -183,12 +179,12 @@ def main(argv=None):
     if args.scaling:
         rows = []
         for N in (10, 20, 40, 80):
-            r = _jtraj_batch(q0[:64], q1[:64], N, 64, dict(time=1.0, energy=0.1))
+            r = _jtraj_batch(q0[:64], q1[:64], N, 64, WEIGHTS)
             rows.append(("N", N, r["wall"] / 64))
             print(f"  N = {N:3d}, B = 64: {1e3 * r['wall'] / 64:.1f} ms per problem")
         for B in (64, 256, 1024, 4096):
             qa, qb = benchmark_pairs(B, args.seed + 1)
-            r = _jtraj_batch(qa, qb, args.N, B, dict(time=1.0, energy=0.1))
+            r = _jtraj_batch(qa, qb, args.N, B, WEIGHTS)
             rows.append(("B", B, r["wall"] / B))
             print(f"  B = {B:5d}, N = {args.N}: {1e3 * r['wall'] / B:.1f} ms per problem")
         report["scaling"] = rows

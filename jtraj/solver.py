@@ -751,9 +751,10 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         slots, segment: when B > slots, the batch is solved by ``slots`` vmapped lanes
             in segments of ``segment`` iterations, each lane taking the next pending
             problem when its own finishes (same results, cost ~ mean instead of max
-            iterations; compiled once for ``slots``). ``slots=None`` solves all B at once "auto" (default): 32 on a CPU
-            (measured best on 2 cores), 1024 on an accelerator (an H200 ran 491 pairs/s at
-            B = 1024 with 1024 slots; 832 at B = 16,384 with 4096).
+            iterations; compiled once for ``slots``). ``slots=None`` solves all B at once;
+            "auto" (default) is 32 on a CPU (measured best on 2 cores) and 1024 on an
+            accelerator (an H200 ran 491 pairs/s at B = 1024 with 1024 slots, 832 at
+            B = 16,384 with 4096).
 
     Returns a :class:`Solution` whose fields carry a leading batch axis. Samples with
     non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch

@@ -19,6 +19,7 @@ import signal
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 
+
 def available_cpus() -> int:
     """CPUs this process may run on (affinity-aware)."""
     try:
@@ -51,16 +52,20 @@ def init_worker(counter):
         os.sched_setaffinity(0, {cpus[index % len(cpus)]})
 
 
+def worker_pool(workers: int) -> ProcessPoolExecutor:
+    """A pool of ``workers`` spawned processes set up by :func:`init_worker`."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    return ProcessPoolExecutor(workers, mp_context=ctx, initializer=init_worker, initargs=(ctx.Value("i", 0),))
+
+
 class ProcessBackend:
     """``run(spec, chunks, finish)`` as :class:`jtraj.dataset._ray.RayBackend`."""
 
     def __init__(self, workers: int):
-        import multiprocessing as mp
-
-        ctx = mp.get_context("spawn")
         self.workers = workers
-        self.pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=init_worker,
-                                        initargs=(ctx.Value("i", 0),))
+        self.pool = worker_pool(workers)
 
     def run(self, spec, chunks, finish):
         from .build import worker_task
