@@ -40,7 +40,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .problem import Problem, Weights
-from .transcription import Layout, StageData, Transcription
+from .transcription import Layout, StageData, Transcription, decoupled_hessian
 
 # ----------------------------------------------------------------------------------------
 # status codes
@@ -142,6 +142,8 @@ class _NLP(eqx.Module):
     tr: Transcription = eqx.field(static=True)
     layout: Layout
     sd: StageData
+    #: assemble the decoupled Hessian with jacfwd like the other transcriptions (tests)
+    generic_hessian: bool = eqx.field(static=True, default=False)
 
     def W(self, z):
         return self.tr.stage_vectors(self.problem, self.layout, z)
@@ -169,7 +171,7 @@ class _NLP(eqx.Module):
     def al_derivatives(self, z, mult, mu):
         """Value, gradient and exact Hessian of the AL in z, from per-stage pieces."""
         sm = _stage_mult(mult)
-        W = self.W(z)
+        W, W_vjp = jax.vjp(self.W, z)
 
         def value_grad(w, sdk, mk, mu_):
             v, gw = jax.value_and_grad(self.stage_al)(w, sdk, mk, mu_)
@@ -178,22 +180,26 @@ class _NLP(eqx.Module):
         # one forward-over-reverse pass per stage gives value, gradient and Hessian
         Hk, (val_k, c) = jax.vmap(jax.jacfwd(value_grad, has_aux=True), in_axes=(0, 0, _stage_axes(mult), None))(
             W, self.sd, sm, mu)
-        J = jax.jacfwd(self.W)(z)  # (N+1, nw, nz)
-        g = jnp.einsum("kai,ka->i", J, c)
-        H = jnp.einsum("kai,kaj->ij", J, jnp.einsum("kab,kbj->kaj", Hk, J))
-        # co-state (second-order) term of the recursion: d2/dz2 <c, W(z)>, c fixed
-        # (zero where W is linear in z: the collocation's states are unknowns)
-        if not self.tr.linear_stage_map:
-            c_fixed = jax.lax.stop_gradient(c)
-            grad_cw = jax.grad(lambda zz: jnp.sum(c_fixed * self.W(zz)))
-            if self.tr.linear_in_controls:
-                # W is linear in the controls: the control-control block vanishes and
-                # only the columns of the N periods are differentiated (N, not nz, passes)
-                nu = self.layout.N * self.layout.m_u
-                cols = jax.jacfwd(lambda zh: grad_cw(jnp.concatenate([z[:nu], zh])))(z[nu:])  # (nz, N)
-                H = H.at[:, nu:].add(cols).at[nu:, :nu].add(cols[:nu].T)
-            else:
-                H = H + jax.jacfwd(grad_cw)(z)
+        # the gradient is reverse-mode autodiff through the recursion (the co-states)
+        g = W_vjp(c)[0]
+        if self.tr.name == "decoupled" and not self.generic_hessian:
+            H = decoupled_hessian(self.layout, W, c, Hk)
+        else:
+            J = jax.jacfwd(self.W)(z)  # (N+1, nw, nz)
+            H = jnp.einsum("kai,kaj->ij", J, jnp.einsum("kab,kbj->kaj", Hk, J))
+            # co-state (second-order) term of the recursion: d2/dz2 <c, W(z)>, c fixed
+            # (zero where W is linear in z: the collocation's states are unknowns)
+            if not self.tr.linear_stage_map:
+                c_fixed = jax.lax.stop_gradient(c)
+                grad_cw = jax.grad(lambda zz: jnp.sum(c_fixed * self.W(zz)))
+                if self.tr.linear_in_controls:
+                    # W is linear in the controls: the control-control block vanishes and
+                    # only the columns of the N periods are differentiated (N, not nz, passes)
+                    nu = self.layout.N * self.layout.m_u
+                    cols = jax.jacfwd(lambda zh: grad_cw(jnp.concatenate([z[:nu], zh])))(z[nu:])  # (nz, N)
+                    H = H.at[:, nu:].add(cols).at[nu:, :nu].add(cols[:nu].T)
+                else:
+                    H = H + jax.jacfwd(grad_cw)(z)
         gval, ggrad, ghess = (self.global_al(z, mult, mu), jax.grad(self.global_al)(z, mult, mu),
                               jax.hessian(self.global_al)(z, mult, mu))
         return jnp.sum(val_k) + gval, g + ggrad, H + ghess
@@ -265,7 +271,9 @@ _STEPS = np.array([1.0, 0.5, 0.25, 0.1, 0.03, 0.01])
 
 
 def _newton_step(nlp: _NLP, z, mult, mu, damping):
-    val, g, H = nlp.al_derivatives(z, mult, mu)
+    # the barrier materialises H once: without it XLA fused its assembly into each of
+    # the shifted factorisations below (measured: the ladder then cost 2x)
+    val, g, H = jax.lax.optimization_barrier(nlp.al_derivatives(z, mult, mu))
     lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
     pg = z - jnp.clip(z - g, lo, hi)  # projected-gradient residual
     eps = jnp.minimum(1e-3, jnp.max(jnp.abs(pg)))

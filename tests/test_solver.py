@@ -195,6 +195,12 @@ def test_structured_hessian_matches_differences_of_the_gradient(name, transcript
     # avoided by the random point (no constraint within eps of its switch)
     assert np.max(np.abs(H - H_fd)) / np.max(np.abs(H_fd)) < 1e-7
     np.testing.assert_allclose(H, H.T, atol=1e-12 * float(np.max(np.abs(H))))
+    if transcription == "decoupled":
+        # the closed-form assembly of the decoupled recursion against jacfwd through it
+        generic = _NLP(problem=p, tr=tr, layout=lay, sd=nlp.sd, generic_hessian=True)
+        _, g2, H2 = eqx.filter_jit(lambda n, zz, m: n.al_derivatives(zz, m, 7.0))(generic, z, mult)
+        np.testing.assert_allclose(g, g2, rtol=0, atol=1e-12 * float(np.max(np.abs(g2))))
+        np.testing.assert_allclose(H, H2, rtol=0, atol=1e-12 * float(np.max(np.abs(H2))))
 
 
 def test_compacted_batch_equals_one_shot_batch(robot, batch):
