@@ -271,27 +271,28 @@ class Transcription:
         return w[:n], w[n:2 * n], w[2 * n:-1], w[-1]
 
     # -- per-sample objective and constraints -------------------------------------------
-    def stage_cost_terms(self, problem: Problem, w, sd: StageData):
-        """The four cost terms of one interval (zero at k = N): dict of scalars."""
+    def stage_cost_terms(self, problem: Problem, w, sd: StageData, a_tau=None):
+        """The four cost terms of one interval (zero at k = N): dict of scalars.
+        ``a_tau``: (a, tau) of this sample if already computed (see :meth:`stage_terms`)."""
         q, qd, u, h = self.split_stage(problem, w)
-        _, tau = self.accel_and_tau(problem, q, qd, u)
+        _, tau = self.accel_and_tau(problem, q, qd, u) if a_tau is None else a_tau
         U, Q = problem.weights.matrices(problem.robot)
         wt = problem.weights
         terms = {
             "time": wt.time * h,
             "energy": h * tau @ U @ tau,
-            "kinetic": h * qd @ Q @ qd,
+            "kinetic": h * qd @ Q @ qd if wt.Q is not None or _nonzero(wt.kinetic) else jnp.zeros(()),
             "singularity": wt.singularity * h / jnp.maximum(problem.robot.manipulability(q), 1e-9)
             if _nonzero(wt.singularity) else jnp.zeros(()),
         }
         return {k: sd_mask(sd.is_interval, v) for k, v in terms.items()}
 
-    def stage_constraints(self, problem: Problem, w, sd: StageData):
+    def stage_constraints(self, problem: Problem, w, sd: StageData, a_tau=None):
         """Normalised constraints of one sample: (equalities, inequalities), dicts of
         arrays; masked-out entries are 0 (equalities) or -1 (inequalities)."""
         robot, lim = problem.robot, problem.robot.limits
         q, qd, u, h = self.split_stage(problem, w)
-        a, tau = self.accel_and_tau(problem, q, qd, u)
+        a, tau = self.accel_and_tau(problem, q, qd, u) if a_tau is None else a_tau
         ineq, eq = {}, {}
 
         def box(x, bound, mask):
