@@ -262,6 +262,15 @@ def test_views_rows_and_trajectory_index(tmp_path):
 
 # ----------------------------------------------------------------------------- CLI
 
+def test_default_chunk_size_grows_with_the_dataset():
+    from jtraj.dataset.build import default_batch
+
+    assert [default_batch(p) for p in (1, 96, 1024, 2048, 3000, 4096, 10_000, 10**6)] == [
+        64, 64, 64, 128, 128, 256, 256, 256]
+    assert fake_spec(pairs=20, batch=None).batch == 20  # never padded beyond P
+    assert fake_spec(pairs=5000, batch=None).batch == 256
+
+
 def _cli(*args):
     return cli_main(["dataset", *args])
 
@@ -270,8 +279,11 @@ def test_cli_build_info_plot(tmp_path, capsys):
     out = str(tmp_path / "A")
     assert _cli("--robot", "serial3", "--pairs", "20", "--seed", "5", "--out", out, "--N", "6", "--batch", "8",
                 "--solver", FAKE, "--no-progress") == 0
+    # resumes, nothing to do: without --batch the dataset's own chunk size is kept (the
+    # default for 20 pairs would be 20 and be refused as a different dataset)
     assert _cli("build", "--robot", "serial3", "--pairs", "20", "--seed", "5", "--out", out, "--N", "6",
-                "--batch", "8", "--solver", FAKE, "--no-progress") == 0  # resumes: nothing to do
+                "--solver", FAKE, "--no-progress") == 0
+    assert dataset.load(out)["metadata"]["batch"] == 8
     capsys.readouterr()
     assert _cli("info", out) == 0
     text = capsys.readouterr().out

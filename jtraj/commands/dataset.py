@@ -1,7 +1,7 @@
 """Generate, inspect and plot datasets of optimal trajectories.
 
   jtraj dataset [build] --robot serial3 --pairs 10000 --seed 0 --out runs/s3 [--N 20]
-                [--weights time=1,energy=0.1] [--space joint|task] [--batch 64] [--workers K | --ray auto]
+                [--weights time=1,energy=0.1] [--space joint|task] [--batch B] [--workers K | --ray auto]
   jtraj dataset info PATH
   jtraj dataset plot PATH [--out overview.png]
 
@@ -36,7 +36,8 @@ def configure(parser):
     parser.add_argument("--weights", default="time=1,energy=0.1", help="cost weights (default time=1,energy=0.1)")
     parser.add_argument("--space", choices=("joint", "task"), default="joint", help="sampling space (default joint)")
     parser.add_argument("--batch", type=int, default=None,
-                        help="pairs per chunk = solve_batch size (default 64; part of the dataset's identity)")
+                        help="pairs per chunk = solve_batch size (part of the dataset's identity; default: the "
+                             "existing dataset's when resuming, else P/16 in multiples of 64 within 64..256)")
     parser.add_argument("--ray", metavar="ADDRESS", default=None,
                         help="distribute over Ray: auto, HOST:PORT, ray://HOST:PORT, or local[:K] (start one here)")
     parser.add_argument("--workers", type=_workers, default=None,
@@ -111,11 +112,17 @@ def run(args) -> int:
     if missing:
         raise ValueError(f"build needs {', '.join(missing)}")
     from jtraj import dataset
-    from jtraj.dataset.build import DEFAULT_BATCH
+    from jtraj.dataset.store import read_manifest
 
+    batch = args.batch
+    if batch is None and os.path.isdir(args.out):
+        try:  # resuming: keep the chunk size the dataset was started with
+            batch = read_manifest(args.out)["identity"]["batch"]
+        except (ValueError, KeyError):
+            batch = None  # not a dataset (yet): the build reports what is wrong there
     options = {} if args.max_iter is None else {"max_iter": args.max_iter}
     spec = dataset.make_spec(args.robot, args.pairs, args.seed, N=args.N, weights=args.weights,
-                             batch=DEFAULT_BATCH if args.batch is None else args.batch, space=args.space,
+                             batch=batch, space=args.space,
                              start_range=args.start_range, step_range=args.step_range,
                              min_separation=args.min_separation, ik_method=args.ik_method, options=options,
                              solver=args.solver, h_max=_h_max(args.h_max))
