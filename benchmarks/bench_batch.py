@@ -49,7 +49,7 @@ def main(argv=None):
             dt = time.perf_counter() - t
             st, it = np.asarray(s.status), np.asarray(s.iterations)
             print(f"B {B:6d} slots {args.slots} {run}: {dt:7.1f} s  {B / dt:8.1f} pairs/s  converged "
-                  f"{np.mean(st == 0) * 100:5.1f} %  statuses {np.bincount(st, minlength=6).tolist()}  "
+                  f"{np.mean(st == 0) * 100:5.1f} %  statuses {np.bincount(st, minlength=7).tolist()}  "
                   f"iterations median {np.median(it):.0f} max {it.max()}", flush=True)
 
 

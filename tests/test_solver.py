@@ -18,6 +18,7 @@ import pytest
 
 import jtraj
 from jtraj import Status
+from jtraj.solver import SolverOptions
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 
@@ -100,6 +101,19 @@ def test_batch_statuses_and_no_false_convergence(batch):
             chk = V.verify(q0[i], q1[i], np.asarray(sol.v[i]), np.asarray(sol.h[i]), tol=1e-6)
             assert chk["ok"], (i, chk["max_rel_violation"], chk["goal_error"])
     assert np.sum(np.asarray(sol.converged[:3])) >= 2
+
+
+def test_problem_needing_more_time_than_n_h_max_stops_as_likely_infeasible(robot):
+    """0.7 rad on every joint is within reach kinematically in N h_max = 1 s (bang-bang:
+    0.97 s) but not under serial3's torque limits: the violation stalls while the penalty
+    grows, and the solver stops early instead of running out its iterations."""
+    q0 = np.array([0.0, 0.3, -0.3])
+    problem = jtraj.Problem(robot, q0, q0 + 0.7, N=N, weights=W)
+    sol = jtraj.solve(problem)
+    assert int(sol.status) == Status.LIKELY_INFEASIBLE, sol.status_message
+    assert "likely infeasible" in sol.status_message and not bool(sol.converged)
+    assert float(sol.max_violation["overall"]) > 1e-3
+    assert int(sol.iterations) < SolverOptions().max_iter
 
 
 def test_batch_matches_single(robot, batch):
