@@ -31,7 +31,8 @@ import numpy as np
 from . import _local, sampling, store
 
 DEFAULT_SOLVER = "jtraj:solve_batch"
-DEFAULT_BATCH = 64
+DEFAULT_BATCH = 64  # the smallest default chunk, see default_batch
+DEFAULT_WEIGHTS = "time=1,energy=0.1"
 
 
 def default_batch(pairs: int) -> int:
@@ -41,7 +42,8 @@ def default_batch(pairs: int) -> int:
     tail). Measured end to end on 2 cores (``bench_dataset.py --batches 64 256``, one
     worker per core, serial3): chunks of 64 pairs 4.18 pairs/s, of 256 pairs 5.94."""
     return int(min(256, max(DEFAULT_BATCH, pairs // 16 // 64 * 64)))
-DEFAULT_WEIGHTS = "time=1,energy=0.1"
+
+
 #: default sampling-period bound of a dataset, as a multiple of the robot's own h_max.
 #: The robots' bounds come from single published scenarios; with N = 20 serial3's caps
 #: T at 2 s, and 8 of 96 pairs of the default joint-space law need 2.0-2.6 s (IPOPT:
