@@ -471,7 +471,7 @@ def _init_state(nlp: _NLP, z0, opts: SolverOptions, warm=False) -> _State:
 
 
 def _finished(s: _State, opts: SolverOptions):
-    return s.done | (s.it >= opts.max_iter) | (s.outer >= opts.max_outer)
+    return s.done | s.stalled | (s.it >= opts.max_iter) | (s.outer >= opts.max_outer)
 
 
 def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit):
@@ -525,7 +525,7 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit):
             z=z, mult=pick(mult, s.mult), mu=pick(mu, s.mu), damping=damping,
             omega=pick(omega, s.omega), eta=pick(eta, s.eta), viol_prev=pick(viol, s.viol_prev),
             inner=jnp.where(subproblem_done, 0, inner), outer=s.outer + subproblem_done.astype(int),
-            it=s.it + 1, done=(subproblem_done & converged) | failed | stalled, failed=failed, stalled=stalled,
+            it=s.it + 1, done=(subproblem_done & converged) | failed, failed=failed, stalled=stalled,
             stationarity=stat, history=jnp.where(subproblem_done, hist, s.history))
 
     return jax.lax.while_loop(cond, body, state)
@@ -634,14 +634,13 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
     # the loop certifies optimality on the AL's own measure at the end of a subproblem;
     # a point it left uncertified (iteration limit) may still be a KKT point of the
     # original problem, which the least-squares multipliers decide
-    done = s.done & ~s.stalled
-    certified = done | (_kkt_error(nlp, s.z) <= opts.tol_optimality)
+    certified = s.done | (_kkt_error(nlp, s.z) <= opts.tol_optimality)
     unfinished = jnp.where(s.stalled, Status.LIKELY_INFEASIBLE, Status.MAX_ITERATIONS)
     status = jnp.where(
         ~valid, Status.INVALID_INPUT,
         jnp.where(~finite | s.failed, Status.NUMERICAL_ERROR,
                   jnp.where(certified & verified, Status.CONVERGED,
-                            jnp.where(done, Status.VERIFICATION_FAILED,
+                            jnp.where(s.done, Status.VERIFICATION_FAILED,
                                       jnp.where(verified, Status.FEASIBLE_NOT_OPTIMAL, unfinished)))))
     scale = 1.0 if lim.tau_max is None else lim.tau_max
     energy = jnp.sum(h * jnp.sum((tau / scale) ** 2, axis=1))
@@ -760,8 +759,9 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     nothing is pending, the unfinished problems move to fewer lanes (see
     :func:`_lane_counts`). Each problem takes the iterations it takes in a one-shot batch
     (results equal up to rounding at another batch width).
-    Measured (serial3, N = 20, 96 dataset pairs, 2 cores, warm): 27.6 s with 32 lanes
-    throughout (64 % of the lane-iterations useful), 19.2 s stepping down to 8 and 2."""
+    Measured (serial3, N = 20, 96 dataset pairs, 2 cores, warm, segments of 25): 27.6 s
+    with 32 lanes throughout (64 % of the lane-iterations useful), 19.2 s stepping down
+    to 8 and 2 (17.8 s with segments of 10, the default)."""
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
     B = int(valid.shape[0])
     counts = _lane_counts(slots)
@@ -769,8 +769,9 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     nxt = slots
     done = np.zeros(B, bool)
     while True:
-        sub = _segment_jit(*_gather_jit(nlps, states, jnp.asarray(idx)), opts, steps)
-        states, fin = _scatter_jit(states, sub, jnp.asarray(idx), opts)
+        lanes = jnp.asarray(idx)
+        sub = _segment_jit(*_gather_jit(nlps, states, lanes), opts, steps)
+        states, fin = _scatter_jit(states, sub, lanes, opts)
         fin = np.asarray(fin)
         done[idx[fin]] = True
         for j in np.flatnonzero(fin):
