@@ -12,6 +12,7 @@ import math
 from typing import Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
@@ -146,7 +147,8 @@ class Problem(eqx.Module):
         self.weights = Weights() if weights is None else weights
         if not isinstance(self.weights, Weights):
             raise ValueError(f"weights must be a jtraj.Weights, got {type(weights).__name__}")
-        self.via_points = tuple(_as_via(p, i) for i, p in enumerate(via_points))
+        d = jax.eval_shape(robot.forward_kinematics, self.q_start).shape[0]
+        self.via_points = tuple(_as_via(p, i, d) for i, p in enumerate(via_points))
         if T_max is None:
             self.T_max = jnp.asarray(jnp.inf)
         else:
@@ -221,11 +223,18 @@ def ik_or_raise(robot, p, q_init, name, method="weighted"):
     return res.q
 
 
-def _as_via(p, i) -> ViaPoint:
-    if isinstance(p, ViaPoint):
-        as_vector(p.point, f"via_points[{i}].point")
-        return p
-    return ViaPoint(point=as_vector(p, f"via_points[{i}]"))
+def _as_via(p, i, d) -> ViaPoint:
+    """Validate via point ``i`` of a robot whose task space has dimension ``d``."""
+    vp = p if isinstance(p, ViaPoint) else ViaPoint(point=p)
+    name = f"via_points[{i}]" + (".point" if isinstance(p, ViaPoint) else "")
+    if jnp.shape(vp.point) != (d,):
+        raise ValueError(f"{name} must have shape ({d},) (the robot's task space), got shape {jnp.shape(vp.point)}")
+    point = as_vector(vp.point, name, d)
+    if jnp.ndim(vp.tol) != 0:
+        raise ValueError(f"via_points[{i}].tol must be a scalar, got shape {jnp.shape(vp.tol)}")
+    if is_concrete(vp.tol) and not (math.isfinite(float(vp.tol)) and float(vp.tol) > 0):
+        raise ValueError(f"via_points[{i}].tol must be a finite distance > 0 [m], got {vp.tol!r}")
+    return ViaPoint(point=point, tol=vp.tol, sample=vp.sample)
 
 
 def minimum_time_bound(problem: Problem) -> Array:

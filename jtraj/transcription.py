@@ -54,6 +54,8 @@ _BIG = 1e6  # "no bound" stand-in for scaling when a box is absent
 _H_SCALE = 0.25
 
 TRANSCRIPTIONS = ("decoupled", "coupled", "collocation", "shooting", "spline")
+#: relative shrink of the box that imposes a via point (see stage_constraints)
+VIA_MARGIN = 1e-4
 
 
 class StageData(NamedTuple):
@@ -63,7 +65,7 @@ class StageData(NamedTuple):
     is_inner: Array  # (N+1,) 1 for k >= 1 (state boxes apply; q_0, qd_0 are given)
     is_final: Array  # (N+1,) 1 for k == N
     via_target: Array  # (N+1, d) task point to pass at this sample
-    via_halfwidth: Array  # (N+1,) half-width of the via box (0 where none)
+    via_tol: Array  # (N+1,) Euclidean tolerance of the passage (0 where none)
     is_via: Array  # (N+1,) 1 where a via point is imposed
 
 
@@ -317,7 +319,10 @@ class Transcription:
             lo, hi = lim.workspace
             ineq["workspace"] = box(p - (lo + hi) / 2, (hi - lo) / 2, sd.is_inner)
         if len(problem.via_points) > 0:
-            width = jnp.maximum(sd.via_halfwidth, 1e-12)
+            # the box inscribed in the ball of radius tol, shrunk by VIA_MARGIN so that
+            # the box met within the polish's residual keeps the passage within tol
+            # (verified on the Euclidean distance, relative to tol: see solver._finish)
+            width = jnp.maximum(sd.via_tol, 1e-12) * (1.0 - VIA_MARGIN) / jnp.sqrt(p.shape[-1])
             # scale: a via box of half-width tol is normalised by 1 m + tol so that a
             # tight tolerance does not blow up the conditioning
             g = jnp.stack([(p - sd.via_target - width) / (1.0 + width),
@@ -350,15 +355,15 @@ class Transcription:
         d = problem.robot.forward_kinematics(problem.q_start).shape[0]
         k = jnp.arange(N + 1)
         target = jnp.zeros((N + 1, d))
-        width = jnp.zeros(N + 1)
+        tol = jnp.zeros(N + 1)
         is_via = jnp.zeros(N + 1)
         for vp, kk in zip(problem.via_points, problem.via_samples()):
             target = target.at[kk].set(vp.point)
-            width = width.at[kk].set(jnp.asarray(vp.tol) / jnp.sqrt(d))
+            tol = tol.at[kk].set(vp.tol)
             is_via = is_via.at[kk].set(1.0)
         return StageData(is_interval=(k < N).astype(float), is_inner=(k >= 1).astype(float),
                          is_final=(k == N).astype(float), via_target=target,
-                         via_halfwidth=width, is_via=is_via)
+                         via_tol=tol, is_via=is_via)
 
 
 def sd_mask(mask, x):

@@ -131,6 +131,8 @@ def test_batch_matches_single(robot, batch):
     (dict(T_max=-1.0), "T_max"),
     (dict(N=2, q_goal=[2.0, 0.0, 0.0]), "N = 2 is too small"),
     (dict(qd_start=[5.0, 0.0, 0.0]), "qd_start"),
+    (dict(via_points=[jtraj.ViaPoint(np.array([1.0, 1.0]), tol=0.0)]), r"via_points\[0\]\.tol"),
+    (dict(via_points=[[1.0, 1.0, 1.0]]), r"via_points\[0\] must have shape \(2,\)"),
 ])
 def test_bad_problem_input(robot, kwargs, match):
     args = dict(q_start=Q0, q_goal=Q1, N=N, weights=W)
@@ -138,6 +140,34 @@ def test_bad_problem_input(robot, kwargs, match):
     q_start, q_goal = args.pop("q_start"), args.pop("q_goal")
     with pytest.raises(ValueError, match=match):
         jtraj.Problem(robot, q_start, q_goal, **args)
+
+
+def _tip(q):
+    """serial3's tip by its closed form (lengths 1.0, 0.8, 0.45 m; no jtraj code)."""
+    phi = np.cumsum(q)
+    return np.array([1.0, 0.8, 0.45]) @ np.stack([np.cos(phi), np.sin(phi)], axis=1)
+
+
+def test_via_point_is_passed_within_its_own_tolerance(robot, single):
+    V = pytest.importorskip("peers.verify")
+    free = single[1]
+    tol, k = 1e-3, N // 2  # one via point goes to sample round(N / 2)
+    # 1 cm (10 tol) off the free optimum's tip at that sample: the passage must bind
+    target = _tip(np.asarray(free.q[k])) + np.array([0.01, 0.0])
+    problem = jtraj.Problem(robot, Q0, Q1, N=N, weights=W, via_points=[jtraj.ViaPoint(target, tol=tol)])
+    assert problem.via_samples() == (k,)
+    sol = jtraj.solve(problem)
+    assert sol.converged, sol.status_message
+    q, _ = V.simulate(Q0, np.asarray(sol.v), np.asarray(sol.h))
+    dist = np.linalg.norm(_tip(q[k]) - target)
+    # converged promises the Euclidean distance within tol (1 + verify_tol); the box the
+    # solver imposes is inscribed in that ball, so the passage lies between tol / sqrt(2)
+    # and tol, and binds (the free optimum is 10 tol away)
+    assert tol / np.sqrt(2) * (1 - 1e-3) <= dist <= tol * (1 + 1e-6)
+    assert float(sol.max_violation["via"]) == pytest.approx(max(dist / tol - 1, 0.0), abs=1e-9)
+    assert float(sol.cost) > float(free.cost)
+    chk = V.verify(Q0, Q1, np.asarray(sol.v), np.asarray(sol.h), tol=1e-6)
+    assert chk["ok"], chk["max_rel_violation"]
 
 
 def test_bad_batch_input(robot):
