@@ -4,8 +4,9 @@ each finished chunk to the store.
 A run is described by a :class:`Spec` (plain, picklable values). Chunk ``c`` holds pairs
 ``[c B, min((c+1) B, P))``; it is a pure function of the spec and ``c``
 (:func:`compute_chunk`): pairs from :func:`jtraj.dataset.sampling.sample_pairs`, solved
-by one call of ``solve_batch`` on a batch padded to ``B`` rows (the last pair repeated;
-padding rows are dropped) so that every chunk runs the same compiled program. That is
+by one call of ``solve_batch`` on a batch padded to ``B`` rows (the last start with a NaN
+goal: the solver flags such rows invalid before any iteration; they are dropped) so that
+every chunk runs the same compiled program. That is
 why a resumed or Ray-distributed run equals an uninterrupted single-process one.
 
 Chunks are solved by local worker processes (one pinned to each core, see
@@ -173,8 +174,10 @@ def compute_chunk(spec: Spec, c: int) -> dict:
     qs, qg = sampling.sample_pairs(robot, spec.distribution, spec.seed, start, stop)
     count = stop - start
     pad = spec.batch - count
+    # padding rows: the last start with a NaN goal, which solve_batch flags INVALID_INPUT
+    # before its first iteration (padding with a real pair solved it B - count times over)
     qs_p = np.concatenate([qs, np.repeat(qs[-1:], pad, 0)]) if pad else qs
-    qg_p = np.concatenate([qg, np.repeat(qg[-1:], pad, 0)]) if pad else qg
+    qg_p = np.concatenate([qg, np.full((pad, qg.shape[1]), np.nan)]) if pad else qg
     sol = spec.solve_fn()(robot, qs_p, qg_p, N=spec.N, weights=spec.weights_obj(), options=spec.options_obj())
     import jax
 
