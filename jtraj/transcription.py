@@ -54,8 +54,6 @@ _BIG = 1e6  # "no bound" stand-in for scaling when a box is absent
 _H_SCALE = 0.25
 
 TRANSCRIPTIONS = ("decoupled", "coupled", "collocation", "shooting", "spline")
-#: relative shrink of the box that imposes a via point (see stage_constraints)
-VIA_MARGIN = 1e-4
 
 
 class StageData(NamedTuple):
@@ -319,10 +317,9 @@ class Transcription:
             lo, hi = lim.workspace
             ineq["workspace"] = box(p - (lo + hi) / 2, (hi - lo) / 2, sd.is_inner)
         if len(problem.via_points) > 0:
-            # the box inscribed in the ball of radius tol, shrunk by VIA_MARGIN so that
-            # the box met within the polish's residual keeps the passage within tol
-            # (verified on the Euclidean distance, relative to tol: see solver._finish)
-            width = jnp.maximum(sd.via_tol, 1e-12) * (1.0 - VIA_MARGIN) / jnp.sqrt(p.shape[-1])
+            # the box inscribed in the ball of radius tol (smooth, unlike the distance at
+            # a tight tol); the verification checks the distance itself (solver._finish)
+            width = jnp.maximum(sd.via_tol, 1e-12) / jnp.sqrt(p.shape[-1])
             # scale: a via box of half-width tol is normalised by 1 m + tol so that a
             # tight tolerance does not blow up the conditioning
             g = jnp.stack([(p - sd.via_target - width) / (1.0 + width),
