@@ -265,8 +265,9 @@ def test_views_rows_and_trajectory_index(tmp_path):
 def test_default_chunk_size_grows_with_the_dataset():
     from jtraj.dataset.build import default_batch
 
-    assert [default_batch(p) for p in (1, 96, 1024, 2048, 3000, 4096, 10_000, 10**6)] == [
-        64, 64, 64, 128, 128, 256, 256, 256]
+    sizes = (1, 96, 1024, 2048, 3000, 4096, 10_000, 10**6)
+    assert [default_batch(p, accelerator=False) for p in sizes] == [64, 64, 64, 128, 128, 256, 256, 256]
+    assert [default_batch(p, accelerator=True) for p in sizes] == [256, 256, 256, 512, 512, 1024, 2304, 4096]
     assert fake_spec(pairs=20, batch=None).batch == 20  # never padded beyond P
     assert fake_spec(pairs=5000, batch=None).batch == 256
 

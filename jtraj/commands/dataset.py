@@ -37,7 +37,8 @@ def configure(parser):
     parser.add_argument("--space", choices=("joint", "task"), default="joint", help="sampling space (default joint)")
     parser.add_argument("--batch", type=int, default=None,
                         help="pairs per chunk = solve_batch size (part of the dataset's identity; default: the "
-                             "existing dataset's when resuming, else P/16 in multiples of 64 within 64..256)")
+                             "existing dataset's when resuming, else P/16 in multiples of 64 within 64..256 on a "
+                             "CPU, P/4 in multiples of 256 within 256..4096 on an accelerator)")
     parser.add_argument("--ray", metavar="ADDRESS", default=None,
                         help="distribute over Ray: auto, HOST:PORT, ray://HOST:PORT, or local[:K] (start one here)")
     parser.add_argument("--workers", type=_workers, default=None,
