@@ -59,12 +59,12 @@ def measure_jtraj(B, chunks, seed, N, solver, workers):
             "bytes_per_pair": size / pairs, "h_max": spec.robot_model().limits.h_max, "workers": workers}, (q0, q1)
 
 
-def measure_ipopt(q0, q1, processes, N, h_max):
+def measure_ipopt(q0, q1, processes, N, h_max, formulation="lifted"):
     from peers.ipopt_peer import solve_many
 
-    res = solve_many(q0, q1, processes=processes, N=N, h_max=h_max)
+    res = solve_many(q0, q1, processes=processes, N=N, h_max=h_max, formulation=formulation)
     ok = np.array([r["success"] for r in res])
-    return {"pairs": len(res), "processes": res.processes, "seconds": res.wall_seconds,
+    return {"pairs": len(res), "processes": res.processes, "formulation": formulation, "seconds": res.wall_seconds,
             "setup_seconds": res.setup_seconds, "pairs_per_s": len(res) / res.wall_seconds,
             "success_fraction": float(ok.mean())}
 
@@ -109,6 +109,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--N", type=int, default=20)
     ap.add_argument("--no-ipopt", action="store_true")
+    ap.add_argument("--peer-formulation", choices=("lifted", "condensed"), default="lifted",
+                    help="CasADi form of the IPOPT peer (default lifted, the fast one; see peers/ipopt_peer.py)")
     ap.add_argument("--solver", default="jtraj:solve_batch", help=argparse.SUPPRESS)
     ap.add_argument("--out-dir", default=".", help="where bench_dataset.json/.png go")
     args = ap.parse_args(argv)
@@ -139,7 +141,8 @@ def main(argv=None) -> dict:
     if not args.no_ipopt:
         m = min(n_ipopt, len(pairs[0]))
         # the same problems: the dataset's period bound (twice the robot's by default)
-        ipopt = measure_ipopt(pairs[0][:m], pairs[1][:m], args.processes, args.N, results[0]["h_max"])
+        ipopt = measure_ipopt(pairs[0][:m], pairs[1][:m], args.processes, args.N, results[0]["h_max"],
+                              args.peer_formulation)
         print(f"IPOPT peer: {ipopt['pairs_per_s']:.2f} pairs/s on {ipopt['processes']} processes "
               f"({ipopt['pairs']} pairs in {ipopt['seconds']:.1f} s, setup {ipopt['setup_seconds']:.1f} s), "
               f"success {100 * ipopt['success_fraction']:.1f} %")

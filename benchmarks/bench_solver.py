@@ -1,6 +1,7 @@
 """jtraj's ALD solver against CasADi + IPOPT on the canonical serial3 benchmark.
 
     python benchmarks/bench_solver.py [--pairs 64] [--batch 64] [--seed 0] [--N 20]
+                                      [--peer-formulation lifted|condensed]
                                       [--scaling] [--plot bench_solver.png] [--json out.json]
 
 Problem family (issue #3): serial3, N = 20, weights time = 1, energy = 0.1, q_start ~
@@ -13,6 +14,8 @@ throughput on all cores (IPOPT: one process per core; jtraj: vmapped batches, on
 process pinned to each core, ``--workers``), compile time, and, with ``--scaling``,
 time per problem against N and B (one process).
 Ratios are jtraj / IPOPT or IPOPT / jtraj as labelled; > 1 means jtraj is ahead.
+The peer is the "lifted" CasADi form by default (states as variables, sparse; the fast
+one); "condensed" (states eliminated) is 4-6x slower per IPOPT iteration.
 """
 
 from __future__ import annotations
@@ -107,6 +110,8 @@ def main(argv=None):
     ap.add_argument("--workers", type=int, default=None,
                     help="jtraj batch processes, one pinned to each core (default: all cores, as IPOPT)")
     ap.add_argument("--scaling", action="store_true", help="also time N = 10..80 and B = 64..4096")
+    ap.add_argument("--peer-formulation", choices=("lifted", "condensed"), default="lifted",
+                    help="CasADi form of the IPOPT peer (default lifted, the fast one; see peers/ipopt_peer.py)")
     ap.add_argument("--plot", default=None)
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
@@ -127,7 +132,7 @@ def main(argv=None):
     print(f"serial3, N = {args.N}, weights time=1 energy=0.1, {args.pairs} pairs (seed {args.seed}), "
           f"os.cpu_count() = {os.cpu_count()}")
 
-    ip = solve_many(q0, q1, N=args.N)
+    ip = solve_many(q0, q1, N=args.N, formulation=args.peer_formulation)
     ip_thr = len(ip) / ip.wall_seconds
     ip_ok = np.array([r["success"] for r in ip])
     ip_ver = np.array([r["success"] and verify(a, b, r["v"], r["h"], tol=1e-6)["ok"] for a, b, r in zip(q0, q1, ip)])
@@ -144,10 +149,12 @@ def main(argv=None):
 
     L = min(args.latency_pairs, args.pairs)
     lat, compile_single = _jtraj_single_latency(q0[:L], q1[:L], args.N, weights)
-    ip_lat = np.array([solve_pair(a, b, N=args.N)["seconds"] for a, b in zip(q0[:L], q1[:L])])
+    ip_lat = np.array([solve_pair(a, b, N=args.N, formulation=args.peer_formulation)["seconds"]
+                       for a, b in zip(q0[:L], q1[:L])])
 
     report = {
         "pairs": args.pairs, "N": args.N, "batch": args.batch, "jtraj_workers": args.workers,
+        "peer_formulation": args.peer_formulation,
         "ipopt_success": int(ip_ok.sum()), "ipopt_verified": int(ip_ver.sum()),
         "jtraj_converged": int(jt_conv.sum()), "jtraj_verified_converged": int((jt_conv & jt_ver).sum()),
         "jtraj_feasible_verified": int(jt_ver.sum()), "jtraj_false_converged": false_conv,

@@ -13,9 +13,19 @@ Problem (N intervals, decision variables v_k in R^3 and h_k, k = 0..N-1)::
     |tau_k| <= tau_max, |v_k| <= qdd_max (k < N), |qd_k| <= qd_max (k = 1..N),
     h_min <= h_k <= h_max,  q_N = q_goal,  qd_N = 0.
 
-The states are eliminated (condensed/single-shooting form): the NLP has 4N variables.
-The NLP is built **once** per settings ``(N, weights, masses)`` with the start and goal
-as CasADi parameters and cached per process (:data:`_CACHE`).
+Two CasADi formulations of this same transcription (same unknowns v, h, same optimum):
+
+* ``"lifted"`` (default): the states q_k, qd_k (k = 1..N) are extra NLP variables and
+  the recursion enters as equality constraints (multiple-shooting style), so IPOPT sees
+  sparse Jacobians and Hessians of short expressions. This is how CasADi users build
+  such problems, and the fair peer: on 16 benchmark pairs it took a median 0.22 s
+  (67 iterations, 3.4 ms each) against 0.97 s for the condensed form.
+* ``"condensed"``: the states are eliminated (single shooting): 4N variables, but dense
+  derivatives of deep SX graphs (about 15 ms per IPOPT iteration at N = 20). jtraj's
+  benchmark figures before 2026-11-27 were measured against this slower peer.
+
+The NLP is built **once** per settings ``(N, weights, masses, h_max, formulation)`` with
+the start and goal as CasADi parameters and cached per process (:data:`_CACHE`).
 
 API
 ---
@@ -100,8 +110,9 @@ class _Peer:
     """The built solver and helpers for one setting (N, weights, masses, h_max)."""
 
     def __init__(self, N: int, weights: tuple[float, float, float], masses: tuple[float, ...],
-                 h_max: float = H_MAX):
+                 h_max: float = H_MAX, formulation: str = "lifted"):
         self.N, self.weights, self.masses, self.h_max = N, weights, masses, h_max
+        self.formulation = formulation
         w_time, w_energy, w_kin = weights
         idf = inverse_dynamics_function(masses)
         v = ca.SX.sym("v", NDOF, N)  # column k = v_k
@@ -119,34 +130,63 @@ class _Peer:
             qd = qd + h[k] * v[:, k]
             qs.append(q)
             qds.append(qd)
-        x = ca.vertcat(ca.vec(v), h)  # v column-major: v_0, v_1, ... then h
-        # constraints: tau_k (3N), qd_k k=1..N-1 (3(N-1)), qd_N (3), q_N - q_goal (3)
-        g = ca.vertcat(*taus, *qds[1:N], qds[N], qs[N] - q_goal)
+        xvh = ca.vertcat(ca.vec(v), h)  # v column-major: v_0, v_1, ... then h
         tmax = np.tile(TAU_MAX, N)
-        self.lbg = np.concatenate([-tmax, np.full(NDOF * (N - 1), -QD_MAX), np.zeros(2 * NDOF)])
-        self.ubg = np.concatenate([tmax, np.full(NDOF * (N - 1), QD_MAX), np.zeros(2 * NDOF)])
-        self.lbx = np.concatenate([np.full(NDOF * N, -QDD_MAX), np.full(N, H_MIN)])
-        self.ubx = np.concatenate([np.full(NDOF * N, QDD_MAX), np.full(N, h_max)])
-        self.solver = ca.nlpsol("S", "ipopt", {"x": x, "p": p, "f": cost, "g": g}, dict(IPOPT_OPTIONS))
-        self.traj = ca.Function("traj", [x, p],
+        lbx_vh = np.concatenate([np.full(NDOF * N, -QDD_MAX), np.full(N, H_MIN)])
+        ubx_vh = np.concatenate([np.full(NDOF * N, QDD_MAX), np.full(N, h_max)])
+        if formulation == "condensed":
+            x, f = xvh, cost
+            # constraints: tau_k (3N), qd_k k=1..N-1 (3(N-1)), qd_N (3), q_N - q_goal (3)
+            g = ca.vertcat(*taus, *qds[1:N], qds[N], qs[N] - q_goal)
+            self.lbg = np.concatenate([-tmax, np.full(NDOF * (N - 1), -QD_MAX), np.zeros(2 * NDOF)])
+            self.ubg = np.concatenate([tmax, np.full(NDOF * (N - 1), QD_MAX), np.zeros(2 * NDOF)])
+            self.lbx, self.ubx = lbx_vh, ubx_vh
+        else:  # lifted: states 1..N are variables, the recursion is a set of equalities
+            Q, QD = ca.SX.sym("Q", NDOF, N), ca.SX.sym("QD", NDOF, N)
+            q, qd, f, g, lbg, ubg = q_start, ca.SX.zeros(NDOF), 0, [], [], []
+            for k in range(N):
+                tau = idf(q, qd, v[:, k])
+                f += h[k] * (w_time + ca.bilin(U, tau, tau) + w_kin * ca.dot(qd, qd))
+                g += [tau, Q[:, k] - (q + h[k] * qd + 0.5 * h[k] ** 2 * v[:, k]), QD[:, k] - (qd + h[k] * v[:, k])]
+                lbg += [-np.asarray(TAU_MAX), np.zeros(2 * NDOF)]
+                ubg += [np.asarray(TAU_MAX), np.zeros(2 * NDOF)]
+                q, qd = Q[:, k], QD[:, k]
+            g.append(Q[:, N - 1] - q_goal)
+            lbg.append(np.zeros(NDOF))
+            ubg.append(np.zeros(NDOF))
+            x, g = ca.vertcat(xvh, ca.vec(Q), ca.vec(QD)), ca.vertcat(*g)
+            self.lbg, self.ubg = np.concatenate(lbg), np.concatenate(ubg)
+            # |qd_k| <= qd_max for k = 1..N-1 and qd_N = 0 as simple bounds
+            qd_lo = np.concatenate([np.full(NDOF * (N - 1), -QD_MAX), np.zeros(NDOF)])
+            self.lbx = np.concatenate([lbx_vh, np.full(NDOF * N, -np.inf), qd_lo])
+            self.ubx = np.concatenate([ubx_vh, np.full(NDOF * N, np.inf), -qd_lo])
+            self.states = ca.Function("states", [xvh, p], [ca.horzcat(*qs[1:]), ca.horzcat(*qds[1:])])
+        self.solver = ca.nlpsol("S", "ipopt", {"x": x, "p": p, "f": f, "g": g}, dict(IPOPT_OPTIONS))
+        self.traj = ca.Function("traj", [xvh, p],
                                 [ca.horzcat(*qs).T, ca.horzcat(*qds).T, ca.horzcat(*taus).T, cost],
                                 ["x", "p"], ["q", "qd", "tau", "cost"])
 
-    def pack(self, v, h) -> np.ndarray:
+    def pack(self, v, h, p=None) -> np.ndarray:
+        """The NLP's starting point from (v, h); the lifted form adds the states that
+        the recursion gives from v and h (p = [q_start; q_goal])."""
         v = np.asarray(v, float).reshape(self.N, NDOF)
-        return np.concatenate([v.reshape(-1), np.asarray(h, float).reshape(self.N)])
+        xvh = np.concatenate([v.reshape(-1), np.asarray(h, float).reshape(self.N)])
+        if self.formulation == "condensed":
+            return xvh
+        Q, QD = self.states(xvh, p)
+        return np.concatenate([xvh, np.asarray(Q).T.reshape(-1), np.asarray(QD).T.reshape(-1)])
 
     def solve(self, q_start, q_goal, init=None) -> dict:
         q_start = np.asarray(q_start, float).reshape(NDOF)
         q_goal = np.asarray(q_goal, float).reshape(NDOF)
         v0, h0 = cycloidal_init(q_start, q_goal, self.N, self.h_max) if init is None else init
-        x0 = self.pack(v0, h0)
         p = np.concatenate([q_start, q_goal])
+        x0 = self.pack(v0, h0, p)
         t0 = time.perf_counter()
         sol = self.solver(x0=x0, p=p, lbx=self.lbx, ubx=self.ubx, lbg=self.lbg, ubg=self.ubg)
         seconds = time.perf_counter() - t0
         st = self.solver.stats()
-        x = np.asarray(sol["x"]).ravel()
+        x = np.asarray(sol["x"]).ravel()[:(NDOF + 1) * self.N]  # (v, h); the lifted states follow
         out = self.traj(x, p)
         status = str(st.get("return_status", "unknown"))
         h = x[NDOF * self.N:]
@@ -164,7 +204,10 @@ class _Peer:
 _CACHE: dict[tuple, _Peer] = {}
 
 
-def _key(N, weights, masses, h_max=H_MAX) -> tuple:
+FORMULATIONS = ("lifted", "condensed")
+
+
+def _key(N, weights, masses, h_max=H_MAX, formulation="lifted") -> tuple:
     weights = tuple(float(w) for w in weights)
     if len(weights) != 3:
         raise ValueError(f"weights must be (w_time, w_energy, w_kin), got {weights}")
@@ -176,12 +219,14 @@ def _key(N, weights, masses, h_max=H_MAX) -> tuple:
     h_max = float(h_max)
     if not (math.isfinite(h_max) and h_max > H_MIN):
         raise ValueError(f"h_max must be a number above h_min = {H_MIN}, got {h_max}")
-    return int(N), weights, masses, h_max
+    if formulation not in FORMULATIONS:
+        raise ValueError(f"formulation must be one of {FORMULATIONS}, got {formulation!r}")
+    return int(N), weights, masses, h_max, formulation
 
 
-def get_peer(N: int = 20, weights=CANONICAL_WEIGHTS, masses=None, h_max=H_MAX) -> _Peer:
+def get_peer(N: int = 20, weights=CANONICAL_WEIGHTS, masses=None, h_max=H_MAX, formulation="lifted") -> _Peer:
     """The cached built solver for these settings (built on first use in this process)."""
-    key = _key(N, weights, masses, h_max)
+    key = _key(N, weights, masses, h_max, formulation)
     if key not in _CACHE:
         _CACHE[key] = _Peer(*key)
     return _CACHE[key]
@@ -204,7 +249,7 @@ def cycloidal_init(q_start, q_goal, N: int = 20, h_max: float = H_MAX) -> tuple[
 
 
 def solve_pair(q_start, q_goal, N: int = 20, weights=CANONICAL_WEIGHTS, init=None,
-               masses=None, h_max=H_MAX) -> dict:
+               masses=None, h_max=H_MAX, formulation="lifted") -> dict:
     """Solve one start -> goal problem with IPOPT (solver built once per process/settings).
 
     Args:
@@ -215,13 +260,15 @@ def solve_pair(q_start, q_goal, N: int = 20, weights=CANONICAL_WEIGHTS, init=Non
         masses: optional override of the link masses (3,) [kg].
         h_max: upper bound of the periods [s] (default the robot's 0.1; jtraj datasets
             use twice that by default).
+        formulation: "lifted" (default, the fast peer) or "condensed" (see the module
+            docstring).
 
     Returns a dict: v (N,3), h (N,), q (N+1,3), qd (N+1,3), tau (N,3), T (= sum h),
     cost, success (Solve_Succeeded or Solved_To_Acceptable_Level), strict_success
     (Solve_Succeeded only), status (IPOPT's return_status), iterations, seconds (wall
     time of the solver call), ipopt_seconds (IPOPT's t_wall_total), q_start, q_goal.
     """
-    return get_peer(N, weights, masses, h_max).solve(q_start, q_goal, init)
+    return get_peer(N, weights, masses, h_max, formulation).solve(q_start, q_goal, init)
 
 
 # ---------------------------------------------------------------- multiprocessing
@@ -248,12 +295,13 @@ def _worker_init(settings, barrier):
 
 def _worker_solve(job):
     q_start, q_goal, init = job
-    N, weights, masses, h_max = _WORKER_SETTINGS
-    return solve_pair(q_start, q_goal, N=N, weights=weights, init=init, masses=masses, h_max=h_max)
+    N, weights, masses, h_max, formulation = _WORKER_SETTINGS
+    return solve_pair(q_start, q_goal, N=N, weights=weights, init=init, masses=masses, h_max=h_max,
+                      formulation=formulation)
 
 
 def solve_many(q_starts, q_goals, *, processes: int | None = None, N: int = 20,
-               weights=CANONICAL_WEIGHTS, masses=None, inits=None, h_max=H_MAX,
+               weights=CANONICAL_WEIGHTS, masses=None, inits=None, h_max=H_MAX, formulation="lifted",
                start_method: str = "spawn", single_thread: bool = True) -> SolveBatch:
     """Solve many pairs on ``processes`` worker processes (default ``os.cpu_count()``).
 
@@ -274,7 +322,7 @@ def solve_many(q_starts, q_goals, *, processes: int | None = None, N: int = 20,
     inits = [None] * n if inits is None else list(inits)
     if len(inits) != n:
         raise ValueError(f"inits has {len(inits)} entries for {n} pairs")
-    settings = _key(N, weights, masses, h_max)
+    settings = _key(N, weights, masses, h_max, formulation)
     processes = max(1, min(int(processes or os.cpu_count() or 1), max(n, 1)))
     jobs = list(zip(q_starts, q_goals, inits))
     batch = SolveBatch()
@@ -284,8 +332,8 @@ def solve_many(q_starts, q_goals, *, processes: int | None = None, N: int = 20,
         get_peer(*settings)
         batch.setup_seconds = time.perf_counter() - t0
         t0 = time.perf_counter()
-        batch.extend(solve_pair(a, b, *settings[:2], init=i, masses=settings[2], h_max=settings[3])
-                     for a, b, i in jobs)
+        batch.extend(solve_pair(a, b, *settings[:2], init=i, masses=settings[2], h_max=settings[3],
+                                formulation=settings[4]) for a, b, i in jobs)
         batch.wall_seconds = time.perf_counter() - t0
         return batch
     ctx = mp.get_context(start_method)
