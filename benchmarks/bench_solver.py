@@ -80,11 +80,16 @@ def _jtraj_batch(q0, q1, N, B, weights, workers=1):
 
 
 def _jtraj_single_latency(q0, q1, N, weights, repeats=3):
+    """Warm single-solve times (best of ``repeats`` per pair) and the first call's time.
+    Run by :func:`_pinned_single_latency` in a process pinned to one core, like an IPOPT
+    solve (one problem runs faster there, see ``jtraj._cpu``)."""
     import jax
 
+    jax.config.update("jax_enable_x64", True)
     import jtraj
 
     robot = jtraj.robots.get("serial3")
+    weights = jtraj.Weights(**weights)
     problems = [jtraj.Problem(robot, a, b, N=N, weights=weights, validate=False) for a, b in zip(q0, q1)]
     t0 = time.perf_counter()
     jax.block_until_ready(jtraj.solve(problems[0]).status)
@@ -98,6 +103,13 @@ def _jtraj_single_latency(q0, q1, N, weights, repeats=3):
             best = min(best, time.perf_counter() - t0)
         times.append(best)
     return np.array(times), compile_s
+
+
+def _pinned_single_latency(q0, q1, N, weights):
+    from jtraj.dataset._local import worker_pool
+
+    with worker_pool(1) as pool:  # a spawned process pinned to one core before JAX starts
+        return pool.submit(_jtraj_single_latency, q0, q1, N, weights).result()
 
 
 def main(argv=None):
@@ -148,7 +160,7 @@ def main(argv=None):
     gap = (jt["cost"] - ip_cost) / ip_cost
 
     L = min(args.latency_pairs, args.pairs)
-    lat, compile_single = _jtraj_single_latency(q0[:L], q1[:L], args.N, weights)
+    lat, compile_single = _pinned_single_latency(q0[:L], q1[:L], args.N, WEIGHTS)
     ip_lat = np.array([solve_pair(a, b, N=args.N, formulation=args.peer_formulation)["seconds"]
                        for a, b in zip(q0[:L], q1[:L])])
 

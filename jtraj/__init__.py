@@ -3,9 +3,10 @@
 __version__ = "0.1.0"
 
 from . import robots  # noqa: E402
+from ._cpu import pin_to_one_cpu  # noqa: E402
 from .problem import Problem, ViaPoint, Weights  # noqa: E402
 from .solver import Solution, SolverOptions, Status, solve, solve_batch  # noqa: E402
 from .sensitivity import sensitivity  # noqa: E402
 
 __all__ = ["Problem", "ViaPoint", "Weights", "Solution", "SolverOptions", "Status", "solve", "solve_batch", "sensitivity",
-           "robots", "__version__"]
+           "pin_to_one_cpu", "robots", "__version__"]

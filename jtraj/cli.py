@@ -83,6 +83,12 @@ def main(argv=None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    if argv is None and getattr(sys.modules[args._run.__module__], "PIN_ONE_CPU", False):
+        # one problem runs faster on one core (jtraj._cpu); only from the command line:
+        # a Python caller of main(argv) keeps its process's affinity
+        from jtraj._cpu import pin_to_one_cpu
+
+        pin_to_one_cpu()
     setup_jax()
     try:
         return int(args._run(args) or 0)

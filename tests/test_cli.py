@@ -129,3 +129,21 @@ def test_gradcheck_bad_input_exits_2(argv, needle, capsys):
     rc = cli.main(["gradcheck", *argv])
     err = capsys.readouterr().err
     assert rc == 2 and needle in err, err
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "sched_setaffinity"), reason="CPU affinity is Linux-only")
+def test_pin_to_one_cpu_restricts_the_process(tmp_path):
+    """In a child process (pinning this one would change the rest of the suite): the
+    affinity becomes the one CPU returned, chosen modulo the allowed CPUs."""
+    import os
+    import subprocess
+    import sys
+
+    allowed = sorted(os.sched_getaffinity(0))
+    code = ("import os, jtraj; c = jtraj.pin_to_one_cpu({i}); "
+            "print(c, sorted(os.sched_getaffinity(0)))")
+    for i in (0, len(allowed) + 1):
+        out = subprocess.run([sys.executable, "-c", code.format(i=i)], capture_output=True, text=True, check=True)
+        cpu, aff = out.stdout.split(maxsplit=1)
+        assert int(cpu) == allowed[i % len(allowed)]
+        assert aff.strip() == f"[{int(cpu)}]"

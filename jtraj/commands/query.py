@@ -8,6 +8,10 @@ def _vec(text):
     return [float(t) for t in text.replace(",", " ").split()]
 
 
+#: the CLI pins this command to one CPU core before JAX starts (jtraj._cpu)
+PIN_ONE_CPU = True
+
+
 def configure(parser):
     parser.add_argument("--model", required=True, help="model file from `jtraj train --mapping plan`")
     parser.add_argument("--start", required=True, type=_vec, help="start joint positions, e.g. '0,0.52,0.52'")

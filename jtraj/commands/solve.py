@@ -16,6 +16,10 @@ second, already compiled call is timed (compile_seconds is the difference).
 HELP = "solve one trajectory problem (summary, --json, --plot)"
 
 
+#: the CLI pins this command to one CPU core before JAX starts (jtraj._cpu)
+PIN_ONE_CPU = True
+
+
 def configure(parser):
     parser.add_argument("--robot", default="serial3", help="robot name (see `jtraj robots`), default serial3")
     start = parser.add_mutually_exclusive_group()

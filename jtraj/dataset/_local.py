@@ -47,9 +47,9 @@ def init_worker(counter):
     with counter.get_lock():
         index = counter.value
         counter.value += 1
-    if hasattr(os, "sched_setaffinity"):
-        cpus = sorted(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {cpus[index % len(cpus)]})
+    from jtraj._cpu import pin_to_one_cpu
+
+    pin_to_one_cpu(index)
 
 
 def worker_pool(workers: int) -> ProcessPoolExecutor:
