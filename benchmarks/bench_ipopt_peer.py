@@ -1,6 +1,7 @@
 """Standalone run of the IPOPT peer on the serial3 benchmark family.
 
     python benchmarks/bench_ipopt_peer.py [--pairs 64] [--seed 0] [--N 20] [--processes P]
+                                          [--formulation lifted|condensed]
 
 Solves ``--pairs`` random pairs (q_start ~ U(-1.2, 1.2)^3, q_goal = q_start +
 U(-0.8, 0.8)^3, seeded) on all cores with :func:`peers.ipopt_peer.solve_many`, checks
@@ -30,10 +31,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--N", type=int, default=20)
     ap.add_argument("--processes", type=int, default=None, help="default os.cpu_count()")
     ap.add_argument("--tol", type=float, default=1e-6, help="verifier tolerance")
+    ap.add_argument("--formulation", choices=("lifted", "condensed"), default="lifted",
+                    help="CasADi form of the NLP (see peers/ipopt_peer.py)")
     args = ap.parse_args(argv)
 
     q0, q1 = benchmark_pairs(args.pairs, args.seed)
-    res = solve_many(q0, q1, processes=args.processes, N=args.N)
+    res = solve_many(q0, q1, processes=args.processes, N=args.N, formulation=args.formulation)
     checks = [verify(a, b, r["v"], r["h"], tol=args.tol) for a, b, r in zip(q0, q1, res)]
 
     ok_ipopt = np.array([r["success"] for r in res])
