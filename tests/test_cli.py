@@ -132,7 +132,7 @@ def test_gradcheck_bad_input_exits_2(argv, needle, capsys):
 
 
 @pytest.mark.skipif(not hasattr(__import__("os"), "sched_setaffinity"), reason="CPU affinity is Linux-only")
-def test_pin_to_one_cpu_restricts_the_process(tmp_path):
+def test_pin_to_one_cpu_restricts_the_process():
     """In a child process (pinning this one would change the rest of the suite): the
     affinity becomes the one CPU returned, chosen modulo the allowed CPUs."""
     import os

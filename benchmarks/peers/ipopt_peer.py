@@ -107,7 +107,7 @@ def inverse_dynamics_function(masses: Sequence[float] = MASSES) -> ca.Function:
 
 # ---------------------------------------------------------------- NLP construction
 class _Peer:
-    """The built solver and helpers for one setting (N, weights, masses, h_max)."""
+    """The built solver and helpers for one setting (N, weights, masses, h_max, formulation)."""
 
     def __init__(self, N: int, weights: tuple[float, float, float], masses: tuple[float, ...],
                  h_max: float = H_MAX, formulation: str = "lifted"):
@@ -120,14 +120,21 @@ class _Peer:
         p = ca.SX.sym("p", 2 * NDOF)  # [q_start; q_goal]
         q_start, q_goal = p[:NDOF], p[NDOF:]
         U = ca.diag(ca.DM([w_energy / t**2 for t in TAU_MAX]))
+
+        def stage(q, qd, vk, hk):
+            """One sample: its effort, its cost term and the next state (both forms)."""
+            tau = idf(q, qd, vk)
+            cost_k = hk * (w_time + ca.bilin(U, tau, tau) + w_kin * ca.dot(qd, qd))
+            return tau, cost_k, q + hk * qd + 0.5 * hk**2 * vk, qd + hk * vk
+
+        # the condensed recursion: states as expressions of (v, h); the trajectory read-out
+        # of both forms, and the condensed NLP itself
         q, qd = q_start, ca.SX.zeros(NDOF)
         qs, qds, taus, cost = [q], [qd], [], 0
         for k in range(N):
-            tau = idf(q, qd, v[:, k])
+            tau, cost_k, q, qd = stage(q, qd, v[:, k], h[k])
             taus.append(tau)
-            cost += h[k] * (w_time + ca.bilin(U, tau, tau) + w_kin * ca.dot(qd, qd))
-            q = q + h[k] * qd + 0.5 * h[k] ** 2 * v[:, k]
-            qd = qd + h[k] * v[:, k]
+            cost += cost_k
             qs.append(q)
             qds.append(qd)
         xvh = ca.vertcat(ca.vec(v), h)  # v column-major: v_0, v_1, ... then h
@@ -145,9 +152,9 @@ class _Peer:
             Q, QD = ca.SX.sym("Q", NDOF, N), ca.SX.sym("QD", NDOF, N)
             q, qd, f, g, lbg, ubg = q_start, ca.SX.zeros(NDOF), 0, [], [], []
             for k in range(N):
-                tau = idf(q, qd, v[:, k])
-                f += h[k] * (w_time + ca.bilin(U, tau, tau) + w_kin * ca.dot(qd, qd))
-                g += [tau, Q[:, k] - (q + h[k] * qd + 0.5 * h[k] ** 2 * v[:, k]), QD[:, k] - (qd + h[k] * v[:, k])]
+                tau, cost_k, q_next, qd_next = stage(q, qd, v[:, k], h[k])
+                f += cost_k
+                g += [tau, Q[:, k] - q_next, QD[:, k] - qd_next]
                 lbg += [-np.asarray(TAU_MAX), np.zeros(2 * NDOF)]
                 ubg += [np.asarray(TAU_MAX), np.zeros(2 * NDOF)]
                 q, qd = Q[:, k], QD[:, k]
