@@ -342,9 +342,13 @@ class Transcription:
 
     def global_inequalities(self, problem: Problem, layout: Layout, z):
         """Constraints that couple all samples (normalised): the bound on T."""
-        _, h = layout.unpack(z)
+        return self.time_inequalities(problem, jnp.sum(layout.unpack(z)[1]))
+
+    def time_inequalities(self, problem: Problem, T):
+        """The global inequalities as a function of the total time T (all of them depend
+        on z through T only, which the stage-wise Newton solve relies on)."""
         T_max = jnp.where(jnp.isfinite(problem.T_max), problem.T_max, 1.0)
-        g = jnp.where(jnp.isfinite(problem.T_max), jnp.sum(h) / T_max - 1.0, -1.0)
+        g = jnp.where(jnp.isfinite(problem.T_max), T / T_max - 1.0, -1.0)
         return g[None]
 
     def stage_data(self, problem: Problem) -> StageData:
@@ -411,6 +415,26 @@ def decoupled_hessian(layout: Layout, W, c, Hk):
     """
     N, n = layout.N, layout.m_u
     ns, ny = 2 * n, N * (n + 1)
+    A, sy, Chv, Chh, perm = _decoupled_pieces(layout, W, c)
+    Hss, Hsc, Hcc = Hk[:, :ns, :ns], Hk[:N, :ns, ns:], Hk[:N, ns:, ns:]
+    H = jnp.einsum("kai,kaj->ij", A, jnp.einsum("kab,kbj->kaj", Hss, A))
+    X = jnp.einsum("kai,kab->ikb", A[:N], Hsc).reshape(ny, ny) * sy  # state-control rows
+    H = H + X + X.T
+    H = H + jnp.einsum("kab,kl->kalb", Hcc, jnp.eye(N, dtype=W.dtype)).reshape(ny, ny) * jnp.outer(sy, sy)
+    C = jnp.zeros((N, n + 1, N, n + 1), W.dtype).at[:, n, :, :n].set(Chv).reshape(ny, ny)
+    C = C + C.T + jnp.zeros((N, n + 1, N, n + 1), W.dtype).at[:, n, :, n].set(Chh).reshape(ny, ny)
+    H = H + C * jnp.outer(sy, sy)
+    return H[perm][:, perm]
+
+
+def _decoupled_pieces(layout: Layout, W, c):
+    """The recursion's derivatives shared by :func:`decoupled_hessian` and
+    :func:`decoupled_hessian_bounds`, stage-major (y = (v_0, h_0, v_1, h_1, ...)): the
+    state rows A (N+1, 2n, ny) of J (scaled to z), dy/dz sy (ny,), the co-state terms
+    Chv (N, N, n) [h_i, v_j] and Chh (N, N) [h_i, h_j] (unscaled), and the permutation
+    from y to z's order."""
+    N, n = layout.N, layout.m_u
+    ns, ny = 2 * n, N * (n + 1)
     q, qd, u, h = W[:, :n], W[:, n:ns], W[:N, ns:ns + n], W[:N, -1]
     t = jnp.concatenate([jnp.zeros(1, h.dtype), jnp.cumsum(h)])  # (N+1,)
     low = jnp.arange(N + 1)[:, None] > jnp.arange(N)[None, :]  # (N+1, N): j < k
@@ -425,11 +449,6 @@ def decoupled_hessian(layout: Layout, W, c, Hk):
     Aqd = rows(jnp.where(low, h, 0.0), jnp.where(low[..., None], u[None], 0.0))
     sy = jnp.tile(jnp.concatenate([layout.u_scale, layout.h_scale[None]]), N)  # dy/dz
     A = jnp.concatenate([Aq, Aqd], axis=1).reshape(N + 1, ns, ny) * sy  # state rows of J
-    Hss, Hsc, Hcc = Hk[:, :ns, :ns], Hk[:N, :ns, ns:], Hk[:N, ns:, ns:]
-    H = jnp.einsum("kai,kaj->ij", A, jnp.einsum("kab,kbj->kaj", Hss, A))
-    X = jnp.einsum("kai,kab->ikb", A[:N], Hsc).reshape(ny, ny) * sy  # state-control rows
-    H = H + X + X.T
-    H = H + jnp.einsum("kab,kl->kalb", Hcc, jnp.eye(N, dtype=W.dtype)).reshape(ny, ny) * jnp.outer(sy, sy)
     # co-state term: suffix sums of the position co-states carry d2q_k to every k > j
     cq, cqd = c[:, :n], c[:, n:ns]
     Cq = jnp.cumsum(cq[::-1], axis=0)[::-1][1:]  # (N, n): sum_{k > m} cq_k
@@ -438,11 +457,43 @@ def decoupled_hessian(layout: Layout, W, c, Hk):
     Chh = jnp.where(I >= J, M, M.T)  # Cq_{>max(i,j)} . v_min(i,j)
     diag = jnp.einsum("kj,ka->ja", low.astype(W.dtype), cqd) + jnp.einsum("kj,ka->ja", jnp.where(low, dt, 0.0), cq)
     Chv = jnp.where((J < I)[..., None], Cq[:, None, :] * h[None, :, None], 0.0) + jnp.eye(N)[..., None] * diag
-    C = jnp.zeros((N, n + 1, N, n + 1), W.dtype).at[:, n, :, :n].set(Chv).reshape(ny, ny)
-    C = C + C.T + jnp.zeros((N, n + 1, N, n + 1), W.dtype).at[:, n, :, n].set(Chh).reshape(ny, ny)
-    H = H + C * jnp.outer(sy, sy)
     perm = np.concatenate([(np.arange(N)[:, None] * (n + 1) + np.arange(n)).ravel(), np.arange(N) * (n + 1) + n])
-    return H[perm][:, perm]
+    return A, sy, Chv, Chh, perm
+
+
+def decoupled_hessian_bounds(layout: Layout, W, c, Hk, free):
+    """The diagonal of :func:`decoupled_hessian`'s H and upper bounds on the row sums of
+    |H| over the free columns (``sum_{j free} |H_ij| <= bound_i``), both in z's order,
+    without forming H: O(N^2 n^3) instead of O(N^3 n^2). The bound takes absolute values
+    stage by stage (|H| <= sum_k |J_k|^T |Hk| |J_k| + |C|); it feeds the Gershgorin shift
+    of the stage-wise Newton solve (:mod:`jtraj.lq`)."""
+    N, n = layout.N, layout.m_u
+    ns, m = 2 * n, n + 1
+    A, sy, Chv, Chh, perm = _decoupled_pieces(layout, W, c)
+    inv = np.argsort(perm)
+    fy = free[inv].astype(W.dtype)  # free in y's order
+    Hss, Hsc, Hcc = Hk[:, :ns, :ns], Hk[:N, :ns, ns:], Hk[:N, ns:, ns:]
+    sk = sy.reshape(N, m)
+    # diagonal: state part, state-control cross terms at each control's own stage, the
+    # control block, and the co-state term (on the h diagonal only)
+    d = jnp.einsum("kai,kab,kbi->i", A, Hss, A)
+    X = jnp.einsum("kai,kab->ikb", A[:N], Hsc).reshape(N * m, N, m)  # [y, k, b]
+    d = d + 2 * X[jnp.arange(N * m), jnp.arange(N * m) // m, jnp.arange(N * m) % m] * sy
+    d = d + (jnp.diagonal(Hcc, axis1=1, axis2=2) * sk**2).ravel()
+    d = d + jnp.zeros((N, m), W.dtype).at[:, n].set(jnp.diagonal(Chh) * sk[:, n] ** 2).ravel()
+    # row sums: |J_k| 1_free per stage row, through |Hk|, back through |J_k|^T
+    aA = jnp.abs(A)
+    fk = fy.reshape(N, m)
+    w = jnp.concatenate([aA @ fy, jnp.concatenate([sk * fk, jnp.zeros((1, m), W.dtype)])], axis=1)  # (N+1, nw)
+    u = jnp.einsum("kab,kb->ka", jnp.abs(Hk), w)
+    r = jnp.einsum("kai,ka->i", aA, u[:, :ns]) + (u[:N, ns:] * sk).ravel()
+    # |C| (scaled): [h_i, v_ja] = Chv[i, j, a] hs vs_a and its transpose, [h_i, h_j] = Chh hs^2
+    hs, vs = sk[:, n], sk[:, :n]  # (N,), (N, n)
+    aChv = jnp.abs(Chv) * hs[:, None, None] * vs[None]  # (N_i, N_j, n)
+    r_h = jnp.einsum("ija,ja->i", aChv, fk[:, :n]) + jnp.abs(Chh) @ (hs * fk[:, n]) * hs
+    r_v = jnp.einsum("ija,i->ja", aChv, fk[:, n])
+    r = r + jnp.concatenate([r_v, r_h[:, None]], axis=1).ravel()
+    return d[perm], r[perm]
 
 
 def clamped_spline(q0, qd0, qdN, knots, h):
