@@ -35,18 +35,19 @@ KEYS = ("v", "h", "cost", "converged", "status", "iterations")
 WEIGHTS = dict(time=1.0, energy=0.1)  # the benchmark's cost (plain values: sent to workers)
 
 
-def _solve_chunk(q0, q1, N, weights):
+def _solve_chunk(q0, q1, N, weights, options=None):
     """One solve_batch call (runs in a worker process or here); numpy arrays."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import jtraj
 
-    sol = jtraj.solve_batch(jtraj.robots.get("serial3"), q0, q1, N=N, weights=jtraj.Weights(**weights))
+    sol = jtraj.solve_batch(jtraj.robots.get("serial3"), q0, q1, N=N, weights=jtraj.Weights(**weights),
+                            options=jtraj.SolverOptions(**(options or {})))
     return {k: np.asarray(getattr(sol, k)) for k in KEYS}
 
 
-def _jtraj_batch(q0, q1, N, B, weights, workers=1):
+def _jtraj_batch(q0, q1, N, B, weights, workers=1, options=None):
     """Throughput of solve_batch on chunks of B pairs: in this process (workers = 1) or in
     ``workers`` processes pinned one per core (jtraj.dataset's local
     backend; one JAX process does not use several cores well). The first chunk per worker
@@ -55,7 +56,7 @@ def _jtraj_batch(q0, q1, N, B, weights, workers=1):
     pad = (-P) % B
     q0p = np.concatenate([q0, np.repeat(q0[-1:], pad, 0)])
     q1p = np.concatenate([q1, np.repeat(q1[-1:], pad, 0)])
-    chunks = [(q0p[s:s + B], q1p[s:s + B], N, weights) for s in range(0, len(q0p), B)]
+    chunks = [(q0p[s:s + B], q1p[s:s + B], N, weights, options) for s in range(0, len(q0p), B)]
     if workers == 1:
         t0 = time.perf_counter()
         _solve_chunk(*chunks[0])
@@ -79,7 +80,7 @@ def _jtraj_batch(q0, q1, N, B, weights, workers=1):
     return res
 
 
-def _jtraj_single_latency(q0, q1, N, weights, repeats=3):
+def _jtraj_single_latency(q0, q1, N, weights, repeats=3, options=None):
     """Warm single-solve times (best of ``repeats`` per pair) and the first call's time.
     Run by :func:`_pinned_single_latency` in a process pinned to one core, like an IPOPT
     solve (one problem runs faster there, see ``jtraj._cpu``)."""
@@ -90,26 +91,27 @@ def _jtraj_single_latency(q0, q1, N, weights, repeats=3):
 
     robot = jtraj.robots.get("serial3")
     weights = jtraj.Weights(**weights)
+    opts = jtraj.SolverOptions(**(options or {}))
     problems = [jtraj.Problem(robot, a, b, N=N, weights=weights, validate=False) for a, b in zip(q0, q1)]
     t0 = time.perf_counter()
-    jax.block_until_ready(jtraj.solve(problems[0]).status)
+    jax.block_until_ready(jtraj.solve(problems[0], options=opts).status)
     compile_s = time.perf_counter() - t0
     times = []
     for p in problems:
         best = np.inf
         for _ in range(repeats):
             t0 = time.perf_counter()
-            jax.block_until_ready(jtraj.solve(p).status)
+            jax.block_until_ready(jtraj.solve(p, options=opts).status)
             best = min(best, time.perf_counter() - t0)
         times.append(best)
     return np.array(times), compile_s
 
 
-def _pinned_single_latency(q0, q1, N, weights):
+def _pinned_single_latency(q0, q1, N, weights, options=None):
     from jtraj.dataset._local import worker_pool
 
     with worker_pool(1) as pool:  # a spawned process pinned to one core before JAX starts
-        return pool.submit(_jtraj_single_latency, q0, q1, N, weights).result()
+        return pool.submit(_jtraj_single_latency, q0, q1, N, weights, 3, options).result()
 
 
 def main(argv=None):
@@ -124,6 +126,8 @@ def main(argv=None):
     ap.add_argument("--scaling", action="store_true", help="also time N = 10..80 and B = 64..4096")
     ap.add_argument("--peer-formulation", choices=("lifted", "condensed"), default="lifted",
                     help="CasADi form of the IPOPT peer (default lifted, the fast one; see peers/ipopt_peer.py)")
+    ap.add_argument("--linear-solver", choices=("riccati", "dense"), default="riccati",
+                    help="jtraj.SolverOptions.linear_solver (the Newton systems: stage-wise or dense)")
     ap.add_argument("--plot", default=None)
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
@@ -150,7 +154,8 @@ def main(argv=None):
     ip_ver = np.array([r["success"] and verify(a, b, r["v"], r["h"], tol=1e-6)["ok"] for a, b, r in zip(q0, q1, ip)])
     ip_cost = np.array([r["cost"] for r in ip])
 
-    jt = _jtraj_batch(q0, q1, args.N, args.batch, WEIGHTS, args.workers)
+    opts = {"linear_solver": args.linear_solver}
+    jt = _jtraj_batch(q0, q1, args.N, args.batch, WEIGHTS, args.workers, opts)
     jt_thr = args.pairs / jt["wall"]
     checks = [verify(a, b, v, h, tol=1e-6) for a, b, v, h in zip(q0, q1, jt["v"], jt["h"])]
     jt_conv = jt["converged"].astype(bool)
@@ -160,13 +165,13 @@ def main(argv=None):
     gap = (jt["cost"] - ip_cost) / ip_cost
 
     L = min(args.latency_pairs, args.pairs)
-    lat, compile_single = _pinned_single_latency(q0[:L], q1[:L], args.N, WEIGHTS)
+    lat, compile_single = _pinned_single_latency(q0[:L], q1[:L], args.N, WEIGHTS, opts)
     ip_lat = np.array([solve_pair(a, b, N=args.N, formulation=args.peer_formulation)["seconds"]
                        for a, b in zip(q0[:L], q1[:L])])
 
     report = {
         "pairs": args.pairs, "N": args.N, "batch": args.batch, "jtraj_workers": args.workers,
-        "peer_formulation": args.peer_formulation,
+        "peer_formulation": args.peer_formulation, "linear_solver": args.linear_solver,
         "ipopt_success": int(ip_ok.sum()), "ipopt_verified": int(ip_ver.sum()),
         "jtraj_converged": int(jt_conv.sum()), "jtraj_verified_converged": int((jt_conv & jt_ver).sum()),
         "jtraj_feasible_verified": int(jt_ver.sum()), "jtraj_false_converged": false_conv,

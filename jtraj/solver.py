@@ -114,10 +114,12 @@ class SolverOptions(eqx.Module):
             bounds on the row sums of |H| (H is never formed), so its iterates differ
             slightly from "dense": Cholesky factorisations of the assembled Hessian in
             z, O(N^3) (the other transcriptions always use it). Measured on serial3
-            (2 cores, benchmark pairs, warm): N = 20, 64 pairs batched 5.9 vs 6.1
-            pairs/s, 54 converged with both; one solve pinned to a core 64 vs 76 ms
-            (median of 6); N = 40, 32 pairs 2.18 vs 0.53 pairs/s, 32 vs 31 converged;
-            one solve 201 vs 417 ms.
+            (2 cores, warm), riccati vs dense: N = 20, 256 benchmark pairs (bench_solver)
+            12.9 vs 12.3 pairs/s, 228 converged with both; the 96 pairs of
+            ``jtraj dataset --pairs 96 --seed 5`` in one process 7.1 vs 6.0 pairs/s, 93
+            vs 95 converged; one solve pinned to a core 64 vs 76 ms (median of 6);
+            N = 40, 32 pairs in one batch 2.18 vs 0.53 pairs/s, 32 vs 31 converged; one
+            solve 201 vs 417 ms.
         detect_infeasible: stop a problem whose normalised violation stays above 1e-3
             and shrank by less than 5 % over two outer iterations while the penalty grew
             at least 16x (status ``LIKELY_INFEASIBLE``). On the 256 benchmark pairs this
