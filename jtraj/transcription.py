@@ -472,13 +472,11 @@ def decoupled_hessian_bounds(layout: Layout, W, c, Hk, free):
     A, sy, Chv, Chh, perm = _decoupled_pieces(layout, W, c)
     inv = np.argsort(perm)
     fy = free[inv].astype(W.dtype)  # free in y's order
-    Hss, Hsc, Hcc = Hk[:, :ns, :ns], Hk[:N, :ns, ns:], Hk[:N, ns:, ns:]
+    Hss, Hcc = Hk[:, :ns, :ns], Hk[:N, ns:, ns:]
     sk = sy.reshape(N, m)
-    # diagonal: state part, state-control cross terms at each control's own stage, the
-    # control block, and the co-state term (on the h diagonal only)
+    # diagonal: state part, the control block, and the co-state term (on the h diagonal
+    # only); the state-control cross terms have none (x_k does not depend on u_k)
     d = jnp.einsum("kai,kab,kbi->i", A, Hss, A)
-    X = jnp.einsum("kai,kab->ikb", A[:N], Hsc).reshape(N * m, N, m)  # [y, k, b]
-    d = d + 2 * X[jnp.arange(N * m), jnp.arange(N * m) // m, jnp.arange(N * m) % m] * sy
     d = d + (jnp.diagonal(Hcc, axis1=1, axis2=2) * sk**2).ravel()
     d = d + jnp.zeros((N, m), W.dtype).at[:, n].set(jnp.diagonal(Chh) * sk[:, n] ** 2).ravel()
     # row sums: |J_k| 1_free per stage row, through |Hk|, back through |J_k|^T
