@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-__all__ = ["StageModel", "newton_directions", "small_cho_solve", "stage_model"]
+__all__ = ["StageModel", "decoupled_step", "newton_directions", "small_cho_solve", "stage_model"]
 
 
 def small_cho_solve(A: Array, Y: Array) -> tuple[Array, Array]:
@@ -65,20 +65,33 @@ def small_cho_solve(A: Array, Y: Array) -> tuple[Array, Array]:
 class StageModel(NamedTuple):
     """The Newton model of the condensed objective in stage form (see the module doc)."""
 
-    h: Array  # (N,) periods (A_k depends on them only)
+    A: Array  # (N, nx, nx) d x_{k+1} / d x_k
+    B: Array  # (N, nx, m) d x_{k+1} / d u_k (z's scaling)
     Q: Array  # (N, nx, nx) state blocks, k < N
     S: Array  # (N, m, nx) control-state blocks (z's scaling)
     R: Array  # (N, m, m) control blocks (z's scaling)
-    B: Array  # (N, nx, m) d x_{k+1} / d u_k (z's scaling)
     cx: Array  # (N+1, nx) the stage gradients in x_k (row N: terminal, with d phi / dT)
     cu: Array  # (N, m) the stage gradients in u_k (z's scaling)
     PN: Array  # (nx, nx) terminal Hessian (with d2 phi / dT2)
-    g: Array  # (N (n+1),) gradient in z of the condensed objective (co-state pass)
+    g: Array  # (N (n+1),) gradient in z of the condensed objective
+
+
+def decoupled_step(x: Array, u: Array) -> Array:
+    """Khoukhi's recursion on the augmented state x = (q, qd, t) with u = (v, h)."""
+    n = u.shape[0] - 1
+    q, qd, t, v, h = x[:n], x[n:2 * n], x[-1], u[:n], u[-1]
+    return jnp.concatenate([q + h * qd + 0.5 * h**2 * v, qd + h * v, (t + h)[None]])
 
 
 def stage_model(W: Array, c: Array, Hk: Array, u_scale: Array, h_scale: Array,
-                phi_t: tuple[Array, Array] = (0.0, 0.0)) -> StageModel:
+                phi_t: tuple[Array, Array] = (0.0, 0.0), step=decoupled_step) -> StageModel:
     """Stage blocks of the Newton model of ``sum_k l_k(w_k) + phi(T)``.
+
+    Every derivative of the recursion is autodiff of the one-step map ``step``: its
+    Jacobians A_k, B_k (forward mode), the gradient and the co-states (one reverse pass
+    through the recursion re-run from the given states, with a zero perturbation added to
+    each state, whose cotangent is that state's co-state), and its curvature weighted by
+    the co-states (the Hessian of ``lambda_{k+1} . step``). Nothing is hand-derived.
 
     Args:
         W: (N+1, 3n+1) stage vectors w_k = (q_k, qd_k, v_k, h_k) (physical units).
@@ -87,49 +100,46 @@ def stage_model(W: Array, c: Array, Hk: Array, u_scale: Array, h_scale: Array,
         u_scale: (n,) and h_scale: () the scaling of z = (v / u_scale, h / h_scale).
         phi_t: first and second derivative of a term of the total time T = t_N (the AL
             term of the bound on T), or zeros.
+        step: the one-step map x_{k+1} = step(x_k, u_k) on x = (q, qd, t), u = (v, h).
     """
     N = W.shape[0] - 1
     n = (W.shape[1] - 1) // 3
-    m = n + 1
+    nx = 2 * n + 1
     dt = W.dtype
-    qd, v, h = W[:N, n:2 * n], W[:N, 2 * n:3 * n], W[:N, -1]
     sy = jnp.concatenate([u_scale, h_scale[None]]).astype(dt)  # (m,) d(physical)/dz per stage
-    eye = jnp.eye(n, dtype=dt)
-
-    # co-states of x_k = (q, qd, t): lam_N = c_N, lam_k = c_k + A_k^T lam_{k+1}
+    t = jnp.concatenate([jnp.zeros(1, dt), jnp.cumsum(W[:N, -1])])
+    X = jnp.concatenate([W[:, :2 * n], t[:, None]], axis=1)  # (N+1, nx) states
+    U = W[:N, 2 * n:]  # (N, m) physical controls
     dphi, d2phi = (jnp.asarray(x, dt) for x in phi_t)
     cx = jnp.concatenate([c[:, :2 * n], jnp.zeros((N + 1, 1), dt)], axis=1).at[N, -1].set(dphi)
+    cu = c[:N, 2 * n:]
 
-    def costate(lam_next, k):
-        lq, lqd, lt = lam_next[:n], lam_next[n:2 * n], lam_next[-1]
-        lam = cx[k] + jnp.concatenate([lq, h[k] * lq + lqd, lt[None]])
-        return lam, lam_next
+    def linearised(U, E):  # sum_k c_k . w_k along the recursion re-run from X_0 + E_0
+        def body(x, ue):
+            u, e = ue
+            return step(x, u) + e, x
 
-    _, lam_next = jax.lax.scan(costate, cx[N], jnp.arange(N), reverse=True)  # lam_next[k] = lam_{k+1}
-    lq, lqd = lam_next[:, :n], lam_next[:, n:2 * n]
+        xN, xs = jax.lax.scan(body, X[0] + E[0], (U, E[1:]))
+        return jnp.sum(cx[:N] * xs) + cx[N] @ xN + jnp.sum(cu * U)
 
-    # B_k = d x_{k+1} / d(v_k, h_k) in z's scaling (A_k is applied in closed form)
-    Bq = jnp.concatenate([0.5 * (h**2)[:, None, None] * eye, (qd + h[:, None] * v)[..., None]], axis=2)
-    Bqd = jnp.concatenate([h[:, None, None] * eye, v[..., None]], axis=2)
-    Bt = jnp.zeros((N, 1, m), dt).at[:, 0, -1].set(1.0)
-    B = jnp.concatenate([Bq, Bqd, Bt], axis=1) * sy  # (N, nx, m)
-    cu = c[:N, 2 * n:] * sy
-    g_u = cu + jnp.einsum("kxm,kx->km", B, lam_next)  # (N, m)
+    g_u, lam = jax.grad(linearised, argnums=(0, 1))(U, jnp.zeros_like(X))  # lam[k]: co-state of x_k
+    A, B = jax.vmap(jax.jacfwd(step, argnums=(0, 1)))(X[:N], U)
 
-    # the recursion's curvature weighted by lam_{k+1} (only h enters nonlinearly:
-    # d2 q+/dh dqd = I, d2 q+/dh dv = h I, d2 qd+/dh dv = I, d2 q+/dh2 = v)
+    def curvature(xk, uk, lam_next):  # Hessian in (x, u) of lam_{k+1} . step(x, u)
+        return jax.hessian(lambda xu: lam_next @ step(xu[:nx], xu[nx:]))(jnp.concatenate([xk, uk]))
+
+    C = jax.vmap(curvature)(X[:N], U, lam[1:])
     ix = jnp.arange(2 * n)
-    Hxx = Hk[:N][:, ix[:, None], ix[None, :]]
-    Hux = Hk[:N, 2 * n:, :2 * n].at[:, -1, n:2 * n].add(lq)
-    cross = h[:, None] * lq + lqd
-    Huu = Hk[:N, 2 * n:, 2 * n:].at[:, -1, :n].add(cross).at[:, :n, -1].add(cross)
-    Huu = Huu.at[:, -1, -1].add(jnp.sum(lq * v, axis=1))
 
-    def pad(X, axis):  # the t row / column: no curvature
-        return jnp.concatenate([X, jnp.zeros(X.shape[:axis] + (1,) + X.shape[axis + 1:], dt)], axis=axis)
+    def pad(Y, axis):  # the t row / column of the stage Hessians (the stage terms ignore t)
+        return jnp.concatenate([Y, jnp.zeros(Y.shape[:axis] + (1,) + Y.shape[axis + 1:], dt)], axis=axis)
 
+    Q = pad(pad(Hk[:N][:, ix[:, None], ix[None, :]], 1), 2) + C[:, :nx, :nx]
+    S = (pad(Hk[:N, 2 * n:, :2 * n], 2) + C[:, nx:, :nx]) * sy[:, None]
+    R = (Hk[:N, 2 * n:, 2 * n:] + C[:, nx:, nx:]) * jnp.outer(sy, sy)
+    g_u = g_u * sy
     return StageModel(
-        h=h, Q=pad(pad(Hxx, 1), 2), S=pad(Hux, 2) * sy[:, None], R=Huu * jnp.outer(sy, sy), B=B, cx=cx, cu=cu,
+        A=A, B=B * sy, Q=Q, S=S, R=R, cx=cx, cu=cu * sy,
         PN=pad(pad(Hk[N][ix[:, None], ix[None, :]], 0), 1).at[-1, -1].set(d2phi),
         g=jnp.concatenate([g_u[:, :n].ravel(), g_u[:, -1]]))
 
@@ -154,7 +164,7 @@ def newton_directions(model: StageModel, free: Array, shifts: Array) -> tuple[Ar
     S = model.S * ff[..., None]
     R = model.R * ff[:, :, None] * ff[:, None, :] + jax.vmap(jnp.diag)(1.0 - ff)
     B = model.B * ff[:, None, :]
-    d, ok = _riccati(model.h, model.Q, S, R, B, model.cx, model.cu * ff, model.PN, ff, shifts)
+    d, ok = _riccati(model.A, model.Q, S, R, B, model.cx, model.cu * ff, model.PN, ff, shifts)
     return jnp.moveaxis(d, -1, 0), ok
 
 
@@ -164,30 +174,27 @@ def _mm(X, Y):
     return sum(X[:, b, None] * Y[None, b] for b in range(X.shape[1]))
 
 
-def _riccati(h, Q, S, R, B, cx, cu, PN, ff, shifts):
+def _riccati(A, Q, S, R, B, cx, cu, PN, ff, shifts):
     """The Riccati solve for all shifts at once, the shifts as a trailing *lane* axis:
-    h (N,), Q (N, nx, nx), S (N, m, nx), R (N, m, m), B (N, nx, m), cx (N+1, nx), cu (N, m),
-    PN (nx, nx), ff (N, m), shifts (L,). Returns d (nz, L) and ok (L,).
+    A (N, nx, nx), Q (N, nx, nx), S (N, m, nx), R (N, m, m), B (N, nx, m), cx (N+1, nx),
+    cu (N, m), PN (nx, nx), ff (N, m), shifts (L,). Returns d (nz, L) and ok (L,).
     (Measured, serial3 N = 20, 32 problems under vmap: 145 us per problem for 4 shifts,
     31 for one; a batching rule that made the problems lanes too was slower, 163-184.)"""
     N, m = ff.shape[:2]
     n, nx = m - 1, Q.shape[1]
-    h, Q, S, R, B, cx, cu, PN, ff = (x[..., None] for x in (h, Q, S, R, B, cx, cu, PN, ff))
+    A, Q, S, R, B, cx, cu, PN, ff = (x[..., None] for x in (A, Q, S, R, B, cx, cu, PN, ff))
     eye = jnp.eye(m, dtype=R.dtype)[..., None]
-
-    def A_T(M, hk):  # A_k^T M for A_k = [[I, h I, 0], [0, I, 0], [0, 0, 1]]
-        return M.at[n:2 * n].add(hk[None, None] * M[:n])
 
     def back(carry, xs):
         P, p, ok = carry
-        Bk, Rk, Sk, Qk, rk, cxk, hk, fk = xs
-        Bt = jnp.swapaxes(Bk, 0, 1)
-        PA = jnp.swapaxes(A_T(P, hk), 0, 1)  # P A_k (P symmetric)
+        Ak, Bk, Rk, Sk, Qk, rk, cxk, fk = xs
+        Bt, At = jnp.swapaxes(Bk, 0, 1), jnp.swapaxes(Ak, 0, 1)
+        PA = _mm(P, Ak)
         Quu = Rk + _mm(Bt, _mm(P, Bk)) + eye * (shifts * fk)[:, None]
         Qux = Sk + _mm(Bt, PA)
-        Qxx = Qk + A_T(PA, hk)
+        Qxx = Qk + _mm(At, PA)
         qu = rk + _mm(Bt, p[:, None])[:, 0]
-        qx = cxk + A_T(p[:, None], hk)[:, 0]
+        qx = cxk + _mm(At, p[:, None])[:, 0]
         X, pd = small_cho_solve(Quu, jnp.concatenate([Qux, qu[:, None]], axis=1))
         K, kff = -X[:, :-1], -X[:, -1]
         QuxT = jnp.swapaxes(Qux, 0, 1)
@@ -197,13 +204,13 @@ def _riccati(h, Q, S, R, B, cx, cu, PN, ff, shifts):
     lanes = shifts.shape
     init = (jnp.broadcast_to(PN, PN.shape[:2] + lanes), jnp.broadcast_to(cx[N], (nx,) + lanes),
             jnp.ones(lanes, bool))
-    (_, _, ok), (K, kff) = jax.lax.scan(back, init, (B, R, S, Q, cu, cx[:N], h, ff), reverse=True)
+    (_, _, ok), (K, kff) = jax.lax.scan(back, init, (A, B, R, S, Q, cu, cx[:N], ff), reverse=True)
 
     def fwd(dx, xs):
-        Kk, kk, Bk, hk = xs
+        Kk, kk, Ak, Bk = xs
         du = _mm(Kk, dx[:, None])[:, 0] + kk
-        return dx.at[:n].add(hk[None] * dx[n:2 * n]) + _mm(Bk, du[:, None])[:, 0], du
+        return _mm(Ak, dx[:, None])[:, 0] + _mm(Bk, du[:, None])[:, 0], du
 
-    _, du = jax.lax.scan(fwd, jnp.zeros((nx,) + lanes, Q.dtype), (K, kff, B, h))
+    _, du = jax.lax.scan(fwd, jnp.zeros((nx,) + lanes, Q.dtype), (K, kff, A, B))
     du = du * ff  # (N, m, *lanes)
     return jnp.concatenate([du[:, :n].reshape((N * n,) + lanes), du[:, -1]]), ok
