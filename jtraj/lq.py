@@ -11,11 +11,13 @@ stages, which a backward Riccati recursion solves in O(N (n+1)^3)::
 with the state ``x_k = (q_k, qd_k, t_k)`` (``t_k``: time elapsed, whose terminal value
 carries the bound on T), the controls ``du_k = (dv_k, dh_k)`` in z's scaling, ``A_k, B_k``
 the Jacobians of Khoukhi's recursion, the stage gradients ``c`` and Hessians of the
-augmented Lagrangian from autodiff, and the recursion's curvature weighted by the co-states
+augmented Lagrangian, and the recursion's curvature weighted by the co-states
 ``lambda_{k+1}`` (the reduced Hessian of the Lagrangian equals the Hessian of the
-condensed objective). Bounds held active by the projected Newton method are fixed
-(``du_i = 0``) and the Levenberg shift is added to the free controls' diagonal, so the
-result equals the dense solve (tests compare both to 1e-8).
+condensed objective), all from autodiff (:func:`stage_model`). Bounds held active by the
+projected Newton method are fixed (``du_i = 0``) and the Levenberg shift is added to the
+free controls' diagonal, so the result equals the dense solve (tests compare both to
+1e-9). Measured on serial3 (2 cores): about even with the dense solve at N = 20, 4.1x
+faster in a batch and 2.1x for one solve at N = 40 (``SolverOptions.linear_solver``).
 
 The small per-stage factorisations are unrolled Cholesky factorisations of
 ``(n+1) x (n+1)`` matrices written with array operations, which vectorise over the
