@@ -126,7 +126,7 @@ def main(argv=None):
     ap.add_argument("--scaling", action="store_true", help="also time N = 10..80 and B = 64..4096")
     ap.add_argument("--peer-formulation", choices=("lifted", "condensed"), default="lifted",
                     help="CasADi form of the IPOPT peer (default lifted, the fast one; see peers/ipopt_peer.py)")
-    ap.add_argument("--linear-solver", choices=("riccati", "dense"), default="riccati",
+    ap.add_argument("--linear-solver", choices=("auto", "riccati", "dense"), default="auto",
                     help="jtraj.SolverOptions.linear_solver (the Newton systems: stage-wise or dense)")
     ap.add_argument("--plot", default=None)
     ap.add_argument("--json", default=None)

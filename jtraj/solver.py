@@ -108,8 +108,9 @@ class SolverOptions(eqx.Module):
         damping_init: initial Levenberg damping of the Newton system.
         verify_tol: relative/absolute tolerance of the final strict verification.
         guess: "cycloidal" or "trapezoidal".
-        linear_solver: how the Newton directions are computed. "riccati" (default): a
-            stage-wise Riccati recursion (decoupled transcription; :mod:`jtraj.lq`), cost
+        linear_solver: how the Newton directions are computed. "auto" (default):
+            "riccati" on a CPU, "dense" on an accelerator (where only the dense path has
+            been measured so far). "riccati": a stage-wise Riccati recursion (decoupled transcription; :mod:`jtraj.lq`), cost
             linear in N; the shift ladder's top is a Gershgorin bound computed from
             bounds on the row sums of |H| (H is never formed), so its iterates differ
             slightly from "dense": Cholesky factorisations of the assembled Hessian in
@@ -143,13 +144,13 @@ class SolverOptions(eqx.Module):
     verify_tol: float = eqx.field(static=True, default=1e-6)
     guess: str = eqx.field(static=True, default="cycloidal")
     detect_infeasible: bool = eqx.field(static=True, default=True)
-    linear_solver: str = eqx.field(static=True, default="riccati")
+    linear_solver: str = eqx.field(static=True, default="auto")
 
     def __check_init__(self):
         if self.schedule not in ("default", "thesis"):
             raise ValueError(f"schedule must be 'default' or 'thesis', got {self.schedule!r}")
-        if self.linear_solver not in ("riccati", "dense"):
-            raise ValueError(f"linear_solver must be 'riccati' or 'dense', got {self.linear_solver!r}")
+        if self.linear_solver not in ("auto", "riccati", "dense"):
+            raise ValueError(f"linear_solver must be 'auto', 'riccati' or 'dense', got {self.linear_solver!r}")
         if self.guess not in ("cycloidal", "trapezoidal"):
             raise ValueError(f"guess must be 'cycloidal' or 'trapezoidal', got {self.guess!r}")
         for name in ("max_iter", "max_outer", "max_inner"):
@@ -659,8 +660,11 @@ def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, war
     """(nlp, starting state, valid) for one problem; invalid samples start from a finite
     placeholder and are flagged at the end."""
     layout = tr.layout(problem)
+    solver = opts.linear_solver
+    if solver == "auto":
+        solver = "riccati" if jax.default_backend() == "cpu" else "dense"
     nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem),
-               stagewise=opts.linear_solver == "riccati" and tr.name == "decoupled")
+               stagewise=solver == "riccati" and tr.name == "decoupled")
     u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
     valid = jnp.all(jnp.isfinite(z0)) & jnp.all(jnp.isfinite(problem.q_start)) & jnp.all(jnp.isfinite(problem.q_goal))

@@ -120,5 +120,20 @@ def test_riccati_and_dense_solvers_agree_on_solutions(N):
     assert bool(jnp.all(a.converged)) and bool(jnp.all(b.converged))
     np.testing.assert_allclose(a.cost, b.cost, rtol=1e-3)
     assert float(jnp.max(a.max_violation["overall"])) <= 1e-6
+
+
+def test_linear_solver_option():
+    """"auto" is the stage-wise solve on a CPU (dense on an accelerator); other
+    transcriptions are always dense; unknown names are refused."""
+    from jtraj.solver import _prepare
+
+    robot = jtraj.robots.get("serial3")
+    p = jtraj.Problem(robot, Q0, Q1, N=16)
+    for transcription, ls, expected in [("decoupled", "auto", jax.default_backend() == "cpu"),
+                                        ("decoupled", "riccati", True), ("decoupled", "dense", False),
+                                        ("coupled", "riccati", False)]:
+        tr = Transcription(transcription)
+        opts = SolverOptions(linear_solver=ls)
+        assert _prepare(p, opts, tr, initial_guess(p, opts, tr))[0].stagewise == expected
     with pytest.raises(ValueError, match="linear_solver"):
         SolverOptions(linear_solver="qr")
