@@ -656,15 +656,20 @@ def initial_guess(problem: Problem, opts: SolverOptions, tr: Transcription):
     return tr.initial_controls(problem, v0, h0), h0
 
 
+def _stagewise(opts: SolverOptions, tr: Transcription) -> bool:
+    """Whether the Newton directions come from the stage-wise solve (see
+    ``SolverOptions.linear_solver``)."""
+    solver = opts.linear_solver
+    if solver == "auto":
+        solver = "riccati" if jax.default_backend() == "cpu" else "dense"
+    return solver == "riccati" and tr.name == "decoupled"
+
+
 def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False):
     """(nlp, starting state, valid) for one problem; invalid samples start from a finite
     placeholder and are flagged at the end."""
     layout = tr.layout(problem)
-    solver = opts.linear_solver
-    if solver == "auto":
-        solver = "riccati" if jax.default_backend() == "cpu" else "dense"
-    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem),
-               stagewise=solver == "riccati" and tr.name == "decoupled")
+    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem), stagewise=_stagewise(opts, tr))
     u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
     valid = jnp.all(jnp.isfinite(z0)) & jnp.all(jnp.isfinite(problem.q_start)) & jnp.all(jnp.isfinite(problem.q_goal))

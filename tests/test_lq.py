@@ -125,15 +125,11 @@ def test_riccati_and_dense_solvers_agree_on_solutions(N):
 def test_linear_solver_option():
     """"auto" is the stage-wise solve on a CPU (dense on an accelerator); other
     transcriptions are always dense; unknown names are refused."""
-    from jtraj.solver import _prepare
+    from jtraj.solver import _stagewise
 
-    robot = jtraj.robots.get("serial3")
-    p = jtraj.Problem(robot, Q0, Q1, N=16)
     for transcription, ls, expected in [("decoupled", "auto", jax.default_backend() == "cpu"),
                                         ("decoupled", "riccati", True), ("decoupled", "dense", False),
                                         ("coupled", "riccati", False)]:
-        tr = Transcription(transcription)
-        opts = SolverOptions(linear_solver=ls)
-        assert _prepare(p, opts, tr, initial_guess(p, opts, tr))[0].stagewise == expected
+        assert _stagewise(SolverOptions(linear_solver=ls), Transcription(transcription)) == expected
     with pytest.raises(ValueError, match="linear_solver"):
         SolverOptions(linear_solver="qr")
