@@ -139,11 +139,9 @@ def main(argv=None):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    import jtraj
     from peers.ipopt_peer import benchmark_pairs, solve_many, solve_pair
     from peers.verify import verify
 
-    weights = jtraj.Weights(**WEIGHTS)
     q0, q1 = benchmark_pairs(args.pairs, args.seed)
     print(f"serial3, N = {args.N}, weights time=1 energy=0.1, {args.pairs} pairs (seed {args.seed}), "
           f"os.cpu_count() = {os.cpu_count()}")

@@ -3,7 +3,7 @@
 The solver's Newton system ``(H_f + s D) d = -g_f`` in the scaled controls z is dense
 (every state depends on all earlier controls), and factorising it costs O((N (n+1))^3)
 per shift. The same system is the KKT system of a linear-quadratic problem over the
-stages, which a backward Riccati recursion solves in O(N (n+1)^3)::
+stages, which a backward Riccati recursion solves in O(N n^3)::
 
     min  sum_k  1/2 [dx_k; du_k]^T [[Q_k, S_k^T], [S_k, R_k]] [dx_k; du_k] + [c_x; c_u]_k . [dx_k; du_k]
     s.t. dx_{k+1} = A_k dx_k + B_k du_k,   dx_0 = 0
@@ -180,8 +180,8 @@ def _riccati(A, Q, S, R, B, cx, cu, PN, ff, shifts):
     """The Riccati solve for all shifts at once, the shifts as a trailing *lane* axis:
     A (N, nx, nx), Q (N, nx, nx), S (N, m, nx), R (N, m, m), B (N, nx, m), cx (N+1, nx),
     cu (N, m), PN (nx, nx), ff (N, m), shifts (L,). Returns d (nz, L) and ok (L,).
-    (Measured, serial3 N = 20, 32 problems under vmap: 145 us per problem for 4 shifts,
-    31 for one; a batching rule that made the problems lanes too was slower, 163-184.)"""
+    (Measured, serial3 N = 20, 32 problems under vmap: 145-196 us per problem for 4
+    shifts, 31-37 for one; a batching rule that made the problems lanes too was slower.)"""
     N, m = ff.shape[:2]
     n, nx = m - 1, Q.shape[1]
     A, Q, S, R, B, cx, cu, PN, ff = (x[..., None] for x in (A, Q, S, R, B, cx, cu, PN, ff))

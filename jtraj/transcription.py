@@ -435,7 +435,7 @@ def _decoupled_pieces(layout: Layout, W, c):
     from y to z's order."""
     N, n = layout.N, layout.m_u
     ns, ny = 2 * n, N * (n + 1)
-    q, qd, u, h = W[:, :n], W[:, n:ns], W[:N, ns:ns + n], W[:N, -1]
+    qd, u, h = W[:, n:ns], W[:N, ns:ns + n], W[:N, -1]
     t = jnp.concatenate([jnp.zeros(1, h.dtype), jnp.cumsum(h)])  # (N+1,)
     low = jnp.arange(N + 1)[:, None] > jnp.arange(N)[None, :]  # (N+1, N): j < k
     dt = t[:, None] - t[None, :N]  # t_k - t_j
