@@ -1,7 +1,8 @@
 """jtraj's ALD solver against CasADi + IPOPT on the canonical serial3 benchmark.
 
     python benchmarks/bench_solver.py [--pairs 64] [--batch 64] [--seed 0] [--N 20]
-                                      [--peer-formulation lifted|condensed]
+                                      [--peer-formulation lifted|condensed] [--linear-solver auto|riccati|dense]
+                                      [--option KEY=VALUE ...]
                                       [--scaling] [--plot bench_solver.png] [--json out.json]
 
 Problem family (issue #3): serial3, N = 20, weights time = 1, energy = 0.1, q_start ~
@@ -45,6 +46,19 @@ def _solve_chunk(q0, q1, N, weights, options=None):
     sol = jtraj.solve_batch(jtraj.robots.get("serial3"), q0, q1, N=N, weights=jtraj.Weights(**weights),
                             options=jtraj.SolverOptions(**(options or {})))
     return {k: np.asarray(getattr(sol, k)) for k in KEYS}
+
+
+def _option(text):
+    """'key=value' -> (key, value) with value as int, float or str."""
+    key, sep, value = text.partition("=")
+    if not sep:
+        raise SystemExit(f"--option wants KEY=VALUE, got {text!r}")
+    for kind in (int, float):
+        try:
+            return key, kind(value)
+        except ValueError:
+            pass
+    return key, value
 
 
 def _jtraj_batch(q0, q1, N, B, weights, workers=1, options=None):
@@ -128,6 +142,8 @@ def main(argv=None):
                     help="CasADi form of the IPOPT peer (default lifted, the fast one; see peers/ipopt_peer.py)")
     ap.add_argument("--linear-solver", choices=("auto", "riccati", "dense"), default="auto",
                     help="jtraj.SolverOptions.linear_solver (the Newton systems: stage-wise or dense)")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="another jtraj.SolverOptions field, e.g. --option inner_tol_ratio=0 (repeatable)")
     ap.add_argument("--plot", default=None)
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
@@ -152,7 +168,7 @@ def main(argv=None):
     ip_ver = np.array([r["success"] and verify(a, b, r["v"], r["h"], tol=1e-6)["ok"] for a, b, r in zip(q0, q1, ip)])
     ip_cost = np.array([r["cost"] for r in ip])
 
-    opts = {"linear_solver": args.linear_solver}
+    opts = {"linear_solver": args.linear_solver, **dict(_option(o) for o in args.option)}
     jt = _jtraj_batch(q0, q1, args.N, args.batch, WEIGHTS, args.workers, opts)
     jt_thr = args.pairs / jt["wall"]
     checks = [verify(a, b, v, h, tol=1e-6) for a, b, v, h in zip(q0, q1, jt["v"], jt["h"])]
@@ -169,7 +185,7 @@ def main(argv=None):
 
     report = {
         "pairs": args.pairs, "N": args.N, "batch": args.batch, "jtraj_workers": args.workers,
-        "peer_formulation": args.peer_formulation, "linear_solver": args.linear_solver,
+        "peer_formulation": args.peer_formulation, "solver_options": opts,
         "ipopt_success": int(ip_ok.sum()), "ipopt_verified": int(ip_ver.sum()),
         "jtraj_converged": int(jt_conv.sum()), "jtraj_verified_converged": int((jt_conv & jt_ver).sum()),
         "jtraj_feasible_verified": int(jt_ver.sum()), "jtraj_false_converged": false_conv,

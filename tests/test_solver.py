@@ -194,6 +194,32 @@ def test_weights_validation():
         jtraj.Weights(time=-1.0)
 
 
+def test_inner_tolerance_schedules():
+    """The subproblem tolerance follows the violation (default) or shrinks tenfold per
+    outer iteration (inner_tol_ratio=0), never below tol_optimality nor above 1e-2."""
+    from jtraj.solver import _next_inner_tol
+
+    follow, geometric = SolverOptions(), SolverOptions(inner_tol_ratio=0.0)
+    assert follow.inner_tol_ratio == 0.01 and follow.tol_optimality == 1e-4
+    for viol, want in [(5.0, 1e-2), (5e-2, 5e-4), (3e-3, 1e-4)]:
+        assert float(_next_inner_tol(follow, 1e-3, viol)) == pytest.approx(want, rel=1e-12)
+    assert float(_next_inner_tol(geometric, 1e-2, 5e-2)) == pytest.approx(1e-3, rel=1e-12)
+    assert float(_next_inner_tol(geometric, 2e-4, 5e-2)) == pytest.approx(1e-4, rel=1e-12)
+    with pytest.raises(ValueError, match="inner_tol_ratio"):
+        SolverOptions(inner_tol_ratio=-1.0)
+
+
+@pytest.mark.slow
+def test_inner_tolerance_schedules_reach_the_same_optimum(robot, single):
+    """The schedule changes the path, not the answer: the geometric one converges to the
+    default's verified optimum (cost within 1e-5 relative)."""
+    problem, sol = single
+    other = jtraj.solve(problem, options=SolverOptions(inner_tol_ratio=0.0))
+    assert sol.converged and other.converged
+    assert float(other.cost) == pytest.approx(float(sol.cost), rel=1e-5)
+    np.testing.assert_allclose(np.asarray(other.q), np.asarray(sol.q), atol=1e-3)
+
+
 @pytest.mark.parametrize("name, transcription", [
     ("serial3_vertical", "decoupled"),
     pytest.param("serial3", "coupled", marks=pytest.mark.slow),  # ~36 s: forward dynamics in the loop
