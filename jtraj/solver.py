@@ -642,6 +642,12 @@ class Solution(eqx.Module):
         status: int code of :class:`Status`; iterations: Newton iterations;
         outer_iterations: multiplier updates;
         history: (max_outer, 3) per outer iteration: cost, violation, penalty (NaN-padded).
+        kkt_error: first-order optimality error of the original problem at the returned
+            trajectory (projected gradient of the Lagrangian with least-squares
+            multipliers, and complementarity; units of ``SolverOptions.tol_optimality``).
+            A ``FEASIBLE_NOT_OPTIMAL`` result says here how far it is from certified; a
+            converged one was certified either by it or by the AL loop's own stationarity
+            test at the end of a subproblem.
     """
 
     q: Array
@@ -659,6 +665,7 @@ class Solution(eqx.Module):
     iterations: Array
     outer_iterations: Array
     history: Array
+    kkt_error: Array
 
     @property
     def status_message(self) -> str:
@@ -741,7 +748,8 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
     # the loop certifies optimality on the AL's own measure at the end of a subproblem;
     # a point it left uncertified (iteration limit) may still be a KKT point of the
     # original problem, which the least-squares multipliers decide
-    certified = s.done | (_kkt_error(nlp, s.z) <= opts.tol_optimality)
+    kkt = _kkt_error(nlp, s.z)
+    certified = s.done | (kkt <= opts.tol_optimality)
     unfinished = jnp.where(s.stalled, Status.LIKELY_INFEASIBLE, Status.MAX_ITERATIONS)
     status = jnp.where(
         ~valid, Status.INVALID_INPUT,
@@ -753,7 +761,7 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
     energy = jnp.sum(h * jnp.sum((tau / scale) ** 2, axis=1))
     return Solution(q=q, qd=qd, v=a, tau=tau, h=h, T=jnp.sum(h), cost=cost, cost_terms=terms, energy=energy,
                     max_violation=viol, converged=status == Status.CONVERGED, status=status.astype(jnp.int32),
-                    iterations=s.it, outer_iterations=s.outer, history=s.history)
+                    iterations=s.it, outer_iterations=s.outer, history=s.history, kkt_error=kkt)
 
 
 @eqx.filter_jit

@@ -306,7 +306,10 @@ def test_kkt_error_tells_an_optimum_from_a_feasible_point(robot, single):
 
     tol = SolverOptions().tol_optimality
     assert float(kkt(nlp, z_of(sol))) <= tol
+    # the Solution reports the same measure at the trajectory it returns
+    assert float(sol.kkt_error) == pytest.approx(float(kkt(nlp, z_of(sol))), rel=1e-6, abs=1e-12)
     other = jtraj.solve(jtraj.Problem(robot, Q0, Q1, N=N, weights=jtraj.Weights(time=1.0, energy=0.1, kinetic=5.0)))
     assert other.converged and float(other.max_violation["overall"]) <= 1e-6
     assert float(jnp.max(jnp.abs(other.v - sol.v))) > 0.05  # another trajectory
     assert float(kkt(nlp, z_of(other))) > 10 * tol  # measured 4.8e-3
+    assert float(other.kkt_error) <= tol  # the kinetic-energy problem's own optimum

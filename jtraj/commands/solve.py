@@ -166,7 +166,7 @@ def solution_dict(args, problem, sol, solve_s, compile_s) -> dict:
         "cost_terms": {k: _tolist(v) for k, v in sol.cost_terms.items()}, "energy": _tolist(sol.energy),
         "max_violation": {k: _tolist(v) for k, v in sol.max_violation.items()},
         "iterations": int(sol.iterations), "outer_iterations": int(sol.outer_iterations),
-        "solve_seconds": solve_s, "compile_seconds": compile_s,
+        "kkt_error": _tolist(sol.kkt_error), "solve_seconds": solve_s, "compile_seconds": compile_s,
         "q": _tolist(sol.q), "qd": _tolist(sol.qd), "v": _tolist(sol.v), "tau": _tolist(sol.tau),
         "h": _tolist(sol.h), "history": _tolist(sol.history),
     }
@@ -185,6 +185,7 @@ def summary(d: dict) -> str:
              + ", ".join(f"{k} {_f(v, '.4g')}" for k, v in d["cost_terms"].items())
              + f"), energy = {_f(d['energy'], '.4g')}",
              "max violation: " + ", ".join(f"{k} {_f(v, '.1e')}" for k, v in d["max_violation"].items()),
+             f"KKT error (optimality, certified at <= 1e-4 by default): {_f(d['kkt_error'], '.1e')}",
              f"iterations: {d['iterations']} Newton, {d['outer_iterations']} outer; solve {d['solve_seconds']:.3f} s "
              f"(compile {d['compile_seconds']:.1f} s)"]
     return "\n".join(lines)
