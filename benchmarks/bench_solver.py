@@ -199,6 +199,10 @@ def main(argv=None):
         "jtraj_iterations_median": float(np.median(jt["iterations"])),
         "ipopt_iterations_median": float(np.median([r["iterations"] for r in ip])),
         "jtraj_status_counts": {int(k): int(v) for k, v in zip(*np.unique(jt["status"], return_counts=True))},
+        # where jtraj's work goes: the share of all Newton iterations spent per status
+        "jtraj_iteration_share_by_status": {
+            int(k): float(jt["iterations"][jt["status"] == k].sum() / max(jt["iterations"].sum(), 1))
+            for k in np.unique(jt["status"])},
     }
     print(f"  success: IPOPT {report['ipopt_verified']}/{args.pairs} verified; jtraj converged "
           f"{report['jtraj_converged']}/{args.pairs} (verified {report['jtraj_verified_converged']}), "
@@ -213,6 +217,8 @@ def main(argv=None):
     print(f"  compile: single {compile_single:.1f} s, batch {jt['compile_and_first_batch']:.1f} s (incl. first batch)")
     print(f"  iterations median: jtraj {report['jtraj_iterations_median']:.0f}, IPOPT {report['ipopt_iterations_median']:.0f}; "
           f"jtraj statuses {report['jtraj_status_counts']}")
+    print("  share of jtraj's iterations by status: " + ", ".join(
+        f"{k}: {100 * v:.0f} %" for k, v in report["jtraj_iteration_share_by_status"].items()))
 
     if args.scaling:
         rows = []
