@@ -231,6 +231,26 @@ def test_chunk_files_are_checksummed_and_tied_to_their_dataset(tmp_path):
     assert dataset.load(a)["q"].shape == (16, 7, 3)
 
 
+def test_field_missing_from_older_chunks_reads_as_nan(tmp_path):
+    """A dataset resumed with a newer jtraj can hold chunks without a field that later
+    chunks have (kkt_error was added so): such rows read as NaN, the others unchanged;
+    a solver that does not report kkt_error leaves NaN."""
+    import h5py
+
+    a = str(tmp_path / "a")
+    dataset.build(fake_spec(pairs=16, batch=8), a, progress=False)
+    full = dataset.load(a)
+    assert np.all(np.isnan(full["kkt_error"]))  # the fake solver does not report it
+    viol = full["max_violation"].copy()
+    with h5py.File(os.path.join(a, "chunks", "chunk-000000.h5"), "a") as f:
+        del f["max_violation"]  # as if chunk 0 had been written before the field existed
+    data = dataset.load(a)
+    assert "max_violation" in data
+    assert np.all(np.isnan(data["max_violation"][:8]))
+    np.testing.assert_array_equal(data["max_violation"][8:], viol[8:])
+    np.testing.assert_array_equal(data["q"], full["q"])
+
+
 # ----------------------------------------------------------------------------- views
 
 def test_views_rows_and_trajectory_index(tmp_path):
@@ -392,6 +412,9 @@ def test_real_solver_end_to_end(tmp_path):
     np.testing.assert_array_equal(np.asarray(ref.status), data["status"])
     np.testing.assert_allclose(data["q"][:, 0], data["q_start"], atol=1e-12)
     assert data["metadata"]["identity"]["solver"] == "jtraj:solve_batch"
+    # the optimality measure of every pair is kept (finite with the real solver)
+    np.testing.assert_array_equal(np.asarray(ref.kkt_error), data["kkt_error"])
+    assert np.all(np.isfinite(data["kkt_error"]))
 
 
 @pytest.mark.slow  # compiles the solver in each of the 2 Ray workers

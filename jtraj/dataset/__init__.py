@@ -62,10 +62,13 @@ class Dataset(Mapping):
                              f"same command to resume it, or load(path, partial=True) for the finished chunks")
         import h5py
 
-        self._keys = []
-        if self.chunks:
-            with h5py.File(os.path.join(self.path, store.CHUNKS, store.chunk_name(self.chunks[0])), "r") as f:
-                self._keys = list(f.keys())
+        # the fields of every chunk: a dataset resumed with a newer jtraj may hold chunks
+        # with a field that older chunks lack (see __getitem__)
+        self._keys, self._chunk_keys = [], {}
+        for c in self.chunks:
+            with h5py.File(os.path.join(self.path, store.CHUNKS, store.chunk_name(c)), "r") as f:
+                self._chunk_keys[c] = set(f.keys())
+            self._keys += [k for k in sorted(self._chunk_keys[c]) if k not in self._keys]
         self._cache: dict = {}
 
     @property
@@ -78,7 +81,12 @@ class Dataset(Mapping):
         if key not in self._cache:
             if key not in self._keys:
                 raise KeyError(key)
-            parts = [store.read_chunk(self.path, c, [key], self._hash)[key] for c in self.chunks]
+            parts = [store.read_chunk(self.path, c, [key], self._hash)[key] if key in self._chunk_keys[c] else None
+                     for c in self.chunks]
+            if any(p is None for p in parts):  # chunks written before the field existed: NaN rows
+                like = next(p for p in parts if p is not None)
+                counts = [len(store.read_chunk(self.path, c, ["index"], self._hash)["index"]) for c in self.chunks]
+                parts = [p if p is not None else np.full((n,) + like.shape[1:], np.nan) for p, n in zip(parts, counts)]
             self._cache[key] = np.concatenate(parts) if parts else np.zeros(0)
         return self._cache[key]
 

@@ -174,7 +174,7 @@ def resolve_solver(name: str):
 
 # fields written per pair (besides cost_<term> and violation_<family>)
 FIELDS = ("index", "q_start", "q_goal", "converged", "status", "q", "qd", "v", "tau", "h", "T", "cost",
-          "energy", "max_violation", "iterations", "outer_iterations")
+          "energy", "max_violation", "iterations", "outer_iterations", "kkt_error")
 
 
 def _get(sol, name):
@@ -211,6 +211,10 @@ def compute_chunk(spec: Spec, c: int) -> dict:
         out["outer_iterations"] = take(_get(sol, "outer_iterations"), np.int32)
     except (AttributeError, KeyError):
         out["outer_iterations"] = np.zeros(count, np.int32)
+    try:
+        out["kkt_error"] = take(_get(sol, "kkt_error"), np.float64)
+    except (AttributeError, KeyError):  # a solver that does not report it
+        out["kkt_error"] = np.full(count, np.nan)
     viol = _get(sol, "max_violation")
     out["max_violation"] = take(viol["overall"] if isinstance(viol, dict) else viol, np.float64)
     if isinstance(viol, dict):
@@ -351,6 +355,8 @@ def metadata(spec: Spec) -> dict:
             "h": "(P, N) periods [s]", "T": "(P,) total time [s]", "cost": "(P,)", "energy": "(P,)",
             "max_violation": "(P,) overall (relative boxes, absolute goal)", "iterations": "(P,) Newton",
             "outer_iterations": "(P,)", "cost_<term>": "(P,) weighted cost terms",
+            "kkt_error": "(P,) first-order optimality error (jtraj.Solution.kkt_error; NaN where the "
+                         "solver or the jtraj version that wrote the chunk did not report it)",
             "violation_<family>": "(P,) per constraint family",
         },
     }
