@@ -116,6 +116,7 @@ class SolverOptions(eqx.Module):
             style) or "thesis" (Conn-Gould-Toint / Khoukhi: multipliers updated only
             when the violation meets the current tolerance eta, which tightens as
             ``eta <- eta mu^-beta_eta``; otherwise mu grows and ``eta <- eta0 mu^-alpha_eta``).
+            Both schedules take the inner tolerance from ``inner_tol_ratio``.
         damping_init: initial Levenberg damping of the Newton system.
         verify_tol: relative/absolute tolerance of the final strict verification.
         guess: "cycloidal" or "trapezoidal".
