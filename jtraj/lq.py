@@ -32,6 +32,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from .transcription import recursion_step
+
 __all__ = ["StageModel", "decoupled_step", "newton_directions", "small_cho_solve", "stage_model"]
 
 
@@ -81,8 +83,9 @@ class StageModel(NamedTuple):
 def decoupled_step(x: Array, u: Array) -> Array:
     """Khoukhi's recursion on the augmented state x = (q, qd, t) with u = (v, h)."""
     n = u.shape[0] - 1
-    q, qd, t, v, h = x[:n], x[n:2 * n], x[-1], u[:n], u[-1]
-    return jnp.concatenate([q + h * qd + 0.5 * h**2 * v, qd + h * v, (t + h)[None]])
+    h = u[-1]
+    q, qd = recursion_step(x[:n], x[n:2 * n], u[:n], h)
+    return jnp.concatenate([q, qd, (x[-1] + h)[None]])
 
 
 def stage_model(W: Array, c: Array, Hk: Array, u_scale: Array, h_scale: Array,

@@ -245,8 +245,7 @@ class Transcription:
             q, qd = carry
             uk, hk = uh
             if self.name == "coupled":
-                a = fd(q, qd, uk)
-                nxt = (q + hk * qd + 0.5 * hk**2 * a, qd + hk * a)
+                nxt = recursion_step(q, qd, fd(q, qd, uk), hk)
             else:  # shooting: classical RK4 on (q, qd)' = (qd, FD(q, qd, tau))
                 k1q, k1v = qd, fd(q, qd, uk)
                 k2q, k2v = qd + 0.5 * hk * k1v, fd(q + 0.5 * hk * k1q, qd + 0.5 * hk * k1v, uk)
@@ -376,6 +375,12 @@ def _nonzero(x) -> bool:
         return float(x) != 0.0
     except (TypeError, jax.errors.ConcretizationTypeError):
         return True  # traced weight: keep the term
+
+
+def recursion_step(q, qd, a, h):
+    """One step of Khoukhi's recursion: ``(q + h qd + h^2/2 a, qd + h a)``
+    (:func:`integrate` is its closed form over all steps)."""
+    return q + h * qd + 0.5 * h**2 * a, qd + h * a
 
 
 def integrate(q0, qd0, v, h):
