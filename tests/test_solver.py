@@ -209,6 +209,24 @@ def test_inner_tolerance_schedules():
         SolverOptions(inner_tol_ratio=-1.0)
 
 
+def test_held_variables_need_the_gradient_to_beat_their_curvature():
+    """Projected Newton holds a variable at a bound only if it is within eps of it, the
+    gradient pushes outwards, and the diagonal Newton step -g / hdiag reaches the bound
+    (always where the curvature is not positive)."""
+    from jtraj.solver import _held
+
+    lo, hi, eps = jnp.zeros(7), jnp.ones(7), 1e-3
+    z = jnp.array([0.0, 6e-4, 6e-4, 6e-4, 6e-4, 0.5, 1 - 6e-4])
+    g = jnp.array([1e-6, 7e-4, 7e-4, 7e-4, -7e-4, 1.0, -7e-4])
+    hdiag = jnp.array([1e3, 1e3, 1.0, -5.0, 1.0, 0.0, 1e3])
+    held = np.asarray(_held(z, g, lo, hi, hdiag, eps))
+    # on the bound and pushed out: held however stiff; near it, stiff: free (its Newton
+    # step 7e-7 stops short of the 6e-4 gap); near it, soft or non-convex: held; pulled
+    # inwards: free; far from a bound: free; the same at the upper bound
+    assert held.tolist() == [True, False, True, True, False, False, False]
+    assert bool(_held(z, g, lo, hi, jnp.ones(7), eps)[6])
+
+
 @pytest.mark.slow
 def test_inner_tolerance_schedules_reach_the_same_optimum(robot, single):
     """The schedule changes the path, not the answer: the geometric one converges to the
