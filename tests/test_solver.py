@@ -79,8 +79,13 @@ def test_warm_start_from_solution_is_immediate(single):
     problem, sol = single
     warm = jtraj.solve(problem, init=(sol.v, sol.h))
     assert warm.converged
-    assert int(warm.iterations) < int(sol.iterations)
-    assert float(warm.cost) == pytest.approx(float(sol.cost), rel=1e-4)
+    # the optimum already meets both tolerances: finished before the first iteration
+    assert int(warm.iterations) == 0
+    assert float(warm.cost) == pytest.approx(float(sol.cost), rel=1e-9)
+    # a nearby point that does not (accelerations off by 1 %) takes iterations
+    near = jtraj.solve(problem, init=(sol.v * 0.99, sol.h))
+    assert near.converged and 0 < int(near.iterations) < int(sol.iterations)
+    assert float(near.cost) == pytest.approx(float(sol.cost), rel=1e-4)
     # primal-only warm start: cold multipliers and penalty, same compiled solver
     primal = jtraj.solve(problem, init=(sol.v, sol.h), warm="primal")
     assert primal.converged
@@ -200,11 +205,11 @@ def test_inner_tolerance_schedules():
     from jtraj.solver import _next_inner_tol
 
     follow, geometric = SolverOptions(), SolverOptions(inner_tol_ratio=0.0)
-    assert follow.inner_tol_ratio == 0.01 and follow.tol_optimality == 1e-4
-    for viol, want in [(5.0, 1e-2), (5e-2, 5e-4), (3e-3, 1e-4)]:
+    assert follow.inner_tol_ratio == 0.01 and follow.tol_optimality == 3e-4
+    for viol, want in [(5.0, 1e-2), (5e-2, 5e-4), (3e-3, 3e-4)]:
         assert float(_next_inner_tol(follow, 1e-3, viol)) == pytest.approx(want, rel=1e-12)
     assert float(_next_inner_tol(geometric, 1e-2, 5e-2)) == pytest.approx(1e-3, rel=1e-12)
-    assert float(_next_inner_tol(geometric, 2e-4, 5e-2)) == pytest.approx(1e-4, rel=1e-12)
+    assert float(_next_inner_tol(geometric, 2e-3, 5e-2)) == pytest.approx(3e-4, rel=1e-12)
     with pytest.raises(ValueError, match="inner_tol_ratio"):
         SolverOptions(inner_tol_ratio=-1.0)
 

@@ -141,4 +141,4 @@ def test_warm_start_through_controls_of(problem):
         again = jtraj.solve(problem, transcription=name, init=(tr.controls_of(sol), sol.h))
         assert again.converged
         assert int(again.iterations) < int(sol.iterations) / 3
-        assert float(again.cost) == pytest.approx(float(sol.cost), rel=1e-4)  # tol_optimality 1e-4
+        assert float(again.cost) == pytest.approx(float(sol.cost), rel=1e-4)
