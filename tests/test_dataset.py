@@ -241,6 +241,7 @@ def test_field_missing_from_older_chunks_reads_as_nan(tmp_path):
     dataset.build(fake_spec(pairs=16, batch=8), a, progress=False)
     full = dataset.load(a)
     assert np.all(np.isnan(full["kkt_error"]))  # the fake solver does not report it
+    assert "  KKT error: -" in dataset.summary(a)
     viol = full["max_violation"].copy()
     with h5py.File(os.path.join(a, "chunks", "chunk-000000.h5"), "a") as f:
         del f["max_violation"]  # as if chunk 0 had been written before the field existed
@@ -415,6 +416,9 @@ def test_real_solver_end_to_end(tmp_path):
     # the optimality measure of every pair is kept (finite with the real solver)
     np.testing.assert_array_equal(np.asarray(ref.kkt_error), data["kkt_error"])
     assert np.all(np.isfinite(data["kkt_error"]))
+    sel = data["kkt_error"][data["converged"]]
+    if len(sel):  # the summary reports it over the converged pairs
+        assert f"KKT error: median {np.median(sel):.4g}" in dataset.summary(out)
 
 
 @pytest.mark.slow  # compiles the solver in each of the 2 Ray workers

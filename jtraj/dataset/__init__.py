@@ -154,6 +154,8 @@ def summary(path: str) -> str:
     lines.append(stats("cost", data["cost"][sel]))
     lines.append(stats("energy", data["energy"][sel]))
     lines.append(stats("iterations", data["iterations"][sel].astype(float)))
+    if "kkt_error" in data:  # datasets written before it was recorded lack it
+        lines.append(stats("KKT error", data["kkt_error"][sel]))
     lines.append(f"  max violation (all pairs): median {np.median(data['max_violation']):.3g}, "
                  f"max {np.max(data['max_violation']):.3g}")
     return "\n".join(lines)
