@@ -178,6 +178,8 @@ def _f(x, fmt):
 
 def summary(d: dict) -> str:
     """A readable multi-line summary of :func:`solution_dict`'s output."""
+    from jtraj.solver import SolverOptions
+
     lines = [f"robot {d['robot']}, N = {d['N']}, {d['transcription']} transcription, weights "
              + ", ".join(f"{k}={v:g}" for k, v in d["weights"].items() if v),
              f"status: {d['status_name']} ({d['status_message']})",
@@ -185,7 +187,8 @@ def summary(d: dict) -> str:
              + ", ".join(f"{k} {_f(v, '.4g')}" for k, v in d["cost_terms"].items())
              + f"), energy = {_f(d['energy'], '.4g')}",
              "max violation: " + ", ".join(f"{k} {_f(v, '.1e')}" for k, v in d["max_violation"].items()),
-             f"KKT error (optimality, certified at <= 1e-4 by default): {_f(d['kkt_error'], '.1e')}",
+             f"KKT error (optimality, certified at <= {SolverOptions().tol_optimality:g} by default): "
+             f"{_f(d['kkt_error'], '.1e')}",
              f"iterations: {d['iterations']} Newton, {d['outer_iterations']} outer; solve {d['solve_seconds']:.3f} s "
              f"(compile {d['compile_seconds']:.1f} s)"]
     return "\n".join(lines)
