@@ -177,6 +177,15 @@ class SolverOptions(eqx.Module):
         for name in ("max_iter", "max_outer", "max_inner"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
+        for name in ("tol_feasibility", "tol_optimality", "verify_tol", "penalty_init", "penalty_max",
+                     "damping_init"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and 0 < value < float("inf")):
+                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+        if not self.penalty_growth > 1:
+            raise ValueError(f"penalty_growth must be > 1, got {self.penalty_growth!r}")
+        if not 0 < self.feasibility_ratio < 1:
+            raise ValueError(f"feasibility_ratio must be in (0, 1), got {self.feasibility_ratio!r}")
 
 
 # ----------------------------------------------------------------------------------------

@@ -212,6 +212,10 @@ def test_inner_tolerance_schedules():
     assert float(_next_inner_tol(geometric, 2e-3, 5e-2)) == pytest.approx(3e-4, rel=1e-12)
     with pytest.raises(ValueError, match="inner_tol_ratio"):
         SolverOptions(inner_tol_ratio=-1.0)
+    for kw in (dict(tol_optimality=0.0), dict(tol_feasibility=float("nan")), dict(verify_tol=-1e-6),
+               dict(penalty_max=float("inf")), dict(penalty_growth=1.0), dict(feasibility_ratio=1.5)):
+        with pytest.raises(ValueError, match=next(iter(kw))):
+            SolverOptions(**kw)
 
 
 def test_held_variables_need_the_gradient_to_beat_their_curvature():
