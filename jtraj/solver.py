@@ -180,7 +180,11 @@ class SolverOptions(eqx.Module):
         for name in ("tol_feasibility", "tol_optimality", "verify_tol", "penalty_init", "penalty_max",
                      "damping_init"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and 0 < value < float("inf")):
+            try:
+                ok = 0 < float(value) < float("inf")  # NumPy scalars of any float width too
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
                 raise ValueError(f"{name} must be a positive finite number, got {value!r}")
         if not self.penalty_growth > 1:
             raise ValueError(f"penalty_growth must be > 1, got {self.penalty_growth!r}")
