@@ -340,3 +340,26 @@ def test_kkt_error_tells_an_optimum_from_a_feasible_point(robot, single):
     assert float(jnp.max(jnp.abs(other.v - sol.v))) > 0.05  # another trajectory
     assert float(kkt(nlp, z_of(other))) > 10 * tol  # measured 4.8e-3
     assert float(other.kkt_error) <= tol  # the kinetic-energy problem's own optimum
+
+
+def test_restart_resumes_a_run_cut_short(robot, single, batch):
+    """A run that ends uncertified is restarted once (solver._restart): with the first
+    run cut to 12 iterations, the restart must still reach the default solve's optimum,
+    and the compacted batch (restarts gathered and run through the lanes again) must
+    take exactly the iterations of single solves."""
+    opts = SolverOptions(max_iter=12, restart_iter=300)
+    problem, sol = single
+    again = jtraj.solve(problem, options=opts)
+    assert again.converged, again.status_message
+    assert int(again.iterations) > 12  # 12 in the first run, the rest after the restart
+    assert float(again.cost) == pytest.approx(float(sol.cost), rel=1e-4)
+    q0, q1, _ = batch
+    lanes = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=opts, slots=2, segment=5)
+    for i in range(3):
+        one = jtraj.solve(jtraj.Problem(robot, q0[i], q1[i], N=N, weights=W), options=opts)
+        assert int(lanes.status[i]) == int(one.status)
+        assert int(lanes.iterations[i]) == int(one.iterations) > 12
+        np.testing.assert_allclose(float(lanes.cost[i]), float(one.cost), rtol=1e-9)
+    assert int(lanes.status[3]) == Status.INVALID_INPUT
+    with pytest.raises(ValueError, match="restart_iter"):
+        SolverOptions(restart_iter=-1)
