@@ -26,6 +26,7 @@ N = 10
 W = jtraj.Weights(time=1.0, energy=0.1)
 Q0 = np.array([1.077, -0.096, 0.619])
 Q1 = np.array([1.2, -0.049, 0.9])  # feasible with N = 10 (T <= 1 s); IPOPT converges too
+RESTART = SolverOptions(max_iter=12, restart_iter=300)  # every run is cut short, then restarted
 
 
 @pytest.fixture(scope="module")
@@ -342,24 +343,27 @@ def test_kkt_error_tells_an_optimum_from_a_feasible_point(robot, single):
     assert float(other.kkt_error) <= tol  # the kinetic-energy problem's own optimum
 
 
-def test_restart_resumes_a_run_cut_short(robot, single, batch):
+def test_restart_resumes_a_run_cut_short(single):
     """A run that ends uncertified is restarted once (solver._restart): with the first
-    run cut to 12 iterations, the restart must still reach the default solve's optimum,
-    and the compacted batch (restarts gathered and run through the lanes again) must
-    take exactly the iterations of single solves."""
-    opts = SolverOptions(max_iter=12, restart_iter=300)
+    run cut to 12 iterations, the restart must still reach the default solve's optimum."""
     problem, sol = single
-    again = jtraj.solve(problem, options=opts)
+    again = jtraj.solve(problem, options=RESTART)
     assert again.converged, again.status_message
     assert int(again.iterations) > 12  # 12 in the first run, the rest after the restart
     assert float(again.cost) == pytest.approx(float(sol.cost), rel=1e-4)
+    with pytest.raises(ValueError, match="restart_iter"):
+        SolverOptions(restart_iter=-1)
+
+
+@pytest.mark.slow
+def test_compacted_batch_restarts_like_single_solves(robot, batch):
+    """The compacted batch gathers its restarts and runs them through the lanes again:
+    every problem must take exactly the iterations of its single solve."""
     q0, q1, _ = batch
-    lanes = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=opts, slots=2, segment=5)
+    lanes = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=RESTART, slots=2, segment=5)
     for i in range(3):
-        one = jtraj.solve(jtraj.Problem(robot, q0[i], q1[i], N=N, weights=W), options=opts)
+        one = jtraj.solve(jtraj.Problem(robot, q0[i], q1[i], N=N, weights=W), options=RESTART)
         assert int(lanes.status[i]) == int(one.status)
         assert int(lanes.iterations[i]) == int(one.iterations) > 12
         np.testing.assert_allclose(float(lanes.cost[i]), float(one.cost), rtol=1e-9)
     assert int(lanes.status[3]) == Status.INVALID_INPUT
-    with pytest.raises(ValueError, match="restart_iter"):
-        SolverOptions(restart_iter=-1)
