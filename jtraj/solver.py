@@ -156,10 +156,12 @@ class SolverOptions(eqx.Module):
             at most samples): the penalty grows to ``penalty_max`` and the Newton
             subproblems stall at a feasible point with a KKT error of 1e-3..1e-1.
             Measured on the benchmark family (256 pairs per seed, 2026-11-27), converged
-            without / with the restart: seed 11 233 / 236 (IPOPT 236), seed 1 224 / 225
-            (IPOPT 226), seed 2 232 / 233, seeds 0, 3, 4 unchanged; total iterations
-            +1.6 % on seed 11. Restarting with the first run's cap (1e6, penalty 1e4)
-            rescued 3 of the 6 such pairs IPOPT solves, with 1e4 (penalty 1e2) 5 of 6.
+            without / with the restart (600): seed 11 233 / 236 (IPOPT 236), seed 1
+            224 / 226 (IPOPT 226), seed 2 232 / 233, seeds 0, 3, 4 unchanged (0: IPOPT
+            231, jtraj 231); total iterations +2.2 % (seed 11) and +4.1 % (seed 1). With
+            250 iterations seed 1 reached 225 (its last pair needs 590 after the
+            restart); restarting with the first run's cap (1e6, penalty 1e4) instead of
+            1e4 (penalty 1e2) rescued 3 instead of 5 of the first 6 such pairs.
         restart_penalty_max: the penalty cap of a restart (see ``restart_iter``).
     """
 
@@ -179,7 +181,7 @@ class SolverOptions(eqx.Module):
     guess: str = eqx.field(static=True, default="cycloidal")
     detect_infeasible: bool = eqx.field(static=True, default=True)
     linear_solver: str = eqx.field(static=True, default="auto")
-    restart_iter: int = eqx.field(static=True, default=250)
+    restart_iter: int = eqx.field(static=True, default=600)
     restart_penalty_max: float = eqx.field(static=True, default=1e4)
 
     def __check_init__(self):
