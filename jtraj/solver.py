@@ -650,19 +650,14 @@ def _restart(nlp: _NLP, s: _State, opts: SolverOptions) -> _State:
     0.04 % of IPOPT's). A point the polish
     leaves certified (KKT error and violation within tolerance) is not restarted:
     :func:`_finish` certifies it."""
-    z = _polish(nlp, s.z)
-    ls = _ls_multipliers(nlp, z)
-    certified = (_kkt_error(nlp, z, ls=ls) <= opts.tol_optimality) & (
-        _violation(*nlp.constraints(z)) <= opts.tol_feasibility)
-    need = _needs_restart(s, opts) & ~certified
+    # a warm start at the polished point: least-squares multipliers, fresh schedules, and
+    # finished at once where that point is already certified
+    fresh = _init_state(nlp, _polish(nlp, s.z), opts, warm=True)
+    need = _needs_restart(s, opts) & ~fresh.done
     dt = s.z.dtype
-    new = s._replace(
-        z=z, mult=_estimate_multipliers(nlp, z, ls=ls), mu=jnp.asarray(opts.restart_penalty_max * 1e-2, dt),
-        mu_max=jnp.asarray(opts.restart_penalty_max, dt), damping=jnp.asarray(opts.damping_init, dt),
-        omega=jnp.asarray(1e-2, dt), eta=jnp.asarray(1e-2, dt), viol_prev=jnp.asarray(jnp.inf, dt),
-        inner=jnp.zeros_like(s.inner), outer=jnp.zeros_like(s.outer), it_max=s.it + opts.restart_iter,
-        stationarity=jnp.asarray(jnp.inf, dt), history=jnp.full_like(s.history, jnp.nan),
-        restarted=jnp.asarray(True))
+    new = fresh._replace(mu=jnp.asarray(opts.restart_penalty_max * 1e-2, dt),
+                         mu_max=jnp.asarray(opts.restart_penalty_max, dt), it=s.it,
+                         it_max=s.it + opts.restart_iter, restarted=jnp.asarray(True))
     return jax.tree.map(lambda a, b: jnp.where(need, a, b), new, s)
 
 
