@@ -1,7 +1,7 @@
 """ANFIS benchmark: Jang's Mackey-Glass accuracy, training time, query latency.
 
     .venv/bin/python benchmarks/bench_anfis.py [--samples 2000] [--repeat 2000]
-        [--data DATASET [--mappings nefotc,nefumop,nefik,plan] [--rules R] [--goal-inputs [relative]]]
+        [--data DATASET [--mappings nefotc,nefumop,nefik,plan] [--rules R] [--goal-inputs none|append|relative] [--phase|--no-phase]]
 
 Prints
 * Mackey-Glass (Jang 1993 set-up, 16 rules, first-order TSK) train and check RMSE
@@ -58,8 +58,11 @@ def main(argv=None):
     ap.add_argument("--mappings", default="nefotc,nefumop,nefik,plan")
     ap.add_argument("--rules", type=int, default=None, help="rules of the trajectory models (default: radius chosen on the validation split)")
     ap.add_argument("--ridge", type=float, default=1e-6, help="relative ridge (as jtraj train)")
-    ap.add_argument("--goal-inputs", nargs="?", const="append", default=None, choices=["append", "relative"],
-                    help="nefotc / nefumop with the offset to the goal (see jtraj train --help)")
+    ap.add_argument("--goal-inputs", nargs="?", const="append", default=None,
+                    choices=["none", "append", "relative"],
+                    help="nefotc / nefumop with the offset to the goal (default: as jtraj train, see its --help)")
+    ap.add_argument("--phase", action=argparse.BooleanOptionalAction, default=None,
+                    help="nefotc / nefumop with the phase k/N (default: as jtraj train)")
     args = ap.parse_args(argv)
     if args.data:
         trajectory_models(args)
@@ -111,14 +114,18 @@ def trajectory_models(args):
 
     data = trajectory.load_data(args.data)
     for mapping in args.mappings.split(","):
-        goal = args.goal_inputs if args.goal_inputs and mapping in ("nefotc", "nefumop") else False
+        extra = mapping in ("nefotc", "nefumop")
+        goal = {None: None, "none": False}.get(args.goal_inputs, args.goal_inputs) if extra else False
+        phase = args.phase if extra else False
         _, r, _ = trajectory.train_mapping(data, mapping, n_rules=args.rules, epochs=args.epochs, ridge=args.ridge,
-                                           goal=goal)
-        print(f"{mapping}{f' (goal inputs: {goal})' if goal else ''}: {r['n_rules']} rules, {r['epochs']} epochs, "
+                                           goal=goal, phase=phase)
+        print(f"{mapping} (inputs {', '.join(r['inputs'])}): {r['n_rules']} rules, {r['epochs']} epochs, "
               f"{r['seconds']:.1f} s, "
               f"{r['n_trajectories_train']}/{r['n_trajectories_test']} train/test trajectories; test RMSE ANFIS "
               f"{r['test_rmse']:.4g}, linear {r['linear_test_rmse']:.4g}, 5-NN {r['knn_test_rmse']:.4g}; "
-              f"ANFIS / linear {r['ratio_to_linear']:.3f} (goal <= 0.5)", flush=True)
+              f"ANFIS / linear {r['ratio_to_linear']:.3f} (goal <= 0.5)"
+              + (f"; linear on the thesis' inputs {r['thesis_linear_test_rmse']:.4g}, ANFIS / that "
+                 f"{r['ratio_to_thesis_linear']:.3f}" if "thesis_linear_test_rmse" in r else ""), flush=True)
 
 
 if __name__ == "__main__":

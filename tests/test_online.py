@@ -50,6 +50,7 @@ def test_train_command_report_and_plot(tmp_path, data, monkeypatch):
               "linear_test_rmse", "knn_test_rmse"):
         assert k in rep
     assert rep["n_rules"] == 6 and set(rep["test_rmse_per_output"]) == {"tau1", "tau2", "tau3"}
+    assert rep["inputs"][-1] == "phase" and "thesis_linear_test_rmse" in rep  # nefotc's default inputs
     assert np.isfinite(rep["test_rmse"]) and rep["test_rmse"] < 5 * rep["linear_test_rmse"]
     assert os.path.getsize(args.plot) > 1000
     model = anfis.load(args.out, mapping="nefotc")
@@ -119,8 +120,48 @@ def test_goal_inputs_append_offset_to_goal(data):
 
 def test_model_records_dataset_weights_and_goal_inputs(data):
     d = dict(data, metadata=dict(data["metadata"], weights_text="time=1,energy=0.1"))
-    model, rep, _ = trajectory.train_mapping(d, "nefotc", n_rules=3, epochs=1, goal=True)
-    assert model.metadata["weights"] == "time=1,energy=0.1" and model.metadata["goal_inputs"] is True
-    assert rep["goal_inputs"] is True and model.n_inputs == 9
-    model, rep, _ = trajectory.train_mapping(d, "nefotc", n_rules=3, epochs=1, goal="relative")
+    model, rep, _ = trajectory.train_mapping(d, "nefotc", n_rules=3, epochs=1, goal=True, phase=False)
+    assert model.metadata["weights"] == "time=1,energy=0.1" and model.metadata["goal_inputs"] == "append"
+    assert rep["goal_inputs"] == "append" and not rep["phase_input"] and model.n_inputs == 9
+    model, rep, _ = trajectory.train_mapping(d, "nefotc", n_rules=3, epochs=1, goal="relative", phase=False)
     assert model.metadata["goal_inputs"] == "relative" and model.n_inputs == 6
+
+
+def test_phase_input_is_the_samples_place_in_its_trajectory(data):
+    X0, Y0, traj, names0, _ = trajectory.view(data, "nefotc")
+    X, Y, traj1, names, _ = trajectory.view(data, "nefotc", phase=True)
+    N = data["h"].shape[1]
+    assert names == names0 + ["phase"]
+    np.testing.assert_array_equal(X[:, :-1], X0)
+    np.testing.assert_array_equal(Y, Y0)
+    np.testing.assert_array_equal(traj1, traj)
+    # row r is sample r mod N of its trajectory (rows are trajectories in order, N samples each)
+    np.testing.assert_allclose(X[:, -1], (np.arange(len(X)) % N) / N)
+    assert np.all(np.diff(X[traj == traj[0], -1]) > 0)
+    with pytest.raises(ValueError, match="phase"):
+        trajectory.view(data, "nefik", phase=True)
+
+
+def test_nefotc_defaults_to_goal_offset_and_phase_with_the_thesis_baseline(data):
+    model, rep, _ = trajectory.train_mapping(data, "nefotc", n_rules=3, epochs=2)
+    assert rep["inputs"] == ["dq_goal1", "dq_goal2", "dq_goal3", "qd1", "qd2", "qd3", "phase"]
+    assert rep["goal_inputs"] == "relative" and rep["phase_input"] and model.metadata["phase_input"]
+    # the thesis' (q, qd) -> tau linear baseline, fitted on the same split
+    X0, Y0, traj, _, _ = trajectory.view(data, "nefotc")
+    tr, te = trajectory.split(traj)
+    ref = np.sqrt(np.mean((trajectory.linear_baseline(X0[tr], Y0[tr], X0[te]) - Y0[te]) ** 2))
+    assert rep["thesis_linear_test_rmse"] == pytest.approx(ref, rel=1e-12)
+    assert rep["ratio_to_thesis_linear"] == pytest.approx(rep["test_rmse"] / ref, rel=1e-12)
+    # nefumop keeps the thesis' inputs unless asked; the CLI spells the thesis' nefotc out
+    _, rep_u, _ = trajectory.train_mapping(data, "nefumop", n_rules=2, epochs=1)
+    assert rep_u["inputs"] == ["x", "y", "xd", "yd"] and "thesis_linear_test_rmse" not in rep_u
+    import argparse
+
+    from jtraj.commands import train as cmd
+
+    parser = argparse.ArgumentParser()
+    cmd.configure(parser)
+    a = parser.parse_args(["--data", "d", "--out", "m", "--goal-inputs", "none", "--no-phase"])
+    assert cmd._goal(a.goal_inputs) is False and a.phase is False
+    a = parser.parse_args(["--data", "d", "--out", "m"])
+    assert cmd._goal(a.goal_inputs) is None and a.phase is None

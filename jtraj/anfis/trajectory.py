@@ -52,23 +52,7 @@ def _check(data):
         raise ValueError("dataset metadata lacks the robot name")
 
 
-def _robot(data):
-    from jtraj import robots
-
-    return robots.get(data["metadata"]["robot"])
-
-
-def _task(robot, q, qd):
-    import jax
-
-    def one(q_, qd_):
-        return jax.jvp(robot.forward_kinematics, (q_,), (qd_,))
-
-    p, pd = jax.jit(jax.vmap(one))(q, qd)
-    return np.asarray(p), np.asarray(pd)
-
-
-def view(data, mapping: str = "nefotc", *, goal: bool | str = False):
+def view(data, mapping: str = "nefotc", *, goal: bool | str = False, phase: bool = False):
     """``(X, Y, traj, input_names, output_names)`` for the converged trajectories;
     ``traj[i]`` is the dataset index of row i's trajectory.
 
@@ -81,7 +65,21 @@ def view(data, mapping: str = "nefotc", *, goal: bool | str = False):
     functions (the same ``(q, qd)`` is crossed towards different goals with opposite
     torques), so no regressor beats the linear baseline by much on them; with the goal
     offset they are (see the README's ANFIS section for the figures).
+
+    ``phase=True`` (``nefotc`` and ``nefumop``) appends the sample's place in its
+    trajectory, ``k / N`` (input ``phase``), after the other inputs.
     """
+    X, Y, traj, names_in, names_out = _goal_view(data, mapping, goal)
+    if not phase:
+        return X, Y, traj, names_in, names_out
+    if mapping not in ("nefotc", "nefumop"):
+        raise ValueError(f"the phase input is defined for the mappings nefotc and nefumop, not {mapping!r}")
+    N = int(np.asarray(load_data(data)["h"]).shape[1])
+    k = np.tile(np.arange(N), len(X) // N)  # rows are N samples per converged trajectory, in order
+    return np.c_[X, k / N], Y, traj, names_in + ["phase"], names_out
+
+
+def _goal_view(data, mapping, goal):
     X, Y, traj, names_in, names_out = _view(data, mapping)
     if goal is True:
         goal = "append"
@@ -97,7 +95,9 @@ def view(data, mapping: str = "nefotc", *, goal: bool | str = False):
         d = qg.shape[1]
         off, off_names = qg - X[:, :d], [f"dq_goal{j + 1}" for j in range(d)]
     else:
-        pg, _ = _task(_robot(data), qg, np.zeros_like(qg))
+        from jtraj.dataset import views
+
+        pg, _ = views.task_state(views.robot_of(data), qg, np.zeros_like(qg))
         d = pg.shape[1]
         off, off_names = pg - X[:, :d], ["d" + c + "_goal" for c in names_in[:d]]
     if goal == "append":
@@ -106,46 +106,41 @@ def view(data, mapping: str = "nefotc", *, goal: bool | str = False):
 
 
 def _view(data, mapping):
+    from jtraj.dataset import views
+
     if mapping not in MAPPINGS:
         raise ValueError(f"mapping must be one of {MAPPINGS}, got {mapping!r}")
     data = load_data(data)
     _check(data)
     conv = np.asarray(data["converged"], bool)
-    idx = np.nonzero(conv)[0]
-    if idx.size == 0:
+    if not conv.any():
         raise ValueError("dataset has no converged trajectory")
-    q = np.asarray(data["q"], float)[conv]
-    qd = np.asarray(data["qd"], float)[conv]
-    tau = np.asarray(data["tau"], float)[conv]
-    h = np.asarray(data["h"], float)[conv]
-    Pc, K, n = q.shape
-    N = h.shape[1]
-    m = tau.shape[2]
-    rows = lambda a: a.reshape(a.shape[0] * a.shape[1], *a.shape[2:])  # noqa: E731
-    jn = [f"q{j + 1}" for j in range(n)]
-    jdn = [f"qd{j + 1}" for j in range(n)]
-    tn = [f"tau{j + 1}" for j in range(m)]
+    if "index" not in data:
+        data = {**data, "index": np.arange(conv.size)}
+    n, m = np.shape(data["q"])[2], np.shape(data["tau"])[2]
+    jn, jdn, tn = [f"q{j + 1}" for j in range(n)], [f"qd{j + 1}" for j in range(n)], [f"tau{j + 1}" for j in range(m)]
+    f64 = lambda v: (np.asarray(v.X, float), np.asarray(v.Y, float), v.traj)  # noqa: E731
     if mapping == "nefotc":
-        X = np.concatenate([rows(q[:, :-1]), rows(qd[:, :-1])], axis=1)
-        return X, rows(tau), np.repeat(idx, N), jn + jdn, tn
+        return (*f64(views.nefotc(data)), jn + jdn, tn)
     if mapping == "plan":
-        v = np.asarray(data["v"], float)[conv]
+        v, h = np.asarray(data["v"], float)[conv], np.asarray(data["h"], float)[conv]
+        Pc, N = h.shape
         X = np.concatenate([np.asarray(data["q_start"], float)[conv], np.asarray(data["q_goal"], float)[conv]], 1)
         Y = np.concatenate([v.reshape(Pc, N * n), h], axis=1)
         names = [f"v{k}_{j + 1}" for k in range(N) for j in range(n)] + [f"h{k}" for k in range(N)]
+        idx = np.asarray(data["index"])[conv]
         return X, Y, idx, [f"q_start{j + 1}" for j in range(n)] + [f"q_goal{j + 1}" for j in range(n)], names
-    robot = _robot(data)
+    robot = views.robot_of(data)
     if mapping == "nefumop":
-        p, pd = _task(robot, rows(q[:, :-1]), rows(qd[:, :-1]))
-        d = p.shape[1]
-        X = np.concatenate([p, pd], axis=1)
-        Y = np.concatenate([rows(tau), rows(h[..., None])], axis=1)
-        pn = ["x", "y", "z"][:d] if d <= 3 else [f"p{i + 1}" for i in range(d)]
-        return X, Y, np.repeat(idx, N), pn + [c + "d" for c in pn], tn + ["h"]
-    p, _ = _task(robot, rows(q), np.zeros_like(rows(q)))
-    d = p.shape[1]
-    pn = ["x", "y", "z"][:d] if d <= 3 else [f"p{i + 1}" for i in range(d)]
-    return p, rows(q), np.repeat(idx, K), pn, jn
+        X, Y, traj = f64(views.nefumop(data, robot=robot))
+        pn = _task_names(X.shape[1] // 2)
+        return X, Y, traj, pn + [c + "d" for c in pn], tn + ["h"]
+    X, Y, traj = f64(views.nefik(data, robot=robot))
+    return X, Y, traj, _task_names(X.shape[1]), jn
+
+
+def _task_names(d):
+    return ["x", "y", "z"][:d] if d <= 3 else [f"p{i + 1}" for i in range(d)]
 
 
 def split(traj, test_fraction: float = 0.1):
@@ -190,19 +185,32 @@ def _rmse(a, b):
 
 
 RADIUS_CANDIDATES = (0.4, 0.6, 0.9, 1.4)
+# extra inputs (goal, phase) of train_mapping when not given: over a dataset of random
+# start/goal pairs (q, qd) -> tau is not a function (see view); with the goal offset and
+# the phase it is nearly one (README, ANFIS: 0.3x the linear (q, qd) baseline)
+DEFAULT_INPUTS = {"nefotc": ("relative", True)}
+
+
+def default_inputs(mapping: str):
+    """``(goal, phase)`` that :func:`train_mapping` uses for ``mapping`` when not given."""
+    return DEFAULT_INPUTS.get(mapping, (False, False))
 
 
 def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, radius="auto",
                   epochs: int = 100, kind: str = "tsk", test_fraction: float = 0.1, progress: bool = False,
-                  goal: bool | str = False, **options):
+                  goal: bool | str | None = None, phase: bool | None = None, **options):
     """Train an ANFIS for ``mapping`` on a dataset; return ``(model, report, history)``.
 
     ``report`` (JSON-able) holds ``train_rmse``, ``test_rmse`` (target units, all
     outputs pooled), ``test_rmse_per_output``, ``train_rmse_per_output``, ``n_rules``,
     ``epochs``, ``seconds``, ``linear_test_rmse``, ``knn_test_rmse``,
-    ``ratio_to_linear`` (goal <= 0.5) and the split sizes. Other keyword options go to
-    :func:`jtraj.anfis.train` (``clip_outputs`` defaults to True here). ``goal``: see
-    :func:`view`. For ``plan``, ``n_rules`` defaults to ``PLAN_RULES`` (8): clustering
+    ``ratio_to_linear`` (goal <= 0.5) and the split sizes; with extra inputs also
+    ``thesis_linear_test_rmse`` and ``ratio_to_thesis_linear``, the linear baseline on
+    the thesis' inputs of the mapping (e.g. ``(q, qd)`` for ``nefotc``). Other keyword
+    options go to :func:`jtraj.anfis.train` (``clip_outputs`` defaults to True here).
+    ``goal``, ``phase``: extra inputs, see :func:`view`; ``None`` takes
+    :func:`default_inputs` (for ``nefotc`` the goal offset and the phase, for the other
+    mappings none). For ``plan``, ``n_rules`` defaults to ``PLAN_RULES`` (8): clustering
     with a radius in its high-dimensional
     joint input-output space makes every trajectory a rule. ``radius="auto"`` (with
     ``n_rules`` None) trains one model per radius of ``RADIUS_CANDIDATES`` and keeps the
@@ -214,8 +222,11 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
         # radius 0.5 in the joint (6 + N (n + 1))-dimensional clustering space accepts
         # every trajectory as a rule (150 of 150 on a 300-pair serial3 dataset)
         n_rules = PLAN_RULES
+    dgoal, dphase = default_inputs(mapping)
+    goal = dgoal if goal is None else goal
+    phase = dphase if phase is None else phase
     data = load_data(data)
-    X, Y, traj, in_names, out_names = view(data, mapping, goal=goal)
+    X, Y, traj, in_names, out_names = view(data, mapping, goal=goal, phase=phase)
     tr, te = split(traj, test_fraction)
     if not te.any():
         raise ValueError("need at least two converged trajectories to hold one out for testing")
@@ -229,7 +240,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
         validation, Xfit, Yfit = 0.0, Xtr, Ytr
     meta = data["metadata"]
     md = dict(mapping=mapping, robot=meta.get("robot"), N=meta.get("N"), inputs=in_names, outputs=out_names,
-              goal_inputs=goal if isinstance(goal, str) else bool(goal))
+              goal_inputs="append" if goal is True else (goal or False), phase_input=bool(phase))
     if meta.get("weights_text"):
         md["weights"] = meta["weights_text"]  # the cost the trajectories are optimal for (Planner refine)
     t0 = time.perf_counter()
@@ -263,8 +274,8 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     test_rmse = _rmse(Pte, Y[te])
     lin_rmse = _rmse(lin, Y[te])
     report = dict(
-        mapping=mapping, goal_inputs=md["goal_inputs"], robot=meta.get("robot"), kind=kind, inputs=in_names,
-        outputs=out_names,
+        mapping=mapping, goal_inputs=md["goal_inputs"], phase_input=md["phase_input"], robot=meta.get("robot"),
+        kind=kind, inputs=in_names, outputs=out_names,
         n_trajectories_train=int(np.unique(traj[tr]).size), n_trajectories_test=int(np.unique(traj[te]).size),
         n_samples_train=int(tr.sum()), n_samples_test=int(te.sum()),
         train_rmse=_rmse(Ptr, Ytr), test_rmse=test_rmse,
@@ -275,6 +286,11 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
         linear_test_rmse=lin_rmse, knn_test_rmse=_rmse(knn, Y[te]),
         ratio_to_linear=test_rmse / lin_rmse if lin_rmse > 0 else math.inf,
     )
+    if goal or phase:
+        X0 = _view(data, mapping)[0]  # the same rows without the extra inputs
+        thesis = _rmse(linear_baseline(X0[tr], Ytr, X0[te]), Y[te])
+        report.update(thesis_linear_test_rmse=thesis,
+                      ratio_to_thesis_linear=test_rmse / thesis if thesis > 0 else math.inf)
     if selection:
         report["radius_selection"] = selection
     report["goal_met"] = bool(report["ratio_to_linear"] <= 0.5)

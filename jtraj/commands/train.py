@@ -4,11 +4,13 @@ Mappings: nefotc (q, qd) -> tau [default]; nefumop (p, pd) -> (tau, h); nefik p 
 plan (q_start, q_goal) -> (v, h) of the whole trajectory (for `jtraj query`).
 Only converged trajectories are used. The test set is the last 10 % of them in dataset
 order; the report compares with a linear least-squares and a 5-nearest-neighbour baseline on the
-same split (goal: ANFIS test RMSE at most half the linear one).
+same split and inputs (goal: ANFIS test RMSE at most half the linear one).
 
 Over a dataset of random start/goal pairs, nefotc, nefumop and nefik are not functions
-of their inputs (the goal is missing), and no regressor gets far below the linear
-baseline on them; --goal-inputs adds the offset to the goal (see README, ANFIS).
+of the thesis' inputs (the goal is missing), and no regressor gets far below the linear
+baseline on them. --goal-inputs adds the offset to the goal, --phase the sample's place
+k/N in its trajectory; nefotc uses both by default, (q_goal - q, qd, k/N) -> tau, and
+`--goal-inputs none --no-phase` gives the thesis' (q, qd) -> tau (see README, ANFIS).
 """
 
 import argparse
@@ -31,11 +33,16 @@ def configure(parser):
     parser.add_argument("--epochs", type=int, default=100)
     parser.add_argument("--ridge", type=float, default=1e-6,
                         help="relative ridge of the least squares (1e-10 overfits sparse trajectory data)")
-    parser.add_argument("--goal-inputs", nargs="?", const="append", default=None, choices=["append", "relative"],
+    parser.add_argument("--goal-inputs", nargs="?", const="append", default=None,
+                        choices=["none", "append", "relative"],
                         help="nefotc / nefumop: append the offset to the trajectory's goal (q_goal - q, or "
                              "p_goal - p) to the inputs ('append', the default of the bare flag), or replace "
-                             "the position by it ('relative'); without it these mappings are not functions "
-                             "over a dataset of random start/goal pairs")
+                             "the position by it ('relative', the default for nefotc); 'none' (the default "
+                             "for nefumop): the thesis' inputs, which are not a function over a dataset of "
+                             "random start/goal pairs")
+    parser.add_argument("--phase", action=argparse.BooleanOptionalAction, default=None,
+                        help="nefotc / nefumop: add the sample's place k/N in its trajectory to the inputs "
+                             "(default: on for nefotc, off for nefumop)")
     parser.add_argument("--no-progress", action="store_true")
 
 
@@ -51,6 +58,10 @@ def _radius(text):
     return r
 
 
+def _goal(text):
+    return {None: None, "none": False}.get(text, text)
+
+
 def run(args) -> int:
     import json
     import os
@@ -62,7 +73,7 @@ def run(args) -> int:
     model, report, hist = trajectory.train_mapping(
         args.data, args.mapping, n_rules=args.rules, radius=args.radius, epochs=args.epochs, kind=args.kind,
         order=args.order, ridge=args.ridge, progress=not args.no_progress,
-        goal=getattr(args, "goal_inputs", None) or False)
+        goal=_goal(getattr(args, "goal_inputs", None)), phase=getattr(args, "phase", None))
     model.save(args.out)
     report["model"] = os.path.abspath(args.out)
     if args.plot:
@@ -77,4 +88,7 @@ def run(args) -> int:
           f"RMSE train {report['train_rmse']:.4g}, test {report['test_rmse']:.4g} "
           f"(linear {report['linear_test_rmse']:.4g}, 5-NN {report['knn_test_rmse']:.4g}; "
           f"ratio to linear {report['ratio_to_linear']:.3f}, goal <= 0.5)")
+    if "thesis_linear_test_rmse" in report:
+        print(f"inputs {', '.join(report['inputs'])}; linear on the thesis' inputs: test "
+              f"{report['thesis_linear_test_rmse']:.4g} (ratio {report['ratio_to_thesis_linear']:.3f})")
     return 0

@@ -15,7 +15,7 @@ def plot(path: str, out: str) -> str:
     from jtraj.solver import Status
 
     from . import load
-    from .views import _task, robot_of
+    from .views import robot_of, task_state
 
     data = load(path, partial=True)
     md = data.metadata
@@ -32,9 +32,9 @@ def plot(path: str, out: str) -> str:
     robot = robot_of(data)
     q = data["q"]
     # workspace coverage: task points of all trajectory samples, start/goal points on top
-    p = _task(robot, q.reshape(-1, q.shape[-1]), np.zeros((q.shape[0] * q.shape[1], q.shape[-1])))[0]
-    p0 = _task(robot, data["q_start"], np.zeros_like(data["q_start"]))[0]
-    p1 = _task(robot, data["q_goal"], np.zeros_like(data["q_goal"]))[0]
+    p = task_state(robot, q.reshape(-1, q.shape[-1]), np.zeros((q.shape[0] * q.shape[1], q.shape[-1])))[0]
+    p0 = task_state(robot, data["q_start"], np.zeros_like(data["q_start"]))[0]
+    p1 = task_state(robot, data["q_goal"], np.zeros_like(data["q_goal"]))[0]
     a = ax[0, 0]
     if p.shape[1] >= 2:
         from matplotlib.colors import LogNorm

@@ -62,14 +62,15 @@ def nefotc(data, *, converged_only: bool = True) -> View:
     return View(X, _rows(tau), _traj(idx, N))
 
 
-def _task(robot, q, qd):
+def task_state(robot, q, qd):
+    """Task point ``p = f(q)`` and its velocity ``pd = J(q) qd`` for rows of ``q``, ``qd``."""
     import jax
 
     def one(q_, qd_):
         p, pd = jax.jvp(robot.forward_kinematics, (q_,), (qd_,))
         return p, pd
 
-    p, pd = jax.jit(jax.vmap(one))(q, qd)
+    p, pd = jax.jit(jax.vmap(one))(np.asarray(q, float), np.asarray(qd, float))
     return np.asarray(p), np.asarray(pd)
 
 
@@ -84,7 +85,7 @@ def nefumop(data, *, converged_only: bool = True, robot=None) -> View:
         d = 0
         p = pd = np.zeros((0, d))
     else:
-        p, pd = _task(robot, q, qd)
+        p, pd = task_state(robot, q, qd)
     X = np.concatenate([p, pd], axis=1)
     Y = np.concatenate([_rows(tau), _rows(h[..., None])], axis=1)
     return View(X, Y, _traj(idx, N))
@@ -97,5 +98,5 @@ def nefik(data, *, converged_only: bool = True, robot=None) -> View:
     q = data["q"][sel]
     K = q.shape[1]
     qr = _rows(q)
-    p = _task(robot, qr, np.zeros_like(qr))[0] if len(qr) else np.zeros((0, 0))
+    p = task_state(robot, qr, np.zeros_like(qr))[0] if len(qr) else np.zeros((0, 0))
     return View(p, qr, _traj(idx, K))
