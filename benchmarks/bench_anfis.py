@@ -1,7 +1,8 @@
 """ANFIS benchmark: Jang's Mackey-Glass accuracy, training time, query latency.
 
     .venv/bin/python benchmarks/bench_anfis.py [--samples 2000] [--repeat 2000]
-        [--data DATASET [--mappings nefotc,nefumop,nefik,plan] [--rules R] [--goal-inputs none|append|relative] [--phase|--no-phase]]
+        [--data DATASET [--mappings nefotc,nefumop,nefik,plan] [--rules R]
+                        [--goal-inputs none|append|relative] [--phase|--no-phase]]
 
 Prints
 * Mackey-Glass (Jang 1993 set-up, 16 rules, first-order TSK) train and check RMSE
@@ -56,7 +57,8 @@ def main(argv=None):
     ap.add_argument("--epochs", type=int, default=100)
     ap.add_argument("--data", help="also benchmark the trajectory models of this dataset")
     ap.add_argument("--mappings", default="nefotc,nefumop,nefik,plan")
-    ap.add_argument("--rules", type=int, default=None, help="rules of the trajectory models (default: radius chosen on the validation split)")
+    ap.add_argument("--rules", type=int, default=None,
+                    help="rules of the trajectory models (default: radius chosen on the validation split)")
     ap.add_argument("--ridge", type=float, default=1e-6, help="relative ridge (as jtraj train)")
     ap.add_argument("--goal-inputs", nargs="?", const="append", default=None,
                     choices=["none", "append", "relative"],
