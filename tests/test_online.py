@@ -165,3 +165,13 @@ def test_nefotc_defaults_to_goal_offset_and_phase_with_the_thesis_baseline(data)
     assert cmd._goal(a.goal_inputs) is False and a.phase is False
     a = parser.parse_args(["--data", "d", "--out", "m"])
     assert cmd._goal(a.goal_inputs) is None and a.phase is None
+
+
+def test_views_of_a_partial_dataset_use_row_positions(data):
+    # a partial dataset's "index" holds the pair indices of its finished chunks
+    part = {k: (v if k == "metadata" else np.asarray(v)[20:]) for k, v in data.items()}
+    part["index"] = np.arange(20, 40)
+    X, _, traj, _, _ = trajectory.view(part, "nefotc", goal="relative", phase=True)
+    assert traj.min() >= 0 and traj.max() < 20
+    Xf, _, trajf, _, _ = trajectory.view(data, "nefotc", goal="relative", phase=True)
+    np.testing.assert_array_equal(X, Xf[trajf >= 20])

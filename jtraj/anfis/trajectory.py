@@ -115,8 +115,10 @@ def _view(data, mapping):
     conv = np.asarray(data["converged"], bool)
     if not conv.any():
         raise ValueError("dataset has no converged trajectory")
-    if "index" not in data:
-        data = {**data, "index": np.arange(conv.size)}
+    # the fields used, with row positions as the trajectory ids (a partial dataset's
+    # "index" holds pair indices, which are not positions)
+    data = {k: data[k] for k in REQUIRED + (("v",) if mapping == "plan" else ())}
+    data["index"] = np.arange(conv.size)
     n, m = np.shape(data["q"])[2], np.shape(data["tau"])[2]
     jn, jdn, tn = [f"q{j + 1}" for j in range(n)], [f"qd{j + 1}" for j in range(n)], [f"tau{j + 1}" for j in range(m)]
     f64 = lambda v: (np.asarray(v.X, float), np.asarray(v.Y, float), v.traj)  # noqa: E731
