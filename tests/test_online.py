@@ -142,7 +142,7 @@ def test_phase_input_is_the_samples_place_in_its_trajectory(data):
         trajectory.view(data, "nefik", phase=True)
 
 
-def test_nefotc_defaults_to_goal_offset_and_phase_with_the_thesis_baseline(data):
+def test_defaults_add_goal_offset_and_phase_with_the_thesis_baseline(data):
     model, rep, _ = trajectory.train_mapping(data, "nefotc", n_rules=3, epochs=2)
     assert rep["inputs"] == ["dq_goal1", "dq_goal2", "dq_goal3", "qd1", "qd2", "qd3", "phase"]
     assert rep["goal_inputs"] == "relative" and rep["phase_input"] and model.metadata["phase_input"]
@@ -152,9 +152,13 @@ def test_nefotc_defaults_to_goal_offset_and_phase_with_the_thesis_baseline(data)
     ref = np.sqrt(np.mean((trajectory.linear_baseline(X0[tr], Y0[tr], X0[te]) - Y0[te]) ** 2))
     assert rep["thesis_linear_test_rmse"] == pytest.approx(ref, rel=1e-12)
     assert rep["ratio_to_thesis_linear"] == pytest.approx(rep["test_rmse"] / ref, rel=1e-12)
-    # nefumop keeps the thesis' inputs unless asked; the CLI spells the thesis' nefotc out
+    # nefumop: position, velocity, goal offset and phase; the thesis' inputs when asked
     _, rep_u, _ = trajectory.train_mapping(data, "nefumop", n_rules=2, epochs=1)
+    assert rep_u["inputs"] == ["x", "y", "xd", "yd", "dx_goal", "dy_goal", "phase"]
+    _, rep_u, _ = trajectory.train_mapping(data, "nefumop", n_rules=2, epochs=1, goal=False, phase=False)
     assert rep_u["inputs"] == ["x", "y", "xd", "yd"] and "thesis_linear_test_rmse" not in rep_u
+    # nefik and plan have no extra inputs
+    assert trajectory.default_inputs("nefik") == (False, False) == trajectory.default_inputs("plan")
     import argparse
 
     from jtraj.commands import train as cmd

@@ -188,9 +188,10 @@ def _rmse(a, b):
 
 RADIUS_CANDIDATES = (0.4, 0.6, 0.9, 1.4)
 # extra inputs (goal, phase) of train_mapping when not given: over a dataset of random
-# start/goal pairs (q, qd) -> tau is not a function (see view); with the goal offset and
-# the phase it is nearly one (README, ANFIS: 0.3x the linear (q, qd) baseline)
-DEFAULT_INPUTS = {"nefotc": ("relative", True)}
+# start/goal pairs the thesis' mappings are not functions (see view); with the goal
+# offset and the phase they nearly are (README, ANFIS: nefotc 0.2x and nefumop 0.35-0.4x
+# the linear baseline on the thesis' inputs on 300-1000-pair serial3 datasets)
+DEFAULT_INPUTS = {"nefotc": ("relative", True), "nefumop": ("append", True)}
 
 
 def default_inputs(mapping: str):
@@ -211,8 +212,8 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     the thesis' inputs of the mapping (e.g. ``(q, qd)`` for ``nefotc``). Other keyword
     options go to :func:`jtraj.anfis.train` (``clip_outputs`` defaults to True here).
     ``goal``, ``phase``: extra inputs, see :func:`view`; ``None`` takes
-    :func:`default_inputs` (for ``nefotc`` the goal offset and the phase, for the other
-    mappings none). For ``plan``, ``n_rules`` defaults to ``PLAN_RULES`` (8): clustering
+    :func:`default_inputs` (``nefotc``: ``(q_goal - q, qd, k/N) -> tau``; ``nefumop``:
+    ``(p, pd, p_goal - p, k/N) -> (tau, h)``; the other mappings: none). For ``plan``, ``n_rules`` defaults to ``PLAN_RULES`` (8): clustering
     with a radius in its high-dimensional
     joint input-output space makes every trajectory a rule. ``radius="auto"`` (with
     ``n_rules`` None) trains one model per radius of ``RADIUS_CANDIDATES`` and keeps the

@@ -9,8 +9,9 @@ same split and inputs (goal: ANFIS test RMSE at most half the linear one).
 Over a dataset of random start/goal pairs, nefotc, nefumop and nefik are not functions
 of the thesis' inputs (the goal is missing), and no regressor gets far below the linear
 baseline on them. --goal-inputs adds the offset to the goal, --phase the sample's place
-k/N in its trajectory; nefotc uses both by default, (q_goal - q, qd, k/N) -> tau, and
-`--goal-inputs none --no-phase` gives the thesis' (q, qd) -> tau (see README, ANFIS).
+k/N in its trajectory. By default nefotc is (q_goal - q, qd, k/N) -> tau and nefumop
+(p, pd, p_goal - p, k/N) -> (tau, h); `--goal-inputs none --no-phase` gives the thesis'
+inputs (see README, ANFIS).
 """
 
 import argparse
@@ -36,13 +37,13 @@ def configure(parser):
     parser.add_argument("--goal-inputs", nargs="?", const="append", default=None,
                         choices=["none", "append", "relative"],
                         help="nefotc / nefumop: append the offset to the trajectory's goal (q_goal - q, or "
-                             "p_goal - p) to the inputs ('append', the default of the bare flag), or replace "
-                             "the position by it ('relative', the default for nefotc); 'none' (the default "
-                             "for nefumop): the thesis' inputs, which are not a function over a dataset of "
-                             "random start/goal pairs")
+                             "p_goal - p) to the inputs ('append', the default of the bare flag and of "
+                             "nefumop), or replace the position by it ('relative', the default of nefotc); "
+                             "'none': the thesis' inputs, which are not a function over a dataset of random "
+                             "start/goal pairs")
     parser.add_argument("--phase", action=argparse.BooleanOptionalAction, default=None,
                         help="nefotc / nefumop: add the sample's place k/N in its trajectory to the inputs "
-                             "(default: on for nefotc, off for nefumop)")
+                             "(default: on)")
     parser.add_argument("--no-progress", action="store_true")
 
 
