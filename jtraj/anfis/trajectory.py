@@ -210,7 +210,8 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     ``ratio_to_linear`` (goal <= 0.5) and the split sizes; with extra inputs also
     ``thesis_linear_test_rmse`` and ``ratio_to_thesis_linear``, the linear baseline on
     the thesis' inputs of the mapping (e.g. ``(q, qd)`` for ``nefotc``). Other keyword
-    options go to :func:`jtraj.anfis.train` (``clip_outputs`` defaults to True here).
+    options go to :func:`jtraj.anfis.train` (``clip_outputs`` defaults to True and
+    ``ridge`` to 1e-6 here, as in ``jtraj train``).
     ``goal``, ``phase``: extra inputs, see :func:`view`; ``None`` takes
     :func:`default_inputs` (``nefotc``: ``(q_goal - q, qd, k/N) -> tau``; ``nefumop``:
     ``(p, pd, p_goal - p, k/N) -> (tau, h)``; the other mappings: none). For ``plan``, ``n_rules`` defaults to ``PLAN_RULES`` (8): clustering
@@ -248,6 +249,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
         md["weights"] = meta["weights_text"]  # the cost the trajectories are optimal for (Planner refine)
     t0 = time.perf_counter()
     options.setdefault("clip_outputs", True)  # targets bounded by the robot's limits (see Model)
+    options.setdefault("ridge", 1e-6)  # as jtraj train: 1e-10 overfits sparse trajectory data
     selection = {}
     if n_rules is None and radius == "auto":
         # the clustering radius is chosen on the validation split (trajectories held out
