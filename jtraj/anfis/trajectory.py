@@ -17,6 +17,10 @@ Mappings (one row per time sample of each converged trajectory):
   thesis mappings carry no goal in their inputs, so they cannot plan a new start/goal
   pair on their own).
 
+Over a dataset of random start/goal pairs the thesis' nefotc and nefumop are not
+functions of their inputs; :func:`train_mapping` adds by default the offset to the
+trajectory's goal and the sample's phase ``k / N`` (:data:`DEFAULT_INPUTS`, :func:`view`).
+
 Split: the **last 10 % of the converged trajectories in dataset order** are the test
 set, never seen in training; early stopping uses the last 10 % of the remaining
 training trajectories. Baselines on the same split: linear least squares (with bias)
@@ -69,12 +73,13 @@ def view(data, mapping: str = "nefotc", *, goal: bool | str = False, phase: bool
     ``phase=True`` (``nefotc`` and ``nefumop``) appends the sample's place in its
     trajectory, ``k / N`` (input ``phase``), after the other inputs.
     """
+    data = load_data(data)
     X, Y, traj, names_in, names_out = _goal_view(data, mapping, goal)
     if not phase:
         return X, Y, traj, names_in, names_out
     if mapping not in ("nefotc", "nefumop"):
         raise ValueError(f"the phase input is defined for the mappings nefotc and nefumop, not {mapping!r}")
-    N = int(np.asarray(load_data(data)["h"]).shape[1])
+    N = int(np.shape(data["h"])[1])
     k = np.tile(np.arange(N), len(X) // N)  # rows are N samples per converged trajectory, in order
     return np.c_[X, k / N], Y, traj, names_in + ["phase"], names_out
 
@@ -89,7 +94,6 @@ def _goal_view(data, mapping, goal):
         raise ValueError(f"goal must be False, True, 'append' or 'relative', got {goal!r}")
     if mapping not in ("nefotc", "nefumop"):
         raise ValueError(f"goal inputs are defined for the mappings nefotc and nefumop, not {mapping!r}")
-    data = load_data(data)
     qg = np.asarray(data["q_goal"], float)[traj]
     if mapping == "nefotc":
         d = qg.shape[1]
