@@ -3,8 +3,8 @@
     .venv/bin/python benchmarks/bench_refine.py --data DATASET [--model PLAN.anfis]
         [--rules R] [--order 0|1] [--pairs 100] [--fresh-seed S] [--knn] [--primal] [--json out.json]
 
-Figures in the README (ANFIS section): ``--rules 8 --order 0 --pairs 60 --knn --primal``
-on ``jtraj dataset --robot serial3 --pairs 300 --seed 1``.
+Figures in the README (ANFIS section): ``--order 0 --pairs 100 --knn --primal`` on
+``jtraj dataset --robot serial3 --pairs 300 --seed 2``.
 
 Issue #6 item 5. The planner model (mapping ``plan``) is trained here on the dataset's
 training split (``jtraj.anfis.trajectory.train_mapping``; ``--rules``, ``--epochs``,
