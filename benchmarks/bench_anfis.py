@@ -117,7 +117,7 @@ def trajectory_models(args):
     data = trajectory.load_data(args.data)
     for mapping in args.mappings.split(","):
         extra = mapping in ("nefotc", "nefumop")
-        goal = {None: None, "none": False}.get(args.goal_inputs, args.goal_inputs) if extra else False
+        goal = args.goal_inputs if extra else False
         phase = args.phase if extra else False
         _, r, _ = trajectory.train_mapping(data, mapping, n_rules=args.rules, epochs=args.epochs, ridge=args.ridge,
                                            goal=goal, phase=phase)

@@ -166,9 +166,12 @@ def test_defaults_add_goal_offset_and_phase_with_the_thesis_baseline(data):
     parser = argparse.ArgumentParser()
     cmd.configure(parser)
     a = parser.parse_args(["--data", "d", "--out", "m", "--goal-inputs", "none", "--no-phase"])
-    assert cmd._goal(a.goal_inputs) is False and a.phase is False
+    assert a.goal_inputs == "none" and a.phase is False
+    _, rep_t, _ = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, goal=a.goal_inputs, phase=a.phase)
+    assert rep_t["inputs"] == ["q1", "q2", "q3", "qd1", "qd2", "qd3"] and rep_t["goal_inputs"] is False
+    assert "thesis_linear_test_rmse" not in rep_t
     a = parser.parse_args(["--data", "d", "--out", "m"])
-    assert cmd._goal(a.goal_inputs) is None and a.phase is None
+    assert a.goal_inputs is None and a.phase is None
 
 
 def test_views_of_a_partial_dataset_use_row_positions(data):

@@ -88,10 +88,10 @@ def _goal_view(data, mapping, goal):
     X, Y, traj, names_in, names_out = _view(data, mapping)
     if goal is True:
         goal = "append"
-    if not goal:
+    if not goal or goal == "none":
         return X, Y, traj, names_in, names_out
     if goal not in ("append", "relative"):
-        raise ValueError(f"goal must be False, True, 'append' or 'relative', got {goal!r}")
+        raise ValueError(f"goal must be False, True, 'none', 'append' or 'relative', got {goal!r}")
     if mapping not in ("nefotc", "nefumop"):
         raise ValueError(f"goal inputs are defined for the mappings nefotc and nefumop, not {mapping!r}")
     qg = np.asarray(data["q_goal"], float)[traj]
@@ -231,7 +231,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
         # every trajectory as a rule (150 of 150 on a 300-pair serial3 dataset)
         n_rules = PLAN_RULES
     dgoal, dphase = default_inputs(mapping)
-    goal = dgoal if goal is None else goal
+    goal = dgoal if goal is None else (False if goal == "none" else goal)
     phase = dphase if phase is None else phase
     data = load_data(data)
     X, Y, traj, in_names, out_names = view(data, mapping, goal=goal, phase=phase)

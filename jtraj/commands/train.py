@@ -59,10 +59,6 @@ def _radius(text):
     return r
 
 
-def _goal(text):
-    return {None: None, "none": False}.get(text, text)
-
-
 def run(args) -> int:
     import json
     import os
@@ -74,7 +70,7 @@ def run(args) -> int:
     model, report, hist = trajectory.train_mapping(
         args.data, args.mapping, n_rules=args.rules, radius=args.radius, epochs=args.epochs, kind=args.kind,
         order=args.order, ridge=args.ridge, progress=not args.no_progress,
-        goal=_goal(getattr(args, "goal_inputs", None)), phase=getattr(args, "phase", None))
+        goal=getattr(args, "goal_inputs", None), phase=getattr(args, "phase", None))
     model.save(args.out)
     report["model"] = os.path.abspath(args.out)
     if args.plot:
