@@ -63,12 +63,37 @@ def test_auto_radius_keeps_the_lowest_validation_error(data):
     model, rep, hist = trajectory.train_mapping(data, "nefotc", epochs=5)
     sel = rep["radius_selection"]
     assert set(sel) == {str(r) for r in trajectory.RADIUS_CANDIDATES}
-    best = min(sel, key=lambda r: sel[r]["validation_rmse"])
+    trained = {r: v for r, v in sel.items() if "skipped" not in v}
+    best = min(trained, key=lambda r: trained[r]["validation_rmse"])
     assert rep["radius"] == pytest.approx(float(best)) and rep["n_rules"] == sel[best]["n_rules"]
     assert min(hist.val_rmse) == pytest.approx(sel[best]["validation_rmse"])
     # a larger radius never yields more rules
-    counts = [sel[str(r)]["n_rules"] for r in trajectory.RADIUS_CANDIDATES]
-    assert counts == sorted(counts, reverse=True)
+    counts = [sel[str(r)]["n_rules"] for r in trajectory.RADIUS_CANDIDATES if str(r) in trained]
+    assert len(counts) >= 2 and counts == sorted(counts, reverse=True)
+
+
+def test_auto_radius_skips_radii_with_more_rules_than_the_data_carry(monkeypatch):
+    from jtraj.anfis.clustering import subclust
+
+    rng = np.random.default_rng(0)
+    X, Y = rng.random((400, 3)), rng.random((400, 1))  # no structure: small radii give many rules
+    traj = np.arange(400) // 4  # 100 trajectories -> at most 25 rules
+    counts = {r: subclust(np.c_[X, Y], r).centers.shape[0] for r in trajectory.RADIUS_CANDIDATES}
+    assert counts[0.4] > 25 >= counts[1.4]
+    sel = {}
+    kept = trajectory._auto_radii(X, Y, traj, {}, sel)
+    assert kept == [r for r in trajectory.RADIUS_CANDIDATES if counts[r] <= 25]
+    assert set(sel) == {str(r) for r in trajectory.RADIUS_CANDIDATES if counts[r] > 25}
+    assert all(v["skipped"] == "more than 25 rules" for v in sel.values())
+    # when no radius is within the cap, the largest (fewest rules) is kept
+    monkeypatch.setattr(trajectory, "RADIUS_CANDIDATES", (0.4, 0.6))
+    monkeypatch.setattr(trajectory, "MAX_AUTO_RULES", counts[0.6] - 1)
+    assert trajectory._auto_radii(X, Y, traj, {}, {}) == [0.6]
+    monkeypatch.setattr(trajectory, "RADIUS_CANDIDATES", (0.4, 0.6, 0.9, 1.4))
+    # the absolute cap
+    monkeypatch.setattr(trajectory, "TRAJECTORIES_PER_RULE", 1)
+    monkeypatch.setattr(trajectory, "MAX_AUTO_RULES", counts[0.9])
+    assert 0.4 not in trajectory._auto_radii(X, Y, traj, {}, {})
 
 
 def test_train_command_rejects_a_bad_radius():

@@ -191,6 +191,12 @@ def _rmse(a, b):
 
 
 RADIUS_CANDIDATES = (0.4, 0.6, 0.9, 1.4)
+# radius "auto" skips a radius whose clustering gives more rules than one per
+# TRAJECTORIES_PER_RULE training trajectories (the samples of a trajectory are strongly
+# correlated) or than MAX_AUTO_RULES (the Levenberg-Marquardt premise step factorises a
+# matrix of 2 x rules x inputs rows: 10 inputs at radius 0.4 trained for over 10 min)
+TRAJECTORIES_PER_RULE = 4
+MAX_AUTO_RULES = 64
 # extra inputs (goal, phase) of train_mapping when not given: over a dataset of random
 # start/goal pairs the thesis' mappings are not functions (see view); with the goal
 # offset and the phase they nearly are (README, ANFIS: nefotc 0.2x and nefumop 0.35-0.4x
@@ -201,6 +207,22 @@ DEFAULT_INPUTS = {"nefotc": ("relative", True), "nefumop": ("append", True)}
 def default_inputs(mapping: str):
     """``(goal, phase)`` that :func:`train_mapping` uses for ``mapping`` when not given."""
     return DEFAULT_INPUTS.get(mapping, (False, False))
+
+
+def _auto_radii(X, Y, traj, options, selection):
+    """The radii of ``RADIUS_CANDIDATES`` within the rule cap (skipped ones are recorded
+    in ``selection``); the largest radius if none is."""
+    from .clustering import subclust
+
+    cap = max(2, min(MAX_AUTO_RULES, np.unique(traj).size // TRAJECTORIES_PER_RULE))
+    kw = {k: options[k] for k in ("squash", "accept", "reject") if k in options}
+    XY = np.concatenate([X, Y], axis=1)
+    counts = {r: subclust(XY, r, max_centers=cap + 1, **kw).centers.shape[0] for r in RADIUS_CANDIDATES}
+    keep = [r for r in RADIUS_CANDIDATES if counts[r] <= cap]
+    for r in RADIUS_CANDIDATES:
+        if r not in keep:
+            selection[str(r)] = {"n_rules": f"> {cap}", "skipped": f"more than {cap} rules"}
+    return keep or [max(RADIUS_CANDIDATES)]  # counts are cut at cap + 1; the largest radius has fewest
 
 
 def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, radius="auto",
@@ -222,7 +244,9 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     with a radius in its high-dimensional
     joint input-output space makes every trajectory a rule. ``radius="auto"`` (with
     ``n_rules`` None) trains one model per radius of ``RADIUS_CANDIDATES`` and keeps the
-    one with the lowest validation RMSE (report: ``radius_selection``).
+    one with the lowest validation RMSE (report: ``radius_selection``), skipping radii
+    that give more than one rule per ``TRAJECTORIES_PER_RULE`` training trajectories or
+    more than ``MAX_AUTO_RULES`` rules.
     """
     from .training import train
 
@@ -264,7 +288,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
             radius = 0.5
         else:
             best = None
-            for r in RADIUS_CANDIDATES:
+            for r in _auto_radii(Xfit, Yfit, traj[tr][fit_rows], options, selection):
                 m_r, h_r = train(Xfit, Yfit, radius=r, epochs=epochs, kind=kind, validation=validation,
                                  metadata=md, progress=progress, **options)
                 va = float(min(h_r.val_rmse))
