@@ -240,9 +240,9 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     ``ridge`` to 1e-6 here, as in ``jtraj train``).
     ``goal``, ``phase``: extra inputs, see :func:`view`; ``None`` takes
     :func:`default_inputs` (``nefotc``: ``(q_goal - q, qd, k/N) -> tau``; ``nefumop``:
-    ``(p, pd, p_goal - p, k/N) -> (tau, h)``; the other mappings: none). For ``plan``, ``n_rules`` defaults to ``PLAN_RULES`` (8): clustering
-    with a radius in its high-dimensional
-    joint input-output space makes every trajectory a rule. ``radius="auto"`` (with
+    ``(p, pd, p_goal - p, k/N) -> (tau, h)``; the other mappings: none). For ``plan``,
+    ``n_rules`` defaults to ``PLAN_RULES`` (8): clustering with a radius in its
+    high-dimensional joint input-output space makes every trajectory a rule. ``radius="auto"`` (with
     ``n_rules`` None) trains one model per radius of ``RADIUS_CANDIDATES`` and keeps the
     one with the lowest validation RMSE (report: ``radius_selection``), skipping radii
     that give more than one rule per ``TRAJECTORIES_PER_RULE`` training trajectories or
