@@ -1020,16 +1020,15 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     to 8 and 2 (17.8 s with segments of 10, the default)."""
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
     states = _run_lanes(nlps, states, np.arange(int(valid.shape[0])), opts, slots, steps)
-    if opts.restart_iter > 0:
-        todo = np.flatnonzero(np.asarray(_needs_restart_jit(states, opts)))
-        if todo.size:
-            for start in range(0, todo.size, slots):
-                # padded with a repeat of the group's first problem: the same result is
-                # written twice (a fixed gather width, one compilation)
-                group = todo[start:start + slots]
-                idx = np.concatenate([group, np.repeat(group[:1], slots - group.size)])
-                states = _restart_jit(nlps, states, opts, jnp.asarray(idx))
-            states = _run_lanes(nlps, states, todo, opts, slots, steps)
+    todo = np.flatnonzero(np.asarray(_needs_restart_jit(states, opts)))  # none if restart_iter == 0
+    for start in range(0, todo.size, slots):
+        # padded with a repeat of the group's first problem: the same result is written
+        # twice (a fixed gather width, one compilation)
+        group = todo[start:start + slots]
+        idx = np.concatenate([group, np.repeat(group[:1], slots - group.size)])
+        states = _restart_jit(nlps, states, opts, jnp.asarray(idx))
+    if todo.size:
+        states = _run_lanes(nlps, states, todo, opts, slots, steps)
     return _finish_batch_jit(nlps, states, opts, valid)
 
 

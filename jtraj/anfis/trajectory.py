@@ -73,12 +73,12 @@ def view(data, mapping: str = "nefotc", *, goal: bool | str = False, phase: bool
     ``phase=True`` (``nefotc`` and ``nefumop``) appends the sample's place in its
     trajectory, ``k / N`` (input ``phase``), after the other inputs.
     """
+    if phase and mapping not in ("nefotc", "nefumop"):
+        raise ValueError(f"the phase input is defined for the mappings nefotc and nefumop, not {mapping!r}")
     data = load_data(data)
     X, Y, traj, names_in, names_out = _goal_view(data, mapping, goal)
     if not phase:
         return X, Y, traj, names_in, names_out
-    if mapping not in ("nefotc", "nefumop"):
-        raise ValueError(f"the phase input is defined for the mappings nefotc and nefumop, not {mapping!r}")
     N = int(np.shape(data["h"])[1])
     k = np.tile(np.arange(N), len(X) // N)  # rows are N samples per converged trajectory, in order
     return np.c_[X, k / N], Y, traj, names_in + ["phase"], names_out

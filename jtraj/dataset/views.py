@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import equinox as eqx
 import numpy as np
 
 
@@ -64,14 +65,15 @@ def nefotc(data, *, converged_only: bool = True) -> View:
 
 def task_state(robot, q, qd):
     """Task point ``p = f(q)`` and its velocity ``pd = J(q) qd`` for rows of ``q``, ``qd``."""
+    p, pd = _task_state_jit(robot, np.asarray(q, float), np.asarray(qd, float))
+    return np.asarray(p), np.asarray(pd)
+
+
+@eqx.filter_jit  # module level: compiled once per robot and shape, not at every call
+def _task_state_jit(robot, q, qd):
     import jax
 
-    def one(q_, qd_):
-        p, pd = jax.jvp(robot.forward_kinematics, (q_,), (qd_,))
-        return p, pd
-
-    p, pd = jax.jit(jax.vmap(one))(np.asarray(q, float), np.asarray(qd, float))
-    return np.asarray(p), np.asarray(pd)
+    return jax.vmap(lambda q_, qd_: jax.jvp(robot.forward_kinematics, (q_,), (qd_,)))(q, qd)
 
 
 def nefumop(data, *, converged_only: bool = True, robot=None) -> View:
