@@ -105,6 +105,11 @@ class ViaPoint(eqx.Module):
     sample: int | None = eqx.field(static=True, default=None)
 
 
+#: slack of the checks of a problem's start and goal against its boxes and path
+#: constraints (absolute, in the constraints' units; path constraints are normalised)
+FACE_TOL = 1e-9
+
+
 class Problem(eqx.Module):
     """A point-to-point trajectory problem for the decoupled transcription.
 
@@ -174,18 +179,26 @@ class Problem(eqx.Module):
         lim = self.robot.limits
         N = self.N
         for name, q in (("q_start", self.q_start), ("q_goal", self.q_goal)):
-            if lim.q_min is not None and bool(jnp.any((q < lim.q_min) | (q > lim.q_max))):
+            if lim.q_min is not None and bool(jnp.any((q < lim.q_min - FACE_TOL) | (q > lim.q_max + FACE_TOL))):
                 raise ValueError(f"{name} = {np.asarray(q).tolist()} is outside the joint limits "
                                  f"[{np.asarray(lim.q_min).tolist()}, {np.asarray(lim.q_max).tolist()}]")
         for name, qd in (("qd_start", self.qd_start), ("qd_goal", self.qd_goal)):
-            if lim.qd_max is not None and bool(jnp.any(jnp.abs(qd) > lim.qd_max)):
+            if lim.qd_max is not None and bool(jnp.any(jnp.abs(qd) > lim.qd_max * (1 + FACE_TOL))):
                 raise ValueError(f"{name} exceeds the velocity limits qd_max = {np.asarray(lim.qd_max).tolist()}")
         if lim.workspace is not None:
             for name, q in (("q_start", self.q_start), ("q_goal", self.q_goal)):
                 p = self.robot.forward_kinematics(q)
-                if bool(jnp.any((p < lim.workspace[0] - 1e-9) | (p > lim.workspace[1] + 1e-9))):
+                if bool(jnp.any((p < lim.workspace[0] - FACE_TOL) | (p > lim.workspace[1] + FACE_TOL))):
                     raise ValueError(f"{name} puts the task point at {np.asarray(p).tolist()}, outside "
                                      f"the workspace box {np.asarray(lim.workspace).tolist()}")
+        path = getattr(self.robot, "path_constraints", None)
+        if path is not None:
+            for name, q in (("q_start", self.q_start), ("q_goal", self.q_goal)):
+                g = np.asarray(path(q))
+                if np.any(g > FACE_TOL):
+                    raise ValueError(f"{name} = {np.asarray(q).tolist()} violates the path constraints of robot "
+                                     f"{self.robot.name!r} (largest normalised value {g.max():.3g} > 0: e.g. too "
+                                     f"close to a singularity)")
         rest = not (bool(jnp.any(self.qd_start != 0)) or bool(jnp.any(self.qd_goal != 0)))
         T_need = float(minimum_time_bound(self)) if rest else 0.0
         if T_need > N * lim.h_max * (1 + 1e-9):
@@ -197,6 +210,31 @@ class Problem(eqx.Module):
                              f"or N * h_min)")
         if N * lim.h_min > float(self.T_max):
             raise ValueError("T_max is below N * h_min; reduce N")
+
+    def infeasible_on_its_face(self) -> Array:
+        """A traced bool: what :meth:`_check_feasible` rejects with a ``ValueError``
+        (start or goal outside the joint box, the workspace box or the robot's path
+        constraints, boundary velocities beyond ``qd_max``, a move longer than N h_max or
+        T_max allow). A batch gives such samples the status ``INVALID_INPUT`` instead of
+        solving them."""
+        lim = self.robot.limits
+        bad = jnp.zeros((), bool)
+        ends = jnp.stack([self.q_start, self.q_goal])
+        if lim.q_min is not None:
+            bad |= jnp.any((ends < lim.q_min - FACE_TOL) | (ends > lim.q_max + FACE_TOL))
+        if lim.qd_max is not None:
+            bad |= jnp.any(jnp.abs(jnp.stack([self.qd_start, self.qd_goal])) > lim.qd_max * (1 + FACE_TOL))
+        if lim.workspace is not None:
+            p = jax.vmap(self.robot.forward_kinematics)(ends)
+            bad |= jnp.any((p < lim.workspace[0] - FACE_TOL) | (p > lim.workspace[1] + FACE_TOL))
+        path = getattr(self.robot, "path_constraints", None)
+        if path is not None:
+            bad |= jnp.any(jax.vmap(path)(ends) > FACE_TOL)
+        rest = jnp.all(self.qd_start == 0) & jnp.all(self.qd_goal == 0)
+        T_need = jnp.where(rest, minimum_time_bound(self), 0.0)
+        bad |= T_need > self.N * lim.h_max * (1 + 1e-9)
+        bad |= self.T_max < jnp.maximum(T_need, self.N * lim.h_min)
+        return bad
 
     @staticmethod
     def from_task(robot: Robot, p_start, p_goal, *, q_init=None, ik_method: str = "weighted",

@@ -56,7 +56,7 @@ def test_sampling_is_a_function_of_seed_and_pair_index():
     assert not np.allclose(other, qs)
 
 
-def test_sampling_clips_into_a_joint_box():
+def test_sampling_stays_inside_a_joint_box_without_piling_goals_on_its_faces():
     from jtraj import robots
 
     r = robots.get("serial3", q_min=-0.5, q_max=(0.3, 0.4, 0.5))
@@ -64,6 +64,38 @@ def test_sampling_clips_into_a_joint_box():
     lo, hi = np.array([-0.5] * 3), np.array([0.3, 0.4, 0.5])
     for q in (qs, qg):
         assert np.all(q >= lo) and np.all(q <= hi)
+    # redrawn, not clipped: no goal on a face of the box (a clip put about a third there)
+    assert not np.any((qg == lo) | (qg == hi))
+    assert np.all(np.abs(qg - qs) <= 0.8)
+
+
+def test_sampling_keeps_starts_and_goals_inside_path_constraints():
+    """parallel3's box holds points where a leg is (nearly) stretched: its path
+    constraints forbid them, and sampled pairs avoid them (checked by the leg ratios
+    themselves); robots without path constraints draw the plain law (serial3: block 0
+    drawn here by hand equals the sampler's pairs)."""
+    import jax
+
+    from jtraj import robots
+
+    r = robots.get("parallel3")
+    qs, qg = sampling.sample_pairs(r, sampling.Distribution(), 1, 0, 128)
+    for q in (qs, qg):
+        ratio = np.asarray(jax.vmap(r.leg_ratios)(q))
+        assert np.all(ratio <= r.rho_max) and np.all(ratio >= r.rho_min)
+        assert np.all(np.abs(q) <= 0.5)
+    # the box corner (0.5, 0.5) is outside the constraints (a leg nearly stretched)
+    assert not sampling.admissible(r, np.array([[0.5, 0.5], [0.5, -0.5]])).any()
+    assert sampling.admissible(r, np.array([[0.0, 0.0]])).all()
+    s3 = robots.get("serial3")
+    rng = np.random.default_rng([3, 0])  # the law of block 0 by hand: no rejection but the separation
+    u = rng.random((64, 2, 3))
+    a = -1.2 + 2.4 * u[:, 0]
+    g = a + 0.8 * (2 * u[:, 1] - 1)
+    keep = np.linalg.norm(g - a, axis=1) >= 0.05
+    qs, qg = sampling.sample_pairs(s3, sampling.Distribution(), 3, 0, int(keep.sum()))
+    np.testing.assert_array_equal(qs, a[keep])
+    np.testing.assert_array_equal(qg, g[keep])
 
 
 @pytest.mark.slow  # ~20 s: compiles the vmapped IK

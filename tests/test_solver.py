@@ -12,6 +12,7 @@ once for single problems and once for batches.
 import os
 import sys
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -46,6 +47,8 @@ def batch(robot):
     q0 = rng.uniform(-1.2, 1.2, (4, 3))
     q1 = q0 + rng.uniform(-0.25, 0.25, (4, 3))
     q1[3] = np.nan  # one bad sample must not poison the others
+    # and one that jtraj.Problem refuses (the move needs 2 s, N h_max = 1 s)
+    q0, q1 = np.vstack([q0, q0[2]]), np.vstack([q1, q0[2] + 3.0])
     return q0, q1, jtraj.solve_batch(robot, q0, q1, N=N, weights=W)
 
 
@@ -95,12 +98,16 @@ def test_warm_start_from_solution_is_immediate(single):
         jtraj.solve(problem, init=(sol.v, sol.h), warm="dual")
 
 
-def test_batch_statuses_and_no_false_convergence(batch):
+def test_batch_statuses_and_no_false_convergence(robot, batch):
     V = pytest.importorskip("peers.verify")
     q0, q1, sol = batch
-    assert sol.q.shape == (4, N + 1, 3) and sol.status.shape == (4,)
+    assert sol.q.shape == (5, N + 1, 3) and sol.status.shape == (5,)
     status = np.asarray(sol.status)
     assert status[3] == Status.INVALID_INPUT and not bool(sol.converged[3])
+    # infeasible on its face: flagged without an iteration, like a non-finite sample
+    with pytest.raises(ValueError, match="N = 10 is too small"):
+        jtraj.Problem(robot, q0[4], q1[4], N=N)
+    assert status[4] == Status.INVALID_INPUT and int(sol.iterations[4]) == 0
     assert np.all(np.isfinite(np.asarray(sol.q)))  # never a NaN trajectory
     for i in range(3):
         if bool(sol.converged[i]):
@@ -146,6 +153,29 @@ def test_bad_problem_input(robot, kwargs, match):
     q_start, q_goal = args.pop("q_start"), args.pop("q_goal")
     with pytest.raises(ValueError, match=match):
         jtraj.Problem(robot, q_start, q_goal, **args)
+
+
+@pytest.mark.parametrize("name, q_start, q_goal, match", [
+    ("serial3", Q0, Q1, None),
+    ("serial3", Q0, Q0 + 3.0, "N = 10 is too small"),
+    ("parallel3", [0.1, 0.1], [0.2, -0.1], None),
+    ("parallel3", [0.1, 0.1], [0.5, 0.5], "q_goal .* path constraints"),  # a leg nearly stretched
+    ("parallel3", [0.1, 0.1], [0.6, 0.0], "q_goal .* joint limits"),
+    ("pkm2", [0.0, -1.2], [0.3, -1.0], None),
+    ("pkm2", [0.0, -1.2], [0.0, -1.8], "q_goal .* joint limits"),
+])
+def test_face_check_traced_agrees_with_the_problem_check(name, q_start, q_goal, match):
+    """A batch flags as INVALID_INPUT exactly the problems a single Problem refuses:
+    the traced check (under jit) and the eager ValueError agree."""
+    robot = jtraj.robots.get(name)
+    unchecked = jtraj.Problem(robot, q_start, q_goal, N=N, validate=False)
+    flagged = bool(jax.jit(lambda p: p.infeasible_on_its_face())(unchecked))
+    assert flagged == (match is not None)
+    if match is None:
+        jtraj.Problem(robot, q_start, q_goal, N=N)
+    else:
+        with pytest.raises(ValueError, match=match):
+            jtraj.Problem(robot, q_start, q_goal, N=N)
 
 
 def _tip(q):

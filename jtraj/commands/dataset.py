@@ -7,8 +7,9 @@
 
 build: samples start/goal pairs deterministically from the seed (joint space:
 q_start ~ U(-1.2, 1.2)^n intersected with the joint box, q_goal = q_start +
-U(-0.8, 0.8)^n clipped into the joint box, |q_goal - q_start| >= 0.05; task space:
-uniform over the reachable workspace through inverse kinematics), solves them with
+U(-0.8, 0.8)^n inside the joint box, |q_goal - q_start| >= 0.05; task space:
+uniform over the reachable workspace through inverse kinematics; both: start and goal
+inside the workspace box and the robot's path constraints), solves them with
 jtraj.solve_batch in chunks of --batch pairs and writes every finished chunk atomically
 into the directory store PATH (manifest.json + chunks/chunk-XXXXXX.h5). Every pair is
 kept with its status; failures are flagged, not dropped. Re-running the same command

@@ -14,11 +14,17 @@ Distributions (``space``):
     ``hi = min(start_range, q_max)`` per joint (``start_range`` = 1.2 rad by default;
     robots without a joint box: ``U(-1.2, 1.2)^n``, the benchmark family of
     ``benchmarks/peers/ipopt_peer.benchmark_pairs``), then
-    ``q_goal = clip(q_start + U(-step_range, step_range)^n, q_min, q_max)``
-    (``step_range`` = 0.8 rad). A candidate pair is rejected and redrawn (from the same
-    block generator) when ``|q_goal - q_start|_2 < min_separation`` (default 0.05 rad);
-    with no joint box, rejection removes a ball of radius 0.05 from the step cube,
-    i.e. about 1e-4 of its volume.
+    ``q_goal = q_start + U(-step_range, step_range)^n`` (``step_range`` = 0.8 rad).
+    A candidate pair is rejected and redrawn (from the same block generator) when
+    ``|q_goal - q_start|_2 < min_separation`` (default 0.05 rad), when the goal leaves
+    the joint box, or when its start or goal puts the task point outside the robot's
+    workspace box or violates its path constraints (``robot.path_constraints``, e.g.
+    the leg-singularity margins of ``parallel3``), which :class:`jtraj.Problem` would
+    refuse. So pairs are uniform over the admissible part of (start box) x (step cube).
+    With no joint box and no such constraints (``serial3``), rejection only removes a
+    ball of radius 0.05 from the step cube, about 1e-4 of its volume.
+    (Until 2026-11-27 goals were clipped into the joint box instead: on a small box
+    such as ``parallel3``'s, about half of them then sat exactly on its boundary.)
 
 ``"task"``
     Task points uniform over the reachable workspace: ``p ~ U(box)`` where ``box`` is
@@ -29,7 +35,8 @@ Distributions (``space``):
     sampling, hence uniform over the reachable part of the box. ``q_start`` is the IK
     solution from a start drawn as in the joint space case; ``q_goal`` is the IK
     solution of the goal point started from ``q_start`` (the nearest branch). Pairs
-    with ``|p_goal - p_start|_2 < min_separation`` (task units, default 0.05) are
+    with ``|p_goal - p_start|_2 < min_separation`` (task units, default 0.05), or
+    whose start or goal configuration violates the robot's path constraints, are
     rejected.
 """
 
@@ -73,12 +80,15 @@ class Distribution:
         d["generator"] = "numpy.random.default_rng([seed, block]) (PCG64)"
         if self.space == "joint":
             d["law"] = ("q_start ~ U(max(-start_range, q_min), min(start_range, q_max))^n; "
-                        "q_goal = clip(q_start + U(-step_range, step_range)^n, q_min, q_max); "
-                        "rejected if |q_goal - q_start|_2 < min_separation")
+                        "q_goal = q_start + U(-step_range, step_range)^n; redrawn unless q_goal is in the joint "
+                        "box; "
+                        "rejected if |q_goal - q_start|_2 < min_separation or if q_start or q_goal violates the "
+                        "workspace box or the robot's path constraints")
         else:
             d["law"] = ("p_start, p_goal ~ U(workspace box), kept when IK reaches them (uniform over the "
                         "reachable workspace); q_start = ik(p_start, q ~ joint-space start law); "
-                        "q_goal = ik(p_goal, q_start); rejected if |p_goal - p_start|_2 < min_separation")
+                        "q_goal = ik(p_goal, q_start); rejected if |p_goal - p_start|_2 < min_separation or if q_start "
+                        "or q_goal violates the robot's path constraints")
         return d
 
 
@@ -115,6 +125,29 @@ def check(robot, dist: Distribution) -> None:
             raise ValueError(f"ik_method must be one of {METHODS}, got {dist.ik_method!r}")
 
 
+def admissible(robot, q):
+    """(B,) bool: configurations ``q`` (B, n) whose task point lies in the robot's
+    workspace box and which meet its path constraints (all True for robots with neither)."""
+    q = np.asarray(q, float)
+    ok = np.all(np.isfinite(q), axis=1)
+    lim = robot.limits
+    path = getattr(robot, "path_constraints", None)
+    if lim.workspace is None and path is None:
+        return ok
+    import jax
+
+    from jtraj.problem import FACE_TOL
+
+    qq = np.where(ok[:, None], q, 0.0)
+    if lim.workspace is not None:
+        p = np.asarray(jax.vmap(robot.forward_kinematics)(qq))
+        box = np.asarray(lim.workspace)
+        ok &= np.all((p >= box[0] - FACE_TOL) & (p <= box[1] + FACE_TOL), axis=1)
+    if path is not None:
+        ok &= np.all(np.asarray(jax.vmap(path)(qq)) <= FACE_TOL, axis=1)
+    return ok
+
+
 def _block_joint(robot, dist, seed, b):
     rng = np.random.default_rng([seed, b])
     n = robot.n
@@ -125,14 +158,16 @@ def _block_joint(robot, dist, seed, b):
     for _ in range(_MAX_ROUNDS):
         u = rng.random((BLOCK, 2, n))
         a = lo + (hi - lo) * u[:, 0]
-        g = np.clip(a + dist.step_range * (2 * u[:, 1] - 1), q_min, q_max)
-        ok = np.linalg.norm(g - a, axis=1) >= dist.min_separation
+        g = a + dist.step_range * (2 * u[:, 1] - 1)
+        ok = (np.linalg.norm(g - a, axis=1) >= dist.min_separation) & np.all((g >= q_min) & (g <= q_max), axis=1)
+        ok &= admissible(robot, a) & admissible(robot, g)
         qs.append(a[ok])
         qg.append(g[ok])
         count += int(ok.sum())
         if count >= BLOCK:
             return np.concatenate(qs)[:BLOCK], np.concatenate(qg)[:BLOCK]
-    raise ValueError("could not draw pairs with the requested minimum separation")
+    raise ValueError("could not draw pairs with the requested minimum separation inside the robot's workspace "
+                     "box and path constraints")
 
 
 _WORKSPACE_CACHE: dict = {}
@@ -181,7 +216,7 @@ def _block_task(robot, dist, seed, b):
         sep = np.linalg.norm(p1 - p0, axis=1) >= dist.min_separation
         a, s0 = _ik_batch(robot, p0, q_init, dist.ik_method)
         g, s1 = _ik_batch(robot, p1, a, dist.ik_method)
-        ok = sep & (s0 == 0) & (s1 == 0) & np.isfinite(a).all(1) & np.isfinite(g).all(1)
+        ok = sep & (s0 == 0) & (s1 == 0) & admissible(robot, a) & admissible(robot, g)
         qs.append(a[ok])
         qg.append(g[ok])
         count += int(ok.sum())
