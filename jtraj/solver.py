@@ -394,10 +394,16 @@ class _State(NamedTuple):
 # NumPy, not jnp: a jnp constant made at import takes the dtype of that moment (float32
 # when x64 is enabled after ``import jtraj``), which changed the iterates between processes
 # that enabled x64 before and after the import (Ray workers against the CLI)
-# 4 shifts x 6 step lengths: on 96 serial3 dataset pairs (h_max 0.2) 95 converged, mean
-# 176 iterations, 57 s; 6 x 6: 95, 177, 60 s; 5 x 5: 94; 6 x 4: 92; 4 x 4: 93
+# 4 shifts x 4 step lengths. The trial points are a third of a Newton iteration's cost
+# (16 al_value calls; 215 of 590 us per problem with 24), and the steps 0.03 and 0.01
+# won 6 % of the iterations. Against 4 x 6 (2026-11-27, same processes interleaved, one
+# core each): 3 x 128 benchmark pairs (seeds 0, 1, 11) 1.11x faster, the same pairs
+# converged (114, 111, 115), iterations -2 % / +2 % / +2 %, costs within 0.06 %; the 96
+# dataset pairs of seed 5 (h_max 0.2) 96/96 either way, 1.09x. 3 shifts x 4: +13 % of
+# iterations, no faster. (An older solver, 2026-11-26: 4 x 4 converged 93 of those 96
+# against 95 with 4 x 6.)
 _LADDER = np.linspace(0.0, 1.0, 4)  # exponents of the geometric shift ladder
-_STEPS = np.array([1.0, 0.5, 0.25, 0.1, 0.03, 0.01])
+_STEPS = np.array([1.0, 0.5, 0.25, 0.1])
 
 
 def _held(z, g, lo, hi, hdiag, eps):
