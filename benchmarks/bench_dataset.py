@@ -9,7 +9,8 @@ For each batch size B the benchmark builds a serial3, N = 20, weights time=1,ene
 joint-space dataset through :func:`jtraj.dataset.build` into a temporary directory:
 first one chunk per worker process (compilation + first solve in each: reported as
 ``first_chunk_s``), then the remaining ``--chunks`` chunks by *resuming* the same dataset
-(worker start-up included); the resumed part gives the steady-state pairs/s, end to end
+(worker start-up included; by default about 2048 pairs, so that it weighs little); the
+resumed part gives the steady-state pairs/s, end to end
 including sampling and storage. jtraj runs ``--workers`` pinned worker
 processes (default one per core, as ``jtraj dataset``). The IPOPT peer
 (:func:`benchmarks.peers.ipopt_peer.solve_many`, one process per core, NLP built once
@@ -101,7 +102,8 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="batch 64 only, 1 timed chunk, 16 IPOPT pairs")
     ap.add_argument("--batches", type=int, nargs="+", default=None, help="batch sizes (default 64 256 1024 4096)")
-    ap.add_argument("--chunks", type=int, default=None, help="timed chunks per batch size (default 2; quick 1)")
+    ap.add_argument("--chunks", type=int, default=None,
+                    help="timed chunks per batch size (default: 2048 / B, at least 2; quick 1)")
     ap.add_argument("--ipopt-pairs", type=int, default=None, help="pairs for the IPOPT peer (default 64; quick 16)")
     ap.add_argument("--processes", type=int, default=None, help="IPOPT processes (default all cores)")
     ap.add_argument("--workers", type=int, default=None,
@@ -115,7 +117,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--out-dir", default=".", help="where bench_dataset.json/.png go")
     args = ap.parse_args(argv)
     batches = args.batches or ([64] if args.quick else [64, 256, 1024, 4096])
-    chunks = args.chunks or (1 if args.quick else 2)
+    # by default about 2048 timed pairs per batch size: the timed resume starts (and
+    # compiles in) fresh workers, which two chunks of 256 could not amortise (2026-11-27:
+    # 11.70 pairs/s with 2 chunks against 17.43 with 8, and 18.60 over a 10,000-pair run)
     n_ipopt = args.ipopt_pairs or (16 if args.quick else 64)
 
     from jtraj.cli import setup_jax
@@ -129,6 +133,7 @@ def main(argv=None) -> dict:
     workers = args.workers or available_cpus()
     results, pairs = [], None
     for B in batches:
+        chunks = args.chunks or (1 if args.quick else max(2, 2048 // B))
         r, qq = measure_jtraj(B, chunks, args.seed, args.N, args.solver, workers)
         r["N"] = args.N
         results.append(r)
