@@ -110,6 +110,24 @@ class ViaPoint(eqx.Module):
 FACE_TOL = 1e-9
 
 
+def admissible_configuration(robot: Robot, q) -> Array:
+    """A traced bool: ``q`` lies in the robot's joint box, puts the task point in its
+    workspace box and meets its path constraints (each within ``FACE_TOL``). What
+    :class:`Problem` demands of a start and a goal (see
+    :meth:`Problem.infeasible_on_its_face`), and what dataset sampling keeps."""
+    lim = robot.limits
+    ok = jnp.all(jnp.isfinite(q))
+    if lim.q_min is not None:
+        ok &= jnp.all((q >= lim.q_min - FACE_TOL) & (q <= lim.q_max + FACE_TOL))
+    if lim.workspace is not None:
+        p = robot.forward_kinematics(q)
+        ok &= jnp.all((p >= lim.workspace[0] - FACE_TOL) & (p <= lim.workspace[1] + FACE_TOL))
+    path = getattr(robot, "path_constraints", None)
+    if path is not None:
+        ok &= jnp.all(path(q) <= FACE_TOL)
+    return ok
+
+
 class Problem(eqx.Module):
     """A point-to-point trajectory problem for the decoupled transcription.
 
@@ -218,18 +236,9 @@ class Problem(eqx.Module):
         T_max allow). A batch gives such samples the status ``INVALID_INPUT`` instead of
         solving them."""
         lim = self.robot.limits
-        bad = jnp.zeros((), bool)
-        ends = jnp.stack([self.q_start, self.q_goal])
-        if lim.q_min is not None:
-            bad |= jnp.any((ends < lim.q_min - FACE_TOL) | (ends > lim.q_max + FACE_TOL))
+        bad = ~admissible_configuration(self.robot, self.q_start) | ~admissible_configuration(self.robot, self.q_goal)
         if lim.qd_max is not None:
             bad |= jnp.any(jnp.abs(jnp.stack([self.qd_start, self.qd_goal])) > lim.qd_max * (1 + FACE_TOL))
-        if lim.workspace is not None:
-            p = jax.vmap(self.robot.forward_kinematics)(ends)
-            bad |= jnp.any((p < lim.workspace[0] - FACE_TOL) | (p > lim.workspace[1] + FACE_TOL))
-        path = getattr(self.robot, "path_constraints", None)
-        if path is not None:
-            bad |= jnp.any(jax.vmap(path)(ends) > FACE_TOL)
         rest = jnp.all(self.qd_start == 0) & jnp.all(self.qd_goal == 0)
         T_need = jnp.where(rest, minimum_time_bound(self), 0.0)
         bad |= T_need > self.N * lim.h_max * (1 + 1e-9)

@@ -84,14 +84,22 @@ def view(data, mapping: str = "nefotc", *, goal: bool | str = False, phase: bool
     return np.c_[X, k / N], Y, traj, names_in + ["phase"], names_out
 
 
-def _goal_view(data, mapping, goal):
-    X, Y, traj, names_in, names_out = _view(data, mapping)
+def _goal_mode(goal):
+    """``goal`` as False, "append" or "relative" (True means "append", "none" False)."""
     if goal is True:
-        goal = "append"
-    if not goal or goal == "none":
-        return X, Y, traj, names_in, names_out
+        return "append"
+    if goal is False or goal is None or goal == "none":
+        return False
     if goal not in ("append", "relative"):
         raise ValueError(f"goal must be False, True, 'none', 'append' or 'relative', got {goal!r}")
+    return goal
+
+
+def _goal_view(data, mapping, goal):
+    X, Y, traj, names_in, names_out = _view(data, mapping)
+    goal = _goal_mode(goal)
+    if not goal:
+        return X, Y, traj, names_in, names_out
     if mapping not in ("nefotc", "nefumop"):
         raise ValueError(f"goal inputs are defined for the mappings nefotc and nefumop, not {mapping!r}")
     qg = np.asarray(data["q_goal"], float)[traj]
@@ -134,8 +142,8 @@ def _view(data, mapping):
         X = np.concatenate([np.asarray(data["q_start"], float)[conv], np.asarray(data["q_goal"], float)[conv]], 1)
         Y = np.concatenate([v.reshape(Pc, N * n), h], axis=1)
         names = [f"v{k}_{j + 1}" for k in range(N) for j in range(n)] + [f"h{k}" for k in range(N)]
-        idx = np.asarray(data["index"])[conv]
-        return X, Y, idx, [f"q_start{j + 1}" for j in range(n)] + [f"q_goal{j + 1}" for j in range(n)], names
+        names_in = [f"q_start{j + 1}" for j in range(n)] + [f"q_goal{j + 1}" for j in range(n)]
+        return X, Y, np.flatnonzero(conv), names_in, names
     robot = views.robot_of(data)
     if mapping == "nefumop":
         X, Y, traj = f64(views.nefumop(data, robot=robot))
@@ -255,7 +263,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
         # every trajectory as a rule (150 of 150 on a 300-pair serial3 dataset)
         n_rules = PLAN_RULES
     dgoal, dphase = default_inputs(mapping)
-    goal = dgoal if goal is None else (False if goal == "none" else goal)
+    goal = _goal_mode(dgoal if goal is None else goal)
     phase = dphase if phase is None else phase
     data = load_data(data)
     X, Y, traj, in_names, out_names = view(data, mapping, goal=goal, phase=phase)
@@ -272,7 +280,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
         validation, Xfit, Yfit = 0.0, Xtr, Ytr
     meta = data["metadata"]
     md = dict(mapping=mapping, robot=meta.get("robot"), N=meta.get("N"), inputs=in_names, outputs=out_names,
-              goal_inputs="append" if goal is True else (goal or False), phase_input=bool(phase))
+              goal_inputs=goal, phase_input=bool(phase))
     if meta.get("weights_text"):
         md["weights"] = meta["weights_text"]  # the cost the trajectories are optimal for (Planner refine)
     t0 = time.perf_counter()

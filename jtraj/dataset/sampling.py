@@ -45,6 +45,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
+import equinox as eqx
 import numpy as np
 
 #: pairs per sampling block (part of the definition of the distribution; do not change)
@@ -126,48 +127,38 @@ def check(robot, dist: Distribution) -> None:
 
 
 def admissible(robot, q):
-    """(B,) bool: configurations ``q`` (B, n) whose task point lies in the robot's
-    workspace box and which meet its path constraints (all True for robots with neither)."""
-    q = np.asarray(q, float)
-    ok = np.all(np.isfinite(q), axis=1)
-    lim = robot.limits
-    path = getattr(robot, "path_constraints", None)
-    if lim.workspace is None and path is None:
-        return ok
+    """(B,) bool: rows of ``q`` (B, n) that :func:`jtraj.problem.admissible_configuration`
+    accepts (joint box, workspace box and path constraints)."""
+    return np.asarray(_admissible_jit(robot, np.asarray(q, float)))
+
+
+@eqx.filter_jit  # module level: compiled once per robot and shape, not at every round
+def _admissible_jit(robot, q):
     import jax
 
-    from jtraj.problem import FACE_TOL
+    from jtraj.problem import admissible_configuration
 
-    qq = np.where(ok[:, None], q, 0.0)
-    if lim.workspace is not None:
-        p = np.asarray(jax.vmap(robot.forward_kinematics)(qq))
-        box = np.asarray(lim.workspace)
-        ok &= np.all((p >= box[0] - FACE_TOL) & (p <= box[1] + FACE_TOL), axis=1)
-    if path is not None:
-        ok &= np.all(np.asarray(jax.vmap(path)(qq)) <= FACE_TOL, axis=1)
-    return ok
+    return jax.vmap(lambda x: admissible_configuration(robot, x))(q)
 
 
 def _block_joint(robot, dist, seed, b):
     rng = np.random.default_rng([seed, b])
     n = robot.n
     lo, hi = start_box(robot, dist)
-    q_min, q_max = _joint_box(robot)
     qs, qg = [], []
     count = 0
     for _ in range(_MAX_ROUNDS):
         u = rng.random((BLOCK, 2, n))
         a = lo + (hi - lo) * u[:, 0]
         g = a + dist.step_range * (2 * u[:, 1] - 1)
-        ok = (np.linalg.norm(g - a, axis=1) >= dist.min_separation) & np.all((g >= q_min) & (g <= q_max), axis=1)
-        ok &= admissible(robot, a) & admissible(robot, g)
+        ok = (np.linalg.norm(g - a, axis=1) >= dist.min_separation) & admissible(robot, a) & admissible(robot, g)
         qs.append(a[ok])
         qg.append(g[ok])
         count += int(ok.sum())
         if count >= BLOCK:
             return np.concatenate(qs)[:BLOCK], np.concatenate(qg)[:BLOCK]
-    raise ValueError("could not draw pairs with the requested minimum separation inside the robot's workspace "
-                     "box and path constraints")
+    raise ValueError("could not draw pairs with the requested minimum separation inside the robot's joint box, "
+                     "workspace box and path constraints")
 
 
 _WORKSPACE_CACHE: dict = {}
