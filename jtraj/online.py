@@ -58,7 +58,7 @@ class Planner:
     def __init__(self, model, robot=None, *, tol: float = 1e-6, goal_tol: float = 1e-2):
         from jtraj import anfis, robots
 
-        if not isinstance(model, anfis.Model):
+        if not isinstance(model, (anfis.Model, anfis.Ensemble)):
             model = anfis.load(model, mapping="plan")
         meta = model.metadata
         if meta.get("mapping") != "plan":

@@ -217,6 +217,10 @@ def test_load_rejects_other_version_and_junk(tmp_path, mg_model):
     (tmp_path / "v.anfis").write_bytes(json.dumps(h).encode() + b"\n" + rest)
     with pytest.raises(ValueError, match="version"):
         anfis.load(tmp_path / "v.anfis")
+    # files of format 1 (single models, before ensembles) are still read
+    h["version"] = 1
+    (tmp_path / "v1.anfis").write_bytes(json.dumps(h).encode() + b"\n" + rest)
+    np.testing.assert_array_equal(np.asarray(anfis.load(tmp_path / "v1.anfis").centers), np.asarray(model.centers))
     (tmp_path / "junk.anfis").write_bytes(b"hello\nworld")
     with pytest.raises(ValueError, match="not a jtraj ANFIS model"):
         anfis.load(tmp_path / "junk.anfis")

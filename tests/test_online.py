@@ -59,17 +59,47 @@ def test_train_command_report_and_plot(tmp_path, data, monkeypatch):
         anfis.load(args.out, mapping="plan")
 
 
-def test_auto_radius_keeps_the_lowest_validation_error(data):
+def test_auto_radius_ensemble_weights_the_candidates_by_validation_error(tmp_path, data):
     model, rep, hist = trajectory.train_mapping(data, "nefotc", epochs=5)
     sel = rep["radius_selection"]
     assert set(sel) == {str(r) for r in trajectory.RADIUS_CANDIDATES}
     trained = {r: v for r, v in sel.items() if "skipped" not in v}
-    best = min(trained, key=lambda r: trained[r]["validation_rmse"])
-    assert rep["radius"] == pytest.approx(float(best)) and rep["n_rules"] == sel[best]["n_rules"]
-    assert min(hist.val_rmse) == pytest.approx(sel[best]["validation_rmse"])
+    assert isinstance(model, anfis.Ensemble) and rep["ensemble"] and len(model.members) == len(trained) >= 2
     # a larger radius never yields more rules
     counts = [sel[str(r)]["n_rules"] for r in trajectory.RADIUS_CANDIDATES if str(r) in trained]
     assert len(counts) >= 2 and counts == sorted(counts, reverse=True)
+    assert [m.n_rules for m in model.members] == counts and rep["n_rules"] == sum(counts)
+    # weights 1 / MSE^2 of the validation split, normalised
+    va = np.array([trained[str(r)]["validation_rmse"] for r in trajectory.RADIUS_CANDIDATES if str(r) in trained])
+    w = va**-4 / np.sum(va**-4)
+    np.testing.assert_allclose(np.asarray(model.weights), w, rtol=1e-12)
+    order = [str(r) for r in trajectory.RADIUS_CANDIDATES if str(r) in trained]
+    np.testing.assert_allclose([trained[r]["weight"] for r in order], w, rtol=1e-12)
+    # the report's radius, history and the leading member are those of the lowest validation RMSE
+    best = min(trained, key=lambda r: trained[r]["validation_rmse"])
+    assert rep["radius"] == pytest.approx(float(best)) and model.leading.n_rules == sel[best]["n_rules"]
+    assert min(hist.val_rmse) == pytest.approx(sel[best]["validation_rmse"])
+    # predictions: the weighted average of the members', one sample or a batch, jitted or not
+    X = trajectory.view(data, "nefotc", goal="relative", phase=True)[0][:7]
+    ref = sum(wk * np.asarray(m.predict(X)) for wk, m in zip(w, model.members))
+    np.testing.assert_allclose(np.asarray(model.predict(X)), ref, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(model.predict(X[3])), ref[3], rtol=1e-12, atol=1e-12)
+    import jax
+
+    np.testing.assert_allclose(np.asarray(jax.jit(model.predict_fn())(X)), ref, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="shape"):
+        model.predict(X[:, :3])
+    # saved and loaded: same predictions, mapping checked
+    model.save(tmp_path / "e.anfis")
+    back = anfis.load(tmp_path / "e.anfis", mapping="nefotc")
+    assert isinstance(back, anfis.Ensemble) and back.metadata == model.metadata
+    np.testing.assert_array_equal(np.asarray(back.predict(X)), np.asarray(model.predict(X)))
+    with pytest.raises(ValueError, match="mapping"):
+        anfis.load(tmp_path / "e.anfis", mapping="plan")
+    # ensemble=False: the single model of lowest validation RMSE
+    single, rep1, _ = trajectory.train_mapping(data, "nefotc", epochs=5, ensemble=False)
+    assert isinstance(single, anfis.Model) and not rep1["ensemble"] and rep1["n_rules"] == sel[best]["n_rules"]
+    np.testing.assert_allclose(np.asarray(single.predict(X)), np.asarray(model.leading.predict(X)), rtol=1e-12)
 
 
 def test_auto_radius_skips_radii_with_more_rules_than_the_data_carry(monkeypatch):
@@ -121,6 +151,9 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
         assert np.isfinite(float(getattr(p, f)))
     out = planner.query(qs, qg)
     assert isinstance(out["feasible"], bool) and out["goal_error"] >= 0
+    # an ensemble plans too: of two copies of the model, the model's own plan
+    twin = anfis.Ensemble.from_models([model, model], [1.0, 3.0], model.metadata)
+    np.testing.assert_allclose(np.asarray(Planner(twin).plan(qs, qg).q), np.asarray(p.q), rtol=1e-12, atol=1e-12)
     path = tmp_path / "otc.anfis"
     trajectory.train_mapping(data, "nefotc", n_rules=3, epochs=1)[0].save(path)
     with pytest.raises(ValueError, match="mapping"):

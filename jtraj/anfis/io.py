@@ -1,9 +1,10 @@
-"""Saving and loading :class:`~jtraj.anfis.model.Model`.
+"""Saving and loading :class:`~jtraj.anfis.Model` and :class:`~jtraj.anfis.Ensemble`.
 
 File layout: one line of JSON (the header: format name and version, kind, order,
-shapes, dtype, and the model's metadata), a newline, then the array leaves written by
-``equinox.tree_serialise_leaves``. :func:`load` rebuilds a skeleton of the right shapes
-from the header and reads the leaves into it: no retraining, no pickle.
+shapes, dtype, and the model's metadata; for an ensemble, its members' headers), a
+newline, then the array leaves written by ``equinox.tree_serialise_leaves``.
+:func:`load` rebuilds a skeleton of the right shapes from the header and reads the
+leaves into it: no retraining, no pickle.
 """
 
 from __future__ import annotations
@@ -14,18 +15,29 @@ import os
 import equinox as eqx
 import jax.numpy as jnp
 
+from .ensemble import Ensemble
 from .model import KINDS, Model, n_coef
 
 FORMAT = "jtraj.anfis"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: ensembles (version 1 files, single models, are still read)
+READS = (1, 2)
 
 
-def save(path, model: Model) -> None:
-    """Write ``model`` to ``path`` (parent directories must exist)."""
-    header = dict(format=FORMAT, version=FORMAT_VERSION, kind=model.kind, order=model.order,
-                  scalar_output=model.scalar_output, n_rules=model.n_rules, n_inputs=model.n_inputs,
-                  n_outputs=model.n_outputs, dtype=str(model.centers.dtype), metadata=model.metadata,
-                  clip_outputs=bool(model.clip_outputs))
+def _model_header(model: Model) -> dict:
+    return dict(kind=model.kind, order=model.order, scalar_output=model.scalar_output, n_rules=model.n_rules,
+                n_inputs=model.n_inputs, n_outputs=model.n_outputs, dtype=str(model.centers.dtype),
+                metadata=model.metadata, clip_outputs=bool(model.clip_outputs))
+
+
+def save(path, model) -> None:
+    """Write ``model`` (a :class:`Model` or an :class:`Ensemble`) to ``path`` (parent
+    directories must exist); an ensemble's header lists its members' headers."""
+    if isinstance(model, Ensemble):
+        header = dict(members=[_model_header(m) for m in model.members], dtype=str(model.weights.dtype),
+                      metadata=model.metadata)
+    else:
+        header = _model_header(model)
+    header.update(format=FORMAT, version=FORMAT_VERSION)
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "wb") as f:
         f.write(json.dumps(header, sort_keys=True).encode() + b"\n")
@@ -48,29 +60,39 @@ def read_header(path) -> dict:
     return header
 
 
-def load(path, *, mapping: str | None = None) -> Model:
-    """Read a model written by :meth:`Model.save`.
-
-    Raises ValueError when the file is not a model, was written by another format
-    version, or (with ``mapping`` given) was trained for another trajectory mapping.
-    """
-    header = read_header(path)
-    if header.get("version") != FORMAT_VERSION:
-        raise ValueError(f"{path}: model file format version {header.get('version')!r}, this jtraj reads "
-                         f"version {FORMAT_VERSION}; retrain or convert the model")
-    meta = header.get("metadata", {})
-    if mapping is not None and meta.get("mapping") != mapping:
-        raise ValueError(f"{path}: model was trained for mapping {meta.get('mapping')!r}, not {mapping!r}")
+def _skeleton(path, header) -> Model:
+    """A model of the shapes in ``header``, zeros for its arrays."""
     kind, order = header["kind"], int(header["order"])
     if kind not in KINDS:
         raise ValueError(f"{path}: unknown model kind {kind!r}")
     R, d, m = int(header["n_rules"]), int(header["n_inputs"]), int(header["n_outputs"])
     dt = jnp.dtype(header["dtype"])
     z = lambda *shape: jnp.zeros(shape, dt)  # noqa: E731
-    skeleton = Model(z(R, d), z(R, d), z(R, n_coef(kind, order, d), m), z(d), z(d), z(m), z(m), kind=kind,
-                     order=order, scalar_output=bool(header["scalar_output"]),
-                     info=json.dumps(meta, sort_keys=True),
-                     clip_outputs=bool(header.get("clip_outputs", False)))  # absent before clipping existed
+    return Model(z(R, d), z(R, d), z(R, n_coef(kind, order, d), m), z(d), z(d), z(m), z(m), kind=kind,
+                 order=order, scalar_output=bool(header["scalar_output"]),
+                 info=json.dumps(header.get("metadata", {}), sort_keys=True),
+                 clip_outputs=bool(header.get("clip_outputs", False)))  # absent before clipping existed
+
+
+def load(path, *, mapping: str | None = None):
+    """Read a model (or an ensemble) written by :meth:`Model.save` (:meth:`Ensemble.save`).
+
+    Raises ValueError when the file is not a model, was written by another format
+    version, or (with ``mapping`` given) was trained for another trajectory mapping.
+    """
+    header = read_header(path)
+    if header.get("version") not in READS:
+        raise ValueError(f"{path}: model file format version {header.get('version')!r}, this jtraj reads "
+                         f"versions {READS}; retrain or convert the model")
+    meta = header.get("metadata", {})
+    if mapping is not None and meta.get("mapping") != mapping:
+        raise ValueError(f"{path}: model was trained for mapping {meta.get('mapping')!r}, not {mapping!r}")
+    if "members" in header:
+        members = tuple(_skeleton(path, h) for h in header["members"])
+        skeleton = Ensemble(members, jnp.zeros(len(members), jnp.dtype(header["dtype"])),
+                            json.dumps(meta, sort_keys=True))
+    else:
+        skeleton = _skeleton(path, header)
     with open(path, "rb") as f:
         f.readline()
         try:

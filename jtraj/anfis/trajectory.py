@@ -235,7 +235,7 @@ def _auto_radii(X, Y, traj, options, selection):
 
 def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, radius="auto",
                   epochs: int = 100, kind: str = "tsk", test_fraction: float = 0.1, progress: bool = False,
-                  goal: bool | str | None = None, phase: bool | None = None, **options):
+                  goal: bool | str | None = None, phase: bool | None = None, ensemble: bool = True, **options):
     """Train an ANFIS for ``mapping`` on a dataset; return ``(model, report, history)``.
 
     ``report`` (JSON-able) holds ``train_rmse``, ``test_rmse`` (target units, all
@@ -251,11 +251,18 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     ``(p, pd, p_goal - p, k/N) -> (tau, h)``; the other mappings: none). For ``plan``,
     ``n_rules`` defaults to ``PLAN_RULES`` (8): clustering with a radius in its
     high-dimensional joint input-output space makes every trajectory a rule. ``radius="auto"`` (with
-    ``n_rules`` None) trains one model per radius of ``RADIUS_CANDIDATES`` and keeps the
-    one with the lowest validation RMSE (report: ``radius_selection``), skipping radii
+    ``n_rules`` None) trains one model per radius of ``RADIUS_CANDIDATES``, skipping radii
     that give more than one rule per ``TRAJECTORIES_PER_RULE`` training trajectories or
-    more than ``MAX_AUTO_RULES`` rules.
+    more than ``MAX_AUTO_RULES`` rules, and returns (``ensemble=True``, the default) an
+    :class:`~jtraj.anfis.Ensemble` of them weighted by 1 / (validation MSE)^2, or
+    (``ensemble=False``) the one with the lowest validation RMSE. Report:
+    ``radius_selection`` (rules, validation RMSE and weight per radius), ``n_rules`` (all
+    members' rules), ``radius``, ``epochs`` and ``best_epoch`` of the member with the
+    lowest validation RMSE; ``history`` is that member's. On 18 slices of 96 pairs of
+    serial3 datasets the ensemble's test RMSE was 0.425x the linear baseline on average
+    against 0.469x for the best single radius (README, ANFIS).
     """
+    from .ensemble import Ensemble
     from .training import train
 
     if mapping == "plan" and n_rules is None:
@@ -288,22 +295,33 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     options.setdefault("ridge", 1e-6)  # as jtraj train: 1e-10 overfits sparse trajectory data
     selection = {}
     if n_rules is None and radius == "auto":
-        # the clustering radius is chosen on the validation split (trajectories held out
-        # of the training ones): too many rules overfit sparse trajectory data (56 rules
-        # at radius 0.5 on a 96-pair serial3 set: test RMSE 1.38 x linear), one rule is
-        # the linear model, so the selected model is never much worse than linear
+        # one model per candidate radius, each validated on trajectories held out of the
+        # training ones: too many rules overfit sparse trajectory data (56 rules at radius
+        # 0.5 on a 96-pair serial3 set: test RMSE 1.38 x linear), one rule is the linear
+        # model. With ensemble, all of them are kept, weighted by 1 / (validation MSE)^2;
+        # otherwise the one of lowest validation RMSE
         if not isinstance(validation, tuple):
             radius = 0.5
         else:
-            best = None
+            trained = []
             for r in _auto_radii(Xfit, Yfit, traj[tr][fit_rows], options, selection):
                 m_r, h_r = train(Xfit, Yfit, radius=r, epochs=epochs, kind=kind, validation=validation,
                                  metadata=md, progress=progress, **options)
                 va = float(min(h_r.val_rmse))
                 selection[str(r)] = {"n_rules": int(m_r.n_rules), "validation_rmse": va}
-                if best is None or va < best[0]:
-                    best = (va, m_r, h_r)
-            model, hist = best[1], best[2]
+                trained.append((va, r, m_r, h_r))
+            best = min(trained, key=lambda t: t[0])
+            model, hist = best[2], best[3]
+            if ensemble and len(trained) > 1:
+                # weights 1 / MSE^2 on the validation split (floored: a perfect fit takes all
+                # the weight). Test RMSE / linear, nefotc defaults, mean over 18 slices of
+                # 96 pairs and over 3 datasets of 300-1000 pairs (2026-11-27): best single
+                # radius 0.469 / 0.320, weights 1 / MSE 0.429 / 0.327, 1 / MSE^2 0.425 / 0.316
+                w = np.array([1.0 / max(t[0], 1e-12) ** 4 for t in trained])
+                w /= w.sum()
+                for t, wk in zip(trained, w):
+                    selection[str(t[1])]["weight"] = float(wk)
+                model = Ensemble.from_models([t[2] for t in trained], w, md)
     if not selection:
         model, hist = train(Xfit, Yfit, n_rules=n_rules, radius=radius, epochs=epochs, kind=kind,
                             validation=validation, metadata=md, progress=progress, **options)
@@ -323,7 +341,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
         train_rmse_per_output={k: _rmse(Ptr[:, i], Ytr[:, i]) for i, k in enumerate(out_names)},
         test_rmse_per_output={k: _rmse(Pte[:, i], Y[te][:, i]) for i, k in enumerate(out_names)},
         n_rules=model.n_rules, radius=hist.radius, epochs=hist.epochs, best_epoch=hist.best_epoch,
-        stop_reason=hist.stop_reason, seconds=round(seconds, 3),
+        stop_reason=hist.stop_reason, seconds=round(seconds, 3), ensemble=isinstance(model, Ensemble),
         linear_test_rmse=lin_rmse, knn_test_rmse=_rmse(knn, Y[te]),
         ratio_to_linear=test_rmse / lin_rmse if lin_rmse > 0 else math.inf,
     )

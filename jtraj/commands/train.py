@@ -12,6 +12,10 @@ baseline on them. --goal-inputs adds the offset to the goal, --phase the sample'
 k/N in its trajectory. By default nefotc is (q_goal - q, qd, k/N) -> tau and nefumop
 (p, pd, p_goal - p, k/N) -> (tau, h); `--goal-inputs none --no-phase` gives the thesis'
 inputs (see README, ANFIS).
+
+With --radius auto (the default when --rules is not given) one model is trained per
+candidate radius and all of them are kept, weighted by 1 / (validation MSE)^2
+(an ensemble; --no-ensemble keeps only the best).
 """
 
 import argparse
@@ -29,6 +33,9 @@ def configure(parser):
     parser.add_argument("--radius", type=_radius, default="auto",
                         help="clustering radius when --rules is not given; 'auto' (default) picks the best of "
                              "0.4, 0.6, 0.9, 1.4 on the validation split")
+    parser.add_argument("--ensemble", action=argparse.BooleanOptionalAction, default=True,
+                        help="with --radius auto: keep every radius' model, weighted by 1 / validation MSE^2 "
+                             "(default), or only the best one (--no-ensemble)")
     parser.add_argument("--kind", default="tsk", choices=["tsk", "tsukamoto"])
     parser.add_argument("--order", type=int, default=1, choices=[0, 1], help="Sugeno order (tsk)")
     parser.add_argument("--epochs", type=int, default=100)
@@ -70,18 +77,24 @@ def run(args) -> int:
     model, report, hist = trajectory.train_mapping(
         args.data, args.mapping, n_rules=args.rules, radius=args.radius, epochs=args.epochs, kind=args.kind,
         order=args.order, ridge=args.ridge, progress=not args.no_progress,
-        goal=getattr(args, "goal_inputs", None), phase=getattr(args, "phase", None))
+        goal=getattr(args, "goal_inputs", None), phase=getattr(args, "phase", None),
+        ensemble=getattr(args, "ensemble", True))
     model.save(args.out)
     report["model"] = os.path.abspath(args.out)
     if args.plot:
         from jtraj.anfis.plots import training_figure
 
-        training_figure(hist, model, args.plot, report["inputs"], title=f"{args.mapping}: {model.n_rules} rules")
+        # of an ensemble, its leading member (the largest weight: the lowest validation
+        # RMSE, whose history train_mapping returns)
+        shown = model.leading if report["ensemble"] else model
+        title = f"{args.mapping}: {shown.n_rules} rules" + (", best ensemble member" if report["ensemble"] else "")
+        training_figure(hist, shown, args.plot, report["inputs"], title=title)
         report["plot"] = os.path.abspath(args.plot)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(report, f, indent=2)
-    print(f"{args.mapping}: {report['n_rules']} rules, {report['epochs']} epochs, {report['seconds']:.1f} s; "
+    members = f" in {len(model.members)} models" if report["ensemble"] else ""
+    print(f"{args.mapping}: {report['n_rules']} rules{members}, {report['epochs']} epochs, {report['seconds']:.1f} s; "
           f"RMSE train {report['train_rmse']:.4g}, test {report['test_rmse']:.4g} "
           f"(linear {report['linear_test_rmse']:.4g}, 5-NN {report['knn_test_rmse']:.4g}; "
           f"ratio to linear {report['ratio_to_linear']:.3f}, goal <= 0.5)")
