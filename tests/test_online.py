@@ -96,6 +96,12 @@ def test_auto_radius_ensemble_weights_the_candidates_by_validation_error(tmp_pat
     np.testing.assert_array_equal(np.asarray(back.predict(X)), np.asarray(model.predict(X)))
     with pytest.raises(ValueError, match="mapping"):
         anfis.load(tmp_path / "e.anfis", mapping="plan")
+    # members trained on other data (another scaling) are refused; weights must be positive
+    other = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, phase=True, test_fraction=0.3)[0]
+    with pytest.raises(ValueError, match="scaling"):
+        anfis.Ensemble.from_models([model.leading, other], [1.0, 1.0])
+    with pytest.raises(ValueError, match="positive"):
+        anfis.Ensemble.from_models(model.members, np.r_[-1.0, np.ones(len(counts) - 1)])
     # ensemble=False: the single model of lowest validation RMSE
     single, rep1, _ = trajectory.train_mapping(data, "nefotc", epochs=5, ensemble=False)
     assert isinstance(single, anfis.Model) and not rep1["ensemble"] and rep1["n_rules"] == sel[best]["n_rules"]

@@ -15,6 +15,7 @@ back). It is not a single fuzzy system: each member normalises its own firing st
 from __future__ import annotations
 
 import json
+from functools import partial
 
 import equinox as eqx
 import jax
@@ -22,52 +23,82 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .model import Model
+from .model import Model, _query_method, log_firing, rule_outputs
+
+_SCALING = ("x_lo", "x_span", "y_lo", "y_span")
 
 
 class Ensemble(eqx.Module):
     """``sum_k weights[k] * members[k].predict(X)``; the weights are positive and sum to 1.
 
-    Fields: ``members`` (a tuple of :class:`Model` with the same inputs and outputs),
-    ``weights (K,)`` and static ``info`` (a JSON string: the metadata, as for a model).
+    The members share the kind, order, output clipping and the data scaling (they were
+    trained on the same data), so their rules are stored together and evaluated in one
+    pass: ``centers``, ``sigmas`` ``(R, d)`` and ``theta (R, k, m)`` hold all members'
+    rules in order, ``sizes`` (static) the rules per member; the scalings as in
+    :class:`Model`; ``weights (K,)``; static ``info`` (JSON metadata). Build one with
+    :meth:`from_models`; :attr:`members` gives the models back.
     """
 
-    members: tuple
+    centers: Array
+    sigmas: Array
+    theta: Array
+    x_lo: Array
+    x_span: Array
+    y_lo: Array
+    y_span: Array
     weights: Array
+    sizes: tuple = eqx.field(static=True)
+    kind: str = eqx.field(static=True, default="tsk")
+    order: int = eqx.field(static=True, default=1)
+    scalar_output: bool = eqx.field(static=True, default=False)
     info: str = eqx.field(static=True, default="{}")
-
-    def __check_init__(self):
-        if not self.members or not all(isinstance(m, Model) for m in self.members):
-            raise ValueError("an Ensemble needs one or more jtraj.anfis.Model members")
-        shapes = {(m.n_inputs, m.n_outputs, m.scalar_output) for m in self.members}
-        if len(shapes) != 1:
-            raise ValueError(f"ensemble members differ in (inputs, outputs, scalar output): {sorted(shapes)}")
-        if np.shape(self.weights) != (len(self.members),):
-            raise ValueError(f"weights must have shape ({len(self.members)},), got {np.shape(self.weights)}")
+    clip_outputs: bool = eqx.field(static=True, default=False)
 
     @classmethod
     def from_models(cls, members, weights, metadata: dict | None = None) -> "Ensemble":
-        """The ensemble of ``members`` with ``weights`` (positive, finite) normalised to sum
-        1 and ``metadata`` (JSON-able)."""
+        """The ensemble of ``members`` (models trained on the same data) with ``weights``
+        (positive, finite) normalised to sum 1 and ``metadata`` (JSON-able)."""
+        members = list(members)
+        if not members or not all(isinstance(m, Model) for m in members):
+            raise ValueError("an Ensemble needs one or more jtraj.anfis.Model members")
+        first = members[0]
+        for m in members[1:]:
+            same = (m.kind, m.order, m.clip_outputs, m.scalar_output, m.n_inputs, m.n_outputs) == (
+                first.kind, first.order, first.clip_outputs, first.scalar_output, first.n_inputs, first.n_outputs)
+            if not same or not all(np.array_equal(getattr(m, k), getattr(first, k)) for k in _SCALING):
+                raise ValueError("ensemble members must share kind, order, output clipping, inputs, outputs and "
+                                 "the data scaling (models trained on the same data)")
         w = np.asarray(weights, float)
         if w.shape != (len(members),) or not np.all(np.isfinite(w)) or not np.all(w > 0):
             raise ValueError(f"weights must be {len(members)} positive finite numbers, got {weights!r}")
-        dt = members[0].centers.dtype
-        return cls(tuple(members), jnp.asarray(w / w.sum(), dt), json.dumps(metadata or {}, sort_keys=True))
+        cat = [jnp.concatenate([getattr(m, k) for m in members]) for k in ("centers", "sigmas", "theta")]
+        return cls(*cat, first.x_lo, first.x_span, first.y_lo, first.y_span,
+                   jnp.asarray(w / w.sum(), first.centers.dtype), tuple(m.n_rules for m in members),
+                   kind=first.kind, order=first.order, scalar_output=first.scalar_output,
+                   info=json.dumps(metadata or {}, sort_keys=True), clip_outputs=first.clip_outputs)
 
     # ----- sizes and metadata, as for a Model -------------------------------------------
     @property
     def n_rules(self) -> int:
         """Rules of all members together."""
-        return sum(m.n_rules for m in self.members)
+        return int(self.centers.shape[0])
 
     @property
     def n_inputs(self) -> int:
-        return self.members[0].n_inputs
+        return int(self.centers.shape[1])
 
     @property
     def n_outputs(self) -> int:
-        return self.members[0].n_outputs
+        return int(self.theta.shape[2])
+
+    @property
+    def members(self) -> tuple[Model, ...]:
+        """The member models (copies of their arrays, in order)."""
+        ends = np.cumsum(self.sizes)
+        return tuple(Model(self.centers[e - r:e], self.sigmas[e - r:e], self.theta[e - r:e], self.x_lo,
+                           self.x_span, self.y_lo, self.y_span, kind=self.kind, order=self.order,
+                           scalar_output=self.scalar_output, info=self.info, clip_outputs=self.clip_outputs)
+                     for r, e in zip(self.sizes, ends))
 
     @property
     def leading(self) -> Model:
@@ -81,7 +112,7 @@ class Ensemble(eqx.Module):
     def with_metadata(self, **kv) -> "Ensemble":
         meta = self.metadata
         meta.update(kv)
-        return Ensemble(self.members, self.weights, json.dumps(meta, sort_keys=True))
+        return eqx.tree_at(lambda e: e.info, self, json.dumps(meta, sort_keys=True))
 
     def astype(self, dtype) -> "Ensemble":
         """Copy with every array cast to ``dtype``."""
@@ -90,21 +121,19 @@ class Ensemble(eqx.Module):
     # ----- evaluation -------------------------------------------------------------------
     def predict_fn(self):
         """A pure function ``X (B, d) -> Y (B, m)`` (see :meth:`Model.predict_fn`)."""
-        fs = [m.predict_fn() for m in self.members]
-        w = self.weights
+        arrays, static = _arrays(self), (self.kind, self.order, self.clip_outputs, self.sizes)
+        return lambda X: _forward(*arrays, X, *static)
 
-        def f(X):
-            return sum(w[k] * fk(X) for k, fk in enumerate(fs))
-        return f
-
+    @_query_method
     def predict(self, X) -> Array:
         """As :meth:`Model.predict`: ``(d,)`` -> ``(m,)`` or ``(B, d)`` -> ``(B, m)``, jitted."""
         if not isinstance(X, jax.Array):
             X = np.asarray(X)
-        d = self.n_inputs
+        d = self.centers.shape[1]
         if X.ndim not in (1, 2) or X.shape[-1] != d:
             raise ValueError(f"X must have shape ({d},) or (B, {d}), got {X.shape}")
-        return _predict(self, X)
+        return _predict(*_arrays(self), X, self.kind, self.order, self.clip_outputs, self.sizes, X.ndim == 1,
+                        self.scalar_output)
 
     __call__ = predict
 
@@ -115,11 +144,31 @@ class Ensemble(eqx.Module):
         save(path, self)
 
 
-@eqx.filter_jit
-def _predict(ens: Ensemble, X):
-    single = X.ndim == 1
-    X2 = jnp.asarray(X, ens.weights.dtype)
-    Y = ens.predict_fn()(X2[None, :] if single else X2)
+def _arrays(e: Ensemble):
+    return e.centers, e.sigmas, e.theta, e.x_lo, e.x_span, e.y_lo, e.y_span, e.weights
+
+
+def _forward(c, s, theta, x_lo, x_span, y_lo, y_span, weights, X, kind, order, clip, sizes):
+    """Outputs (B, m) for inputs X (B, d) in data units: the firing strengths of all rules
+    at once, normalised within each member (a static mask per member), each member's
+    output clipped as its own, then weighted. (A loop over the members cost about their
+    number times one model's query: the XLA CPU runtime's per-operation cost dominates
+    such small queries.)"""
+    u = (jnp.asarray(X, weights.dtype) - x_lo) / x_span
+    lw = log_firing(c, s, u)  # (B, R)
+    member = np.repeat(np.arange(len(sizes)), sizes)
+    mask = member[None, :] == np.arange(len(sizes))[:, None]  # (K, R)
+    beta = jax.nn.softmax(jnp.where(mask[None], lw[:, None, :], -jnp.inf), axis=-1)  # (B, K, R)
+    v = jnp.einsum("bkr,brm->bkm", beta, rule_outputs(lw, u, theta, kind, order))
+    if clip:
+        v = jnp.clip(v, 0.0, 1.0)
+    return jnp.einsum("k,bkm->bm", weights, v) * y_span + y_lo
+
+
+@partial(jax.jit, static_argnames=("kind", "order", "clip", "sizes", "single", "squeeze"))
+def _predict(c, s, theta, x_lo, x_span, y_lo, y_span, weights, X, kind, order, clip, sizes, single, squeeze):
+    Y = _forward(c, s, theta, x_lo, x_span, y_lo, y_span, weights, X[None, :] if single else X, kind, order, clip,
+                 sizes)
     if single:
         Y = Y[0]
-    return Y[..., 0] if ens.members[0].scalar_output else Y
+    return Y[..., 0] if squeeze else Y

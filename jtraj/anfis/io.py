@@ -1,7 +1,7 @@
 """Saving and loading :class:`~jtraj.anfis.Model` and :class:`~jtraj.anfis.Ensemble`.
 
 File layout: one line of JSON (the header: format name and version, kind, order,
-shapes, dtype, and the model's metadata; for an ensemble, its members' headers), a
+shapes, dtype, and the model's metadata; for an ensemble, the rules per member), a
 newline, then the array leaves written by ``equinox.tree_serialise_leaves``.
 :func:`load` rebuilds a skeleton of the right shapes from the header and reads the
 leaves into it: no retraining, no pickle.
@@ -23,7 +23,7 @@ FORMAT_VERSION = 2  # 2: ensembles (version 1 files, single models, are still re
 READS = (1, 2)
 
 
-def _model_header(model: Model) -> dict:
+def _model_header(model) -> dict:
     return dict(kind=model.kind, order=model.order, scalar_output=model.scalar_output, n_rules=model.n_rules,
                 n_inputs=model.n_inputs, n_outputs=model.n_outputs, dtype=str(model.centers.dtype),
                 metadata=model.metadata, clip_outputs=bool(model.clip_outputs))
@@ -31,12 +31,10 @@ def _model_header(model: Model) -> dict:
 
 def save(path, model) -> None:
     """Write ``model`` (a :class:`Model` or an :class:`Ensemble`) to ``path`` (parent
-    directories must exist); an ensemble's header lists its members' headers."""
+    directories must exist); an ensemble's header adds the rules per member."""
+    header = _model_header(model)
     if isinstance(model, Ensemble):
-        header = dict(members=[_model_header(m) for m in model.members], dtype=str(model.weights.dtype),
-                      metadata=model.metadata)
-    else:
-        header = _model_header(model)
+        header["sizes"] = list(model.sizes)
     header.update(format=FORMAT, version=FORMAT_VERSION)
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "wb") as f:
@@ -60,18 +58,25 @@ def read_header(path) -> dict:
     return header
 
 
-def _skeleton(path, header) -> Model:
-    """A model of the shapes in ``header``, zeros for its arrays."""
+def _skeleton(path, header):
+    """A model (an ensemble where the header has ``sizes``) of the shapes in ``header``,
+    zeros for its arrays."""
     kind, order = header["kind"], int(header["order"])
     if kind not in KINDS:
         raise ValueError(f"{path}: unknown model kind {kind!r}")
     R, d, m = int(header["n_rules"]), int(header["n_inputs"]), int(header["n_outputs"])
     dt = jnp.dtype(header["dtype"])
     z = lambda *shape: jnp.zeros(shape, dt)  # noqa: E731
-    return Model(z(R, d), z(R, d), z(R, n_coef(kind, order, d), m), z(d), z(d), z(m), z(m), kind=kind,
-                 order=order, scalar_output=bool(header["scalar_output"]),
-                 info=json.dumps(header.get("metadata", {}), sort_keys=True),
-                 clip_outputs=bool(header.get("clip_outputs", False)))  # absent before clipping existed
+    arrays = (z(R, d), z(R, d), z(R, n_coef(kind, order, d), m), z(d), z(d), z(m), z(m))
+    static = dict(kind=kind, order=order, scalar_output=bool(header["scalar_output"]),
+                  info=json.dumps(header.get("metadata", {}), sort_keys=True),
+                  clip_outputs=bool(header.get("clip_outputs", False)))  # absent before clipping existed
+    if "sizes" in header:
+        sizes = tuple(int(r) for r in header["sizes"])
+        if sum(sizes) != R:
+            raise ValueError(f"{path}: corrupted model file (ensemble sizes {sizes} do not add up to {R} rules)")
+        return Ensemble(*arrays, z(len(sizes)), sizes, **static)
+    return Model(*arrays, **static)
 
 
 def load(path, *, mapping: str | None = None):
@@ -87,12 +92,7 @@ def load(path, *, mapping: str | None = None):
     meta = header.get("metadata", {})
     if mapping is not None and meta.get("mapping") != mapping:
         raise ValueError(f"{path}: model was trained for mapping {meta.get('mapping')!r}, not {mapping!r}")
-    if "members" in header:
-        members = tuple(_skeleton(path, h) for h in header["members"])
-        skeleton = Ensemble(members, jnp.zeros(len(members), jnp.dtype(header["dtype"])),
-                            json.dumps(meta, sort_keys=True))
-    else:
-        skeleton = _skeleton(path, header)
+    skeleton = _skeleton(path, header)
     with open(path, "rb") as f:
         f.readline()
         try:
