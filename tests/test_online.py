@@ -96,6 +96,9 @@ def test_auto_radius_ensemble_weights_the_candidates_by_validation_error(tmp_pat
     np.testing.assert_array_equal(np.asarray(back.predict(X)), np.asarray(model.predict(X)))
     with pytest.raises(ValueError, match="mapping"):
         anfis.load(tmp_path / "e.anfis", mapping="plan")
+    tagged = model.with_metadata(note="x")
+    assert isinstance(tagged, anfis.Ensemble) and tagged.metadata["note"] == "x" and "note" not in model.metadata
+    assert model.astype(np.float32).predict(X).dtype == np.float32
     # members trained on other data (another scaling) are refused; weights must be positive
     other = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, phase=True, test_fraction=0.3)[0]
     with pytest.raises(ValueError, match="scaling"):

@@ -23,12 +23,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .model import Model, _query_method, log_firing, rule_outputs
+from .model import Model, _query_method, _RuleSystem, log_firing, rule_outputs
 
 _SCALING = ("x_lo", "x_span", "y_lo", "y_span")
 
 
-class Ensemble(eqx.Module):
+class Ensemble(_RuleSystem):
     """``sum_k weights[k] * members[k].predict(X)``; the weights are positive and sum to 1.
 
     The members share the kind, order, output clipping and the data scaling (they were
@@ -77,20 +77,8 @@ class Ensemble(eqx.Module):
                    kind=first.kind, order=first.order, scalar_output=first.scalar_output,
                    info=json.dumps(metadata or {}, sort_keys=True), clip_outputs=first.clip_outputs)
 
-    # ----- sizes and metadata, as for a Model -------------------------------------------
-    @property
-    def n_rules(self) -> int:
-        """Rules of all members together."""
-        return int(self.centers.shape[0])
-
-    @property
-    def n_inputs(self) -> int:
-        return int(self.centers.shape[1])
-
-    @property
-    def n_outputs(self) -> int:
-        return int(self.theta.shape[2])
-
+    # n_rules (all members' rules), n_inputs, n_outputs, metadata, with_metadata and
+    # astype as for a Model
     @property
     def members(self) -> tuple[Model, ...]:
         """The member models (copies of their arrays, in order)."""
@@ -104,19 +92,6 @@ class Ensemble(eqx.Module):
     def leading(self) -> Model:
         """The member with the largest weight (e.g. for a membership plot)."""
         return self.members[int(np.argmax(np.asarray(self.weights)))]
-
-    @property
-    def metadata(self) -> dict:
-        return json.loads(self.info)
-
-    def with_metadata(self, **kv) -> "Ensemble":
-        meta = self.metadata
-        meta.update(kv)
-        return eqx.tree_at(lambda e: e.info, self, json.dumps(meta, sort_keys=True))
-
-    def astype(self, dtype) -> "Ensemble":
-        """Copy with every array cast to ``dtype``."""
-        return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), self)
 
     # ----- evaluation -------------------------------------------------------------------
     def predict_fn(self):
