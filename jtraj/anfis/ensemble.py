@@ -39,13 +39,6 @@ class Ensemble(_RuleSystem):
     :meth:`from_models`; :attr:`members` gives the models back.
     """
 
-    centers: Array
-    sigmas: Array
-    theta: Array
-    x_lo: Array
-    x_span: Array
-    y_lo: Array
-    y_span: Array
     weights: Array
     sizes: tuple = eqx.field(static=True)
     kind: str = eqx.field(static=True, default="tsk")
@@ -77,8 +70,8 @@ class Ensemble(_RuleSystem):
                    kind=first.kind, order=first.order, scalar_output=first.scalar_output,
                    info=json.dumps(metadata or {}, sort_keys=True), clip_outputs=first.clip_outputs)
 
-    # n_rules (all members' rules), n_inputs, n_outputs, metadata, with_metadata and
-    # astype as for a Model
+    # n_rules (all members' rules), n_inputs, n_outputs, metadata, with_metadata, astype
+    # and save as for a Model
     @property
     def members(self) -> tuple[Model, ...]:
         """The member models (copies of their arrays, in order)."""
@@ -111,12 +104,6 @@ class Ensemble(_RuleSystem):
                         self.scalar_output)
 
     __call__ = predict
-
-    def save(self, path) -> None:
-        """Write the ensemble to ``path`` (see :func:`jtraj.anfis.load`)."""
-        from .io import save
-
-        save(path, self)
 
 
 def _arrays(e: Ensemble):

@@ -138,8 +138,16 @@ class _query_method:
 
 
 class _RuleSystem(eqx.Module):
-    """Accessors shared by :class:`Model` and :class:`~jtraj.anfis.Ensemble` (both have
-    ``centers (R, d)``, ``theta (R, k, m)`` and a JSON ``info`` field)."""
+    """The rule arrays and accessors shared by :class:`Model` and
+    :class:`~jtraj.anfis.Ensemble` (both also have a JSON ``info`` field)."""
+
+    centers: Array
+    sigmas: Array
+    theta: Array
+    x_lo: Array
+    x_span: Array
+    y_lo: Array
+    y_span: Array
 
     @property
     def n_rules(self) -> int:
@@ -168,6 +176,12 @@ class _RuleSystem(eqx.Module):
         """Copy with every array cast to ``dtype`` (e.g. float32 for faster queries)."""
         return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), self)
 
+    def save(self, path) -> None:
+        """Write the model to ``path`` (see :func:`jtraj.anfis.load`)."""
+        from .io import save
+
+        save(path, self)
+
 
 class Model(_RuleSystem):
     """A trained ANFIS (see the module docstring for the structure).
@@ -183,13 +197,6 @@ class Model(_RuleSystem):
     but not negligible).
     """
 
-    centers: Array
-    sigmas: Array
-    theta: Array
-    x_lo: Array
-    x_span: Array
-    y_lo: Array
-    y_span: Array
     kind: str = eqx.field(static=True, default="tsk")
     order: int = eqx.field(static=True, default=1)
     scalar_output: bool = eqx.field(static=True, default=False)
@@ -251,9 +258,3 @@ class Model(_RuleSystem):
         with np.errstate(divide="ignore", invalid="ignore"):
             rho = 1.0 / a
             return rho, b * rho
-
-    def save(self, path) -> None:
-        """Write the model to ``path`` (see :func:`jtraj.anfis.load`)."""
-        from .io import save
-
-        save(path, self)
