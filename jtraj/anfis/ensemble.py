@@ -5,7 +5,7 @@ candidate clustering radius and, by default, keeps all of them, weighted by
 1 / (validation mean squared error)^2. On small trajectory datasets the validation split
 is a handful of trajectories, so picking the single best radius on it is noisy;
 averaging the candidates removes much of that noise (README, ANFIS: 18 slices of 96
-pairs, test RMSE / linear baseline mean 0.469 -> 0.425).
+pairs, test RMSE / linear baseline mean 0.444 -> 0.403).
 
 An :class:`Ensemble` answers like a :class:`~jtraj.anfis.Model` (``predict``,
 ``predict_fn``, ``metadata``, ``astype``, ``save``; :func:`jtraj.anfis.load` reads it

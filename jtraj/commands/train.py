@@ -32,7 +32,7 @@ def configure(parser):
     parser.add_argument("--rules", type=int, default=None, help="number of rules (radius found by bisection)")
     parser.add_argument("--radius", type=_radius, default="auto",
                         help="clustering radius when --rules is not given; 'auto' (default) trains one model "
-                             "per radius of 0.4, 0.6, 0.9, 1.4 and weighs them on the validation split "
+                             "per radius of 0.4, 0.5, 0.6, 0.75, 0.9, 1.1, 1.4 and weighs them on the validation split "
                              "(see --ensemble)")
     parser.add_argument("--ensemble", action=argparse.BooleanOptionalAction, default=True,
                         help="with --radius auto: keep every radius' model, weighted by 1 / validation MSE^2 "
