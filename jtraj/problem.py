@@ -110,21 +110,30 @@ class ViaPoint(eqx.Module):
 FACE_TOL = 1e-9
 
 
-def admissible_configuration(robot: Robot, q) -> Array:
-    """A traced bool: ``q`` lies in the robot's joint box, puts the task point in its
-    workspace box and meets its path constraints (each within ``FACE_TOL``). What
-    :class:`Problem` demands of a start and a goal (see
-    :meth:`Problem.infeasible_on_its_face`), and what dataset sampling keeps."""
+def configuration_checks(robot: Robot, q) -> dict:
+    """Traced bools, one per family the robot has: ``"joint"`` (``q`` in the joint box),
+    ``"workspace"`` (the task point in the workspace box) and ``"path"`` (the robot's
+    path constraints met), each within ``FACE_TOL``."""
     lim = robot.limits
-    ok = jnp.all(jnp.isfinite(q))
+    checks = {}
     if lim.q_min is not None:
-        ok &= jnp.all((q >= lim.q_min - FACE_TOL) & (q <= lim.q_max + FACE_TOL))
+        checks["joint"] = jnp.all((q >= lim.q_min - FACE_TOL) & (q <= lim.q_max + FACE_TOL))
     if lim.workspace is not None:
         p = robot.forward_kinematics(q)
-        ok &= jnp.all((p >= lim.workspace[0] - FACE_TOL) & (p <= lim.workspace[1] + FACE_TOL))
+        checks["workspace"] = jnp.all((p >= lim.workspace[0] - FACE_TOL) & (p <= lim.workspace[1] + FACE_TOL))
     path = getattr(robot, "path_constraints", None)
     if path is not None:
-        ok &= jnp.all(path(q) <= FACE_TOL)
+        checks["path"] = jnp.all(path(q) <= FACE_TOL)
+    return checks
+
+
+def admissible_configuration(robot: Robot, q) -> Array:
+    """A traced bool: ``q`` is finite and passes every :func:`configuration_checks`. What
+    :class:`Problem` demands of a start and a goal (see
+    :meth:`Problem.infeasible_on_its_face`), and what dataset sampling keeps."""
+    ok = jnp.all(jnp.isfinite(q))
+    for c in configuration_checks(robot, q).values():
+        ok &= c
     return ok
 
 
@@ -196,27 +205,26 @@ class Problem(eqx.Module):
         """Reject problems that are infeasible on their face (before any solve)."""
         lim = self.robot.limits
         N = self.N
-        for name, q in (("q_start", self.q_start), ("q_goal", self.q_goal)):
-            if lim.q_min is not None and bool(jnp.any((q < lim.q_min - FACE_TOL) | (q > lim.q_max + FACE_TOL))):
+        ends = (("q_start", self.q_start), ("q_goal", self.q_goal))
+        failed = {name: {k for k, c in configuration_checks(self.robot, q).items() if not bool(c)} for name, q in ends}
+        for name, q in ends:
+            if "joint" in failed[name]:
                 raise ValueError(f"{name} = {np.asarray(q).tolist()} is outside the joint limits "
                                  f"[{np.asarray(lim.q_min).tolist()}, {np.asarray(lim.q_max).tolist()}]")
         for name, qd in (("qd_start", self.qd_start), ("qd_goal", self.qd_goal)):
             if lim.qd_max is not None and bool(jnp.any(jnp.abs(qd) > lim.qd_max * (1 + FACE_TOL))):
                 raise ValueError(f"{name} exceeds the velocity limits qd_max = {np.asarray(lim.qd_max).tolist()}")
-        if lim.workspace is not None:
-            for name, q in (("q_start", self.q_start), ("q_goal", self.q_goal)):
-                p = self.robot.forward_kinematics(q)
-                if bool(jnp.any((p < lim.workspace[0] - FACE_TOL) | (p > lim.workspace[1] + FACE_TOL))):
-                    raise ValueError(f"{name} puts the task point at {np.asarray(p).tolist()}, outside "
-                                     f"the workspace box {np.asarray(lim.workspace).tolist()}")
-        path = getattr(self.robot, "path_constraints", None)
-        if path is not None:
-            for name, q in (("q_start", self.q_start), ("q_goal", self.q_goal)):
-                g = np.asarray(path(q))
-                if np.any(g > FACE_TOL):
-                    raise ValueError(f"{name} = {np.asarray(q).tolist()} violates the path constraints of robot "
-                                     f"{self.robot.name!r} (largest normalised value {g.max():.3g} > 0: e.g. too "
-                                     f"close to a singularity)")
+        for name, q in ends:
+            if "workspace" in failed[name]:
+                p = np.asarray(self.robot.forward_kinematics(q)).tolist()
+                raise ValueError(f"{name} puts the task point at {p}, outside "
+                                 f"the workspace box {np.asarray(lim.workspace).tolist()}")
+        for name, q in ends:
+            if "path" in failed[name]:
+                g = np.asarray(self.robot.path_constraints(q))
+                raise ValueError(f"{name} = {np.asarray(q).tolist()} violates the path constraints of robot "
+                                 f"{self.robot.name!r} (largest normalised value {g.max():.3g} > 0: e.g. too "
+                                 f"close to a singularity)")
         rest = not (bool(jnp.any(self.qd_start != 0)) or bool(jnp.any(self.qd_goal != 0)))
         T_need = float(minimum_time_bound(self)) if rest else 0.0
         if T_need > N * lim.h_max * (1 + 1e-9):

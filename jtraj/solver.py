@@ -830,9 +830,9 @@ def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, war
     nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem), stagewise=_stagewise(opts, tr))
     u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
-    valid = jnp.all(jnp.isfinite(z0)) & jnp.all(jnp.isfinite(problem.q_start)) & jnp.all(jnp.isfinite(problem.q_goal))
-    # what a single Problem rejects up front (a batch builds its problems unvalidated)
-    valid &= ~problem.infeasible_on_its_face()
+    # what a single Problem rejects up front (a batch builds its problems unvalidated;
+    # non-finite ends included)
+    valid = jnp.all(jnp.isfinite(z0)) & ~problem.infeasible_on_its_face()
     z0 = jnp.where(valid, z0, jnp.clip(jnp.zeros_like(z0), layout.z_lo, layout.z_hi))
     # an invalid sample takes no iteration (its lane is free at once in a batch)
     state = _init_state(nlp, z0, opts, warm)

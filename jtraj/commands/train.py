@@ -94,7 +94,7 @@ def run(args) -> int:
     if args.json:
         with open(args.json, "w") as f:
             json.dump(report, f, indent=2)
-    members = f" in {len(model.members)} models" if report["ensemble"] else ""
+    members = f" in {len(model.sizes)} models" if report["ensemble"] else ""
     print(f"{args.mapping}: {report['n_rules']} rules{members}, {report['epochs']} epochs, {report['seconds']:.1f} s; "
           f"RMSE train {report['train_rmse']:.4g}, test {report['test_rmse']:.4g} "
           f"(linear {report['linear_test_rmse']:.4g}, 5-NN {report['knn_test_rmse']:.4g}; "
