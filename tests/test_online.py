@@ -111,6 +111,54 @@ def test_auto_radius_ensemble_weights_the_candidates_by_validation_error(tmp_pat
     np.testing.assert_allclose(np.asarray(single.predict(X)), np.asarray(model.leading.predict(X)), rtol=1e-12)
 
 
+def test_mirror_augmentation_adds_the_reflected_trajectories_where_the_robot_is_symmetric(data, monkeypatch):
+    from jtraj.anfis import training
+
+    # serial3 (horizontal, no gravity): odd inverse dynamics, symmetric limits
+    assert trajectory.mirror_symmetry(data) is None
+    m = trajectory.mirrored(data)
+    for k in ("q", "qd", "v", "tau", "q_start", "q_goal"):
+        np.testing.assert_array_equal(m[k], -np.asarray(data[k]))
+    np.testing.assert_array_equal(m["h"], data["h"])
+    seen = []
+    real_train = training.train
+    monkeypatch.setattr(training, "train", lambda X, Y, **kw: seen.append((X, Y, kw["validation"]))
+                        or real_train(X, Y, **kw))
+    _, plain, _ = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, augment="none")
+    _, aug, _ = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1)  # "auto"
+    assert plain["augment"] == "none" and aug["augment"] == "mirror" and "augment_note" not in aug
+    (X0, Y0, (V0, W0)), (X1, Y1, (V1, W1)) = seen
+    n, nv = len(X0), len(V0)
+    # fit and validation rows: the originals, then their mirror images (inputs
+    # q_goal - q and qd negated, the phase kept; torques negated)
+    flip = np.r_[-np.ones(X0.shape[1] - 1), 1.0]
+    np.testing.assert_array_equal(X1[:n], X0)
+    np.testing.assert_array_equal(X1[n:], X0 * flip)
+    np.testing.assert_array_equal(Y1, np.r_[Y0, -Y0])
+    np.testing.assert_array_equal(V1, np.r_[V0, V0 * flip])
+    np.testing.assert_array_equal(W1, np.r_[W0, -W0])
+    # the test split and the baselines are the same
+    for k in ("n_samples_test", "n_samples_train", "linear_test_rmse", "knn_test_rmse"):
+        assert aug[k] == plain[k]
+    # a robot under gravity is not symmetric: "auto" skips, "mirror" refuses
+    vertical = trajectory.synthetic_dataset(P=20, N=10, seed=1, robot="serial3_vertical")
+    assert "not odd" in trajectory.mirror_symmetry(vertical)
+    _, rep, _ = trajectory.train_mapping(vertical, "nefotc", n_rules=2, epochs=1)
+    assert rep["augment"] == "none" and "not odd" in rep["augment_note"]
+    with pytest.raises(ValueError, match="augment='mirror': the inverse dynamics are not odd"):
+        trajectory.train_mapping(vertical, "nefotc", n_rules=2, epochs=1, augment="mirror")
+    with pytest.raises(ValueError, match="augment must be one of"):
+        trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, augment="flip")
+    # a joint box not symmetric about 0 rules the mirror out
+    from jtraj import robots
+    from jtraj.dataset import views
+
+    boxed = robots.get("serial3")
+    boxed = boxed.replace(limits=type(boxed.limits).make(3, q_min=-1.0, q_max=2.0, tau_max=boxed.limits.tau_max))
+    monkeypatch.setattr(views, "robot_of", lambda d: boxed)
+    assert "joint box is not symmetric" in trajectory.mirror_symmetry(data)
+
+
 def test_auto_radius_skips_radii_with_more_rules_than_the_data_carry(monkeypatch):
     from jtraj.anfis.clustering import subclust
 

@@ -69,6 +69,19 @@ def test_single_solve_converges_and_verifies_independently(single):
     assert terms["time"] == pytest.approx(float(sol.T))
 
 
+def test_mirrored_pair_has_the_mirrored_optimum(robot, single):
+    # serial3's inverse dynamics are odd and its limits symmetric: the reflection q -> -q
+    # maps its optimal trajectories onto optimal ones (what jtraj train's mirror
+    # augmentation relies on, see jtraj.anfis.trajectory.mirror_symmetry)
+    _, sol = single
+    mir = jtraj.solve(jtraj.Problem(robot, -Q0, -Q1, N=N, weights=W))
+    assert mir.converged, mir.status_message
+    np.testing.assert_allclose(np.asarray(mir.q), -np.asarray(sol.q), atol=1e-8)
+    np.testing.assert_allclose(np.asarray(mir.tau), -np.asarray(sol.tau), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(mir.h), np.asarray(sol.h), atol=1e-10)
+    assert float(mir.cost) == pytest.approx(float(sol.cost), rel=1e-9)
+
+
 def test_cost_matches_ipopt(single):
     P = pytest.importorskip("peers.ipopt_peer")
     _, sol = single

@@ -198,6 +198,74 @@ def _rmse(a, b):
     return float(np.sqrt(np.mean((np.asarray(a) - np.asarray(b)) ** 2)))
 
 
+AUGMENTATIONS = ("auto", "mirror", "none")
+#: the fields the mirror q -> -q negates (the periods h and the total time are kept)
+MIRRORED_FIELDS = ("q_start", "q_goal", "q", "qd", "v", "tau")
+
+
+def mirrored(data):
+    """The dataset reflected through ``q -> -q``: positions, velocities, accelerations and
+    torques negated, periods kept (a shallow copy; the arrays are new)."""
+    data = load_data(data)
+    return {k: (-np.asarray(v) if k in MIRRORED_FIELDS else v) for k, v in data.items()}
+
+
+def mirror_symmetry(data, max_samples: int = 4096) -> str | None:
+    """``None`` when the reflection ``q -> -q`` maps the dataset's optimal trajectories onto
+    optimal trajectories of the reflected start/goal pairs; otherwise why it is not known to.
+
+    It does when the inverse dynamics are odd, ``tau(-q, -qd, -qdd) = -tau(q, qd, qdd)``,
+    and every constraint and cost term is unchanged by the reflection. The dynamics are
+    tested on the dataset's samples (at most ``max_samples``, evenly spaced; relative
+    tolerance 1e-6); torque, velocity and acceleration boxes are symmetric by
+    construction, the energy terms are quadratic; the joint box must be symmetric about
+    0; a workspace box, robot path constraints or a singularity weight are not tested
+    and rule the mirror out. Planar serial arms without gravity (``serial3``) have the
+    symmetry, friction included (it is odd in qd); gravity breaks it (``serial3_vertical``).
+    The recursion of the decoupled transcription is linear, so the reflected discrete
+    trajectory is exactly feasible and as optimal as the original.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from jtraj.dataset import views
+
+    data = load_data(data)
+    md = data["metadata"]
+    try:
+        robot = views.robot_of(data)
+    except (KeyError, ValueError) as e:
+        return f"the dataset's robot is not a built-in one ({e})"
+    lim = robot.limits
+    if lim.workspace is not None:
+        return "the robot has a workspace box (its mirror image is not checked)"
+    if getattr(robot, "path_constraints", None) is not None:
+        return "the robot has path constraints (their mirror image is not checked)"
+    if "singularity" in str(md.get("weights_text", "")):
+        return "the cost has a singularity term (its mirror image is not checked)"
+    n = robot.n
+    lo = np.full(n, -np.inf) if lim.q_min is None else np.asarray(lim.q_min, float)
+    hi = np.full(n, np.inf) if lim.q_max is None else np.asarray(lim.q_max, float)
+    if not np.array_equal(lo, -hi):
+        return f"the joint box is not symmetric about 0 (q_min {lo.tolist()}, q_max {hi.tolist()})"
+    if "v" not in data:
+        return "the dataset has no accelerations v"
+    conv = np.asarray(data["converged"], bool)
+    if not conv.any():
+        return "the dataset has no converged trajectory"
+    q, qd = np.asarray(data["q"])[conv][:, :-1], np.asarray(data["qd"])[conv][:, :-1]
+    q, qd, v = (a.reshape(-1, n) for a in (q, qd, np.asarray(data["v"])[conv]))
+    pick = np.unique(np.linspace(0, len(q) - 1, min(max_samples, len(q))).astype(int))
+    q, qd, v = (jnp.asarray(a[pick]) for a in (q, qd, v))
+    tau = jax.vmap(robot.inverse_dynamics)(q, qd, v)
+    tau_m = jax.vmap(robot.inverse_dynamics)(-q, -qd, -v)
+    err = float(jnp.max(jnp.abs(tau + tau_m)))
+    scale = 1.0 + float(jnp.max(jnp.abs(tau)))
+    if not err <= 1e-6 * scale:
+        return f"the inverse dynamics are not odd (|tau(q) + tau(-q)| up to {err:.3g}, e.g. gravity)"
+    return None
+
+
 # the ensemble of radius "auto" gains from more candidates: test RMSE / linear (nefotc
 # defaults, weights 1 / MSE^2, 2026-11-27), mean over 18 slices of 96 pairs and over 3
 # datasets of 300-1000 pairs: 0.425 / 0.316 with (0.4, 0.6, 0.9, 1.4), 0.403 / 0.312
@@ -239,7 +307,8 @@ def _auto_radii(X, Y, traj, options, selection):
 
 def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, radius="auto",
                   epochs: int = 100, kind: str = "tsk", test_fraction: float = 0.1, progress: bool = False,
-                  goal: bool | str | None = None, phase: bool | None = None, ensemble: bool = True, **options):
+                  goal: bool | str | None = None, phase: bool | None = None, ensemble: bool = True,
+                  augment: str = "auto", **options):
     """Train an ANFIS for ``mapping`` on a dataset; return ``(model, report, history)``.
 
     ``report`` (JSON-able) holds ``train_rmse``, ``test_rmse`` (target units, all
@@ -265,6 +334,12 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     lowest validation RMSE; ``history`` is that member's. On 18 slices of 96 pairs of
     serial3 datasets the ensemble's test RMSE was 0.403x the linear baseline on average
     against 0.444x for the best single radius (README, ANFIS).
+    ``augment``: ``"mirror"`` adds the reflection ``q -> -q`` of every training (and
+    validation) trajectory, which doubles the data when the robot has that symmetry
+    (:func:`mirror_symmetry`; an error if it does not); ``"auto"`` (default) does so
+    only when it has; ``"none"`` never. The test set and the baselines are left as they
+    are. Report: ``augment`` (``"mirror"`` or ``"none"``), ``augment_note`` (why not,
+    with ``"auto"``).
     """
     from .ensemble import Ensemble
     from .training import train
@@ -276,22 +351,32 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     dgoal, dphase = default_inputs(mapping)
     goal = _goal_mode(dgoal if goal is None else goal)
     phase = dphase if phase is None else phase
+    if augment not in AUGMENTATIONS:
+        raise ValueError(f"augment must be one of {AUGMENTATIONS}, got {augment!r}")
     data = load_data(data)
     X, Y, traj, in_names, out_names = view(data, mapping, goal=goal, phase=phase)
     tr, te = split(traj, test_fraction)
     if not te.any():
         raise ValueError("need at least two converged trajectories to hold one out for testing")
+    why_not = "not asked for" if augment == "none" else mirror_symmetry(data)
+    if augment == "mirror" and why_not:
+        raise ValueError(f"augment='mirror': {why_not}")
     tr_traj = traj[tr]
     fit_rows, val_rows = split(tr_traj, 0.1)
+    if not (val_rows.any() and fit_rows.any()):
+        fit_rows, val_rows = np.ones_like(fit_rows), np.zeros_like(val_rows)
     Xtr, Ytr = X[tr], Y[tr]
-    if val_rows.any() and fit_rows.any():
-        validation = (Xtr[val_rows], Ytr[val_rows])
-        Xfit, Yfit = Xtr[fit_rows], Ytr[fit_rows]
-    else:
-        validation, Xfit, Yfit = 0.0, Xtr, Ytr
+    Xfit, Yfit, fit_traj, Xval, Yval = Xtr[fit_rows], Ytr[fit_rows], tr_traj[fit_rows], Xtr[val_rows], Ytr[val_rows]
+    if not why_not:
+        # the mirror image of each training trajectory, a distinct trajectory for the rule cap
+        Xm, Ym = (a[tr] for a in view(mirrored(data), mapping, goal=goal, phase=phase)[:2])
+        Xfit, Yfit, Xval, Yval = (np.r_[a, b] for a, b in ((Xfit, Xm[fit_rows]), (Yfit, Ym[fit_rows]),
+                                                           (Xval, Xm[val_rows]), (Yval, Ym[val_rows])))
+        fit_traj = np.r_[fit_traj, fit_traj + int(traj.max()) + 1]
+    validation = (Xval, Yval) if len(Xval) else 0.0
     meta = data["metadata"]
     md = dict(mapping=mapping, robot=meta.get("robot"), N=meta.get("N"), inputs=in_names, outputs=out_names,
-              goal_inputs=goal, phase_input=bool(phase))
+              goal_inputs=goal, phase_input=bool(phase), augment="none" if why_not else "mirror")
     if meta.get("weights_text"):
         md["weights"] = meta["weights_text"]  # the cost the trajectories are optimal for (Planner refine)
     t0 = time.perf_counter()
@@ -308,7 +393,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
             radius = 0.5
         else:
             trained = []
-            for r in _auto_radii(Xfit, Yfit, traj[tr][fit_rows], options, selection):
+            for r in _auto_radii(Xfit, Yfit, fit_traj, options, selection):
                 m_r, h_r = train(Xfit, Yfit, radius=r, epochs=epochs, kind=kind, validation=validation,
                                  metadata=md, progress=progress, **options)
                 va = float(min(h_r.val_rmse))
@@ -348,6 +433,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
         test_rmse_per_output={k: _rmse(Pte[:, i], Y[te][:, i]) for i, k in enumerate(out_names)},
         n_rules=model.n_rules, radius=hist.radius, epochs=hist.epochs, best_epoch=hist.best_epoch,
         stop_reason=hist.stop_reason, seconds=round(seconds, 3), ensemble=isinstance(model, Ensemble),
+        augment=md["augment"],
         linear_test_rmse=lin_rmse, knn_test_rmse=_rmse(knn, Y[te]),
         ratio_to_linear=test_rmse / lin_rmse if lin_rmse > 0 else math.inf,
     )
@@ -356,6 +442,8 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
         thesis = _rmse(linear_baseline(X0[tr], Ytr, X0[te]), Y[te])
         report.update(thesis_linear_test_rmse=thesis,
                       ratio_to_thesis_linear=test_rmse / thesis if thesis > 0 else math.inf)
+    if why_not and augment == "auto":
+        report["augment_note"] = why_not
     if selection:
         report["radius_selection"] = selection
     report["goal_met"] = bool(report["ratio_to_linear"] <= 0.5)

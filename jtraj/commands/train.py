@@ -16,6 +16,10 @@ inputs (see README, ANFIS).
 With --radius auto (the default when --rules is not given) one model is trained per
 candidate radius and all of them are kept, weighted by 1 / (validation MSE)^2
 (an ensemble; --no-ensemble keeps only the best).
+
+Where the robot is mirror-symmetric (odd inverse dynamics and symmetric limits, as
+serial3), the reflection q -> -q of each training trajectory is an optimal trajectory
+too, and --augment auto (the default) adds it: twice the training data for free.
 """
 
 import argparse
@@ -52,6 +56,10 @@ def configure(parser):
     parser.add_argument("--phase", action=argparse.BooleanOptionalAction, default=None,
                         help="nefotc / nefumop: add the sample's place k/N in its trajectory to the inputs "
                              "(default: on)")
+    parser.add_argument("--augment", default="auto", choices=["auto", "mirror", "none"],
+                        help="add the mirror image q -> -q of every training trajectory where the robot has that "
+                             "symmetry (odd inverse dynamics, symmetric limits: serial3); 'auto' (default) checks "
+                             "the symmetry and skips it where it does not hold, 'mirror' requires it")
     parser.add_argument("--no-progress", action="store_true")
 
 
@@ -79,7 +87,7 @@ def run(args) -> int:
         args.data, args.mapping, n_rules=args.rules, radius=args.radius, epochs=args.epochs, kind=args.kind,
         order=args.order, ridge=args.ridge, progress=not args.no_progress,
         goal=getattr(args, "goal_inputs", None), phase=getattr(args, "phase", None),
-        ensemble=getattr(args, "ensemble", True))
+        ensemble=getattr(args, "ensemble", True), augment=getattr(args, "augment", "auto"))
     model.save(args.out)
     report["model"] = os.path.abspath(args.out)
     if args.plot:
@@ -99,6 +107,10 @@ def run(args) -> int:
           f"RMSE train {report['train_rmse']:.4g}, test {report['test_rmse']:.4g} "
           f"(linear {report['linear_test_rmse']:.4g}, 5-NN {report['knn_test_rmse']:.4g}; "
           f"ratio to linear {report['ratio_to_linear']:.3f}, goal <= 0.5)")
+    if report.get("augment") == "mirror":
+        print("training data: each trajectory and its mirror image q -> -q (--augment none: without)")
+    elif report.get("augment_note"):
+        print(f"no mirror augmentation: {report['augment_note']}")
     if "thesis_linear_test_rmse" in report:
         print(f"inputs {', '.join(report['inputs'])}; linear on the thesis' inputs: test "
               f"{report['thesis_linear_test_rmse']:.4g} (ratio {report['ratio_to_thesis_linear']:.3f})")
