@@ -210,6 +210,11 @@ def mirrored(data):
     return {k: (-np.asarray(v) if k in MIRRORED_FIELDS else v) for k, v in data.items()}
 
 
+def _augmented(data):
+    """The transformed copies of a dataset that train_mapping adds to its training data."""
+    return [mirrored(data)]
+
+
 def mirror_symmetry(data, max_samples: int = 4096) -> str | None:
     """``None`` when the reflection ``q -> -q`` maps the dataset's optimal trajectories onto
     optimal trajectories of the reflected start/goal pairs; otherwise why it is not known to.
@@ -335,11 +340,13 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     serial3 datasets the ensemble's test RMSE was 0.403x the linear baseline on average
     against 0.444x for the best single radius (README, ANFIS).
     ``augment``: ``"mirror"`` adds the reflection ``q -> -q`` of every training (and
-    validation) trajectory, which doubles the data when the robot has that symmetry
+    validation) trajectory, an optimal trajectory too when the robot has that symmetry
     (:func:`mirror_symmetry`; an error if it does not); ``"auto"`` (default) does so
-    only when it has; ``"none"`` never. The test set and the baselines are left as they
-    are. Report: ``augment`` (``"mirror"`` or ``"none"``), ``augment_note`` (why not,
-    with ``"auto"``).
+    only when it has; ``"none"`` never. The test set, the baselines and the rule cap
+    (which counts the dataset's trajectories) are left as they are. On the 18 slices of
+    96 pairs the mean ratio to the linear baseline went from 0.403 to 0.329 (worst
+    0.576 -> 0.451), at several times the training time. Report: ``augment``
+    (``"mirror"`` or ``"none"``), ``augment_note`` (why not, with ``"auto"``).
     """
     from .ensemble import Ensemble
     from .training import train
@@ -367,12 +374,15 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
         fit_rows, val_rows = np.ones_like(fit_rows), np.zeros_like(val_rows)
     Xtr, Ytr = X[tr], Y[tr]
     Xfit, Yfit, fit_traj, Xval, Yval = Xtr[fit_rows], Ytr[fit_rows], tr_traj[fit_rows], Xtr[val_rows], Ytr[val_rows]
-    if not why_not:
-        # the mirror image of each training trajectory, a distinct trajectory for the rule cap
-        Xm, Ym = (a[tr] for a in view(mirrored(data), mapping, goal=goal, phase=phase)[:2])
+    for copy in [] if why_not else _augmented(data):
+        # the copies' rows are appended; the rule cap (TRAJECTORIES_PER_RULE) still counts
+        # the dataset's trajectories. Counting the mirror images too (2026-11-27, 18 slices
+        # of 96 pairs, test RMSE / linear, nefotc defaults): mean 0.318 against 0.329, max
+        # 0.428 against 0.451, at 2-3x the training time (47.6 s against 19.2 s on the seed-5
+        # set); without augmentation 0.403, max 0.576
+        Xm, Ym = (a[tr] for a in view(copy, mapping, goal=goal, phase=phase)[:2])
         Xfit, Yfit, Xval, Yval = (np.r_[a, b] for a, b in ((Xfit, Xm[fit_rows]), (Yfit, Ym[fit_rows]),
                                                            (Xval, Xm[val_rows]), (Yval, Ym[val_rows])))
-        fit_traj = np.r_[fit_traj, fit_traj + int(traj.max()) + 1]
     validation = (Xval, Yval) if len(Xval) else 0.0
     meta = data["metadata"]
     md = dict(mapping=mapping, robot=meta.get("robot"), N=meta.get("N"), inputs=in_names, outputs=out_names,
