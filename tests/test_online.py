@@ -140,6 +140,11 @@ def test_mirror_augmentation_adds_the_reflected_trajectories_where_the_robot_is_
     # the test split and the baselines are the same
     for k in ("n_samples_test", "n_samples_train", "linear_test_rmse", "knn_test_rmse"):
         assert aug[k] == plain[k]
+    # "auto" leaves large training sets alone; "mirror" still mirrors them
+    monkeypatch.setattr(trajectory, "MIRROR_AUTO_BELOW", 5)
+    _, big, _ = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1)
+    assert big["augment"] == "none" and "training trajectories" in big["augment_note"]
+    assert trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, augment="mirror")[1]["augment"] == "mirror"
     # a robot under gravity is not symmetric: "auto" skips, "mirror" refuses
     vertical = trajectory.synthetic_dataset(P=20, N=10, seed=1, robot="serial3_vertical")
     assert "not odd" in trajectory.mirror_symmetry(vertical)
