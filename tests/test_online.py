@@ -145,6 +145,9 @@ def test_mirror_augmentation_adds_the_reflected_trajectories_where_the_robot_is_
     _, big, _ = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1)
     assert big["augment"] == "none" and "training trajectories" in big["augment_note"]
     assert trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, augment="mirror")[1]["augment"] == "mirror"
+    monkeypatch.undo()
+    _, ik, _ = trajectory.train_mapping(data, "nefik", n_rules=2, epochs=1)  # not mirrored by "auto"
+    assert ik["augment"] == "none" and "mappings" in ik["augment_note"]
     # a robot under gravity is not symmetric: "auto" skips, "mirror" refuses
     vertical = trajectory.synthetic_dataset(P=20, N=10, seed=1, robot="serial3_vertical")
     assert "not odd" in trajectory.mirror_symmetry(vertical)

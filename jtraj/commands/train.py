@@ -19,7 +19,8 @@ candidate radius and all of them are kept, weighted by 1 / (validation MSE)^2
 
 Where the robot is mirror-symmetric (odd inverse dynamics and symmetric limits, as
 serial3), the reflection q -> -q of each training trajectory is an optimal trajectory
-too, and --augment auto (the default) adds it: twice the training data for free.
+too, and --augment auto (the default) adds it to small nefotc and nefumop training sets:
+twice the training data for free.
 """
 
 import argparse
@@ -58,8 +59,9 @@ def configure(parser):
                              "(default: on)")
     parser.add_argument("--augment", default="auto", choices=["auto", "mirror", "none"],
                         help="add the mirror image q -> -q of every training trajectory where the robot has that "
-                             "symmetry (odd inverse dynamics, symmetric limits: serial3); 'auto' (default) checks "
-                             "the symmetry and skips it where it does not hold, 'mirror' requires it")
+                             "symmetry (odd inverse dynamics, symmetric limits: serial3); 'auto' (default) does so "
+                             "for nefotc and nefumop on fewer than 500 training trajectories where the symmetry "
+                             "holds, 'mirror' always (an error where it does not hold)")
     parser.add_argument("--no-progress", action="store_true")
 
 
