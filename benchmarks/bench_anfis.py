@@ -123,7 +123,8 @@ def trajectory_models(args):
         phase = args.phase if extra else False
         _, r, _ = trajectory.train_mapping(data, mapping, n_rules=args.rules, epochs=args.epochs, ridge=args.ridge,
                                            goal=goal, phase=phase)
-        print(f"{mapping} (inputs {', '.join(r['inputs'])}): {r['n_rules']} rules, {r['epochs']} epochs, "
+        print(f"{mapping} (inputs {', '.join(r['inputs'])}; augment {r['augment']}): {r['n_rules']} rules, "
+              f"{r['epochs']} epochs, "
               f"{r['seconds']:.1f} s, "
               f"{r['n_trajectories_train']}/{r['n_trajectories_test']} train/test trajectories; test RMSE ANFIS "
               f"{r['test_rmse']:.4g}, linear {r['linear_test_rmse']:.4g}, 5-NN {r['knn_test_rmse']:.4g}; "
