@@ -15,7 +15,6 @@ back). It is not a single fuzzy system: each member normalises its own firing st
 from __future__ import annotations
 
 import json
-from functools import partial
 
 import equinox as eqx
 import jax
@@ -23,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .model import Model, _query_method, _RuleSystem, log_firing, rule_outputs
+from .model import _ARRAYS, Model, _query_method, _RuleSystem, compiled_query, log_firing, rule_outputs
 
 _SCALING = ("x_lo", "x_span", "y_lo", "y_span")
 
@@ -95,19 +94,22 @@ class Ensemble(_RuleSystem):
     @_query_method
     def predict(self, X) -> Array:
         """As :meth:`Model.predict`: ``(d,)`` -> ``(m,)`` or ``(B, d)`` -> ``(B, m)``, jitted."""
+        f = vars(self)  # the fields, without equinox's attribute hook (see Model.predict)
         if not isinstance(X, jax.Array):
             X = np.asarray(X)
-        d = self.centers.shape[1]
+        d = f["centers"].shape[1]
         if X.ndim not in (1, 2) or X.shape[-1] != d:
             raise ValueError(f"X must have shape ({d},) or (B, {d}), got {X.shape}")
-        return _predict(*_arrays(self), X, self.kind, self.order, self.clip_outputs, self.sizes, X.ndim == 1,
-                        self.scalar_output)
+        query = compiled_query(_predict, f["kind"], f["order"], f["clip_outputs"], f["sizes"], X.ndim == 1,
+                               f["scalar_output"])
+        return query(*_arrays(self), X)
 
     __call__ = predict
 
 
 def _arrays(e: Ensemble):
-    return e.centers, e.sigmas, e.theta, e.x_lo, e.x_span, e.y_lo, e.y_span, e.weights
+    f = vars(e)
+    return tuple(f[k] for k in _ARRAYS) + (f["weights"],)
 
 
 def _forward(c, s, theta, x_lo, x_span, y_lo, y_span, weights, X, kind, order, clip, sizes):
@@ -127,7 +129,6 @@ def _forward(c, s, theta, x_lo, x_span, y_lo, y_span, weights, X, kind, order, c
     return jnp.einsum("k,bkm->bm", weights, v) * y_span + y_lo
 
 
-@partial(jax.jit, static_argnames=("kind", "order", "clip", "sizes", "single", "squeeze"))
 def _predict(c, s, theta, x_lo, x_span, y_lo, y_span, weights, X, kind, order, clip, sizes, single, squeeze):
     Y = _forward(c, s, theta, x_lo, x_span, y_lo, y_span, weights, X[None, :] if single else X, kind, order, clip,
                  sizes)
