@@ -110,7 +110,7 @@ def forward(c, s, theta, u, kind: str, order: int) -> Float[Array, "B m"]:
 _ARRAYS = ("centers", "sigmas", "theta", "x_lo", "x_span", "y_lo", "y_span")
 
 
-@lru_cache(maxsize=None)
+@lru_cache(maxsize=256)
 def compiled_query(fn, *static):
     """``jax.jit`` of ``fn`` with its trailing (hashable) arguments ``static`` bound: a
     jitted function of arrays only, one per configuration. With the fields read through
