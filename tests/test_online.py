@@ -157,7 +157,11 @@ def test_mirror_augmentation_adds_the_reflected_trajectories_where_the_robot_is_
         trajectory.train_mapping(vertical, "nefotc", n_rules=2, epochs=1, augment="mirror")
     with pytest.raises(ValueError, match="augment must be one of"):
         trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, augment="flip")
-    # a joint box not symmetric about 0 rules the mirror out
+    # so do a singularity term in the cost and a joint box not symmetric about 0
+    singular = dict(data, metadata=dict(data["metadata"], weights_text="time=1,energy=0.1,singularity=0.01"))
+    assert "singularity" in trajectory.mirror_symmetry(singular)
+    zero = dict(data, metadata=dict(data["metadata"], weights_text="time=1,singularity=0"))
+    assert trajectory.mirror_symmetry(zero) is None
     from jtraj import robots
     from jtraj.dataset import views
 
