@@ -85,7 +85,8 @@ def main(argv=None):
 
     data = dataset.load(args.data)
     meta = data["metadata"]
-    robot = jtraj.robots.get(meta["robot"])
+    h_max = (meta.get("limits") or {}).get("h_max")  # the dataset's problems' bound (before: the robot's)
+    robot = jtraj.robots.get(meta["robot"], **({"h_max": float(h_max)} if h_max else {}))
     N = int(meta["N"])
     weights = jtraj.Weights.parse(meta.get("weights_text", "time=1,energy=0.1"))
     options = jtraj.SolverOptions()

@@ -1,11 +1,22 @@
-"""Online planning with a trained ANFIS: a whole trajectory per (start, goal) in one
+"""Online planning with trained ANFIS models: a whole trajectory per (start, goal) in one
 jitted call, its feasibility, and optional exact refinement.
 
-The model must be of the ``plan`` mapping (``jtraj train --mapping plan``):
-``(q_start, q_goal) -> (v (N n), h (N))``. :meth:`Planner.plan` predicts the
-accelerations and periods, clips the periods into ``[h_min, h_max]``, rolls the
-decoupled dynamics out (``q'' = v``, the recursion of the exact solver) from the start
-at rest, computes the actuator efforts by the robot's inverse dynamics, and reports:
+Two kinds of planner:
+
+* **open loop**, one model of the ``plan`` mapping (``jtraj train --mapping plan``):
+  ``(q_start, q_goal) -> (v (N n), h (N))``. :meth:`Planner.plan` predicts the
+  accelerations and periods, clips the periods into ``[h_min, h_max]`` and rolls the
+  decoupled recursion out (``q'' = v``, the recursion of the exact solver) from the start
+  at rest;
+* **closed loop** (the thesis' NeFOTC with NeFuMOP), a ``nefotc`` model, the torque
+  controller ``(q_goal - q, qd, k/N) -> tau``, with ``periods=`` a ``nefumop`` model
+  whose last output is ``h``: at each of the N steps the controller's torque (clipped to
+  the torque box) drives the robot's forward dynamics for the predicted period. The
+  goal offset is fed back, so errors are corrected on the way: on 30 held-out pairs of a
+  300-pair serial3 dataset the median goal error was 0.026 rad, against 0.20 rad for the
+  open-loop plan model (README, ANFIS).
+
+The actuator efforts come from the robot's inverse dynamics, and :class:`Plan` reports:
 
 * ``tau_violation``, ``qd_violation``, ``q_violation``: largest relative excess over the
   robot's limits (0 when within; e.g. 0.1 means 10 % over);
@@ -13,7 +24,9 @@ at rest, computes the actuator efforts by the robot's inverse dynamics, and repo
 * ``goal_error``: ``||q_N - q_goal||`` [rad], ``goal_velocity``: ``||qd_N||``;
 * ``feasible``: every violation <= ``tol`` and goal error <= ``goal_tol``.
 
-With ``refine=True`` the plan warm-starts the exact solver on
+The robot is the one named in the model's metadata, with the sampling-period bound of
+the training dataset (``h_max`` in the metadata) where recorded. With ``refine=True``
+the plan warm-starts the exact solver on
 ``Problem(robot, q_start, q_goal, N=N, weights=<the dataset's>)`` from ``(v, h)``
 (primal point only by default, see :meth:`Planner.query`).
 """
@@ -43,40 +56,100 @@ class Plan(NamedTuple):
     goal_velocity: jax.Array
 
 
+def _load(model):
+    from jtraj import anfis
+
+    return model if isinstance(model, (anfis.Model, anfis.Ensemble)) else anfis.load(model)
+
+
 def _excess(x, bound):
     if bound is None:
         return jnp.zeros(())
     return jnp.max(jnp.maximum(jnp.abs(x) / bound - 1.0, 0.0))
 
 
+def model_inputs(meta: dict, robot, q, qd, q_goal, k, N: int):
+    """The inputs of a ``nefotc`` or ``nefumop`` model (as
+    :func:`jtraj.anfis.trajectory.view` builds them, from the model's ``goal_inputs`` and
+    ``phase_input`` metadata) at the state ``(q, qd)`` of step ``k`` towards ``q_goal``."""
+    if meta["mapping"] == "nefotc":
+        x, xd, xg = q, qd, q_goal
+    else:
+        x, xd = jax.jvp(robot.forward_kinematics, (q,), (qd,))
+        xg = robot.forward_kinematics(q_goal)
+    goal = meta.get("goal_inputs") or False
+    parts = {"relative": [xg - x, xd], "append": [x, xd, xg - x]}.get(goal, [x, xd])
+    if meta.get("phase_input"):
+        parts.append(jnp.full((1,), k / N, x.dtype))
+    return jnp.concatenate(parts)
+
+
 class Planner:
     """``Planner(model)`` (or a model path); ``plan(q_start, q_goal)`` -> :class:`Plan`.
 
-    ``robot`` defaults to the one named in the model's metadata.
+    ``model``: of mapping ``plan`` (open loop), or ``nefotc`` together with ``periods``,
+    a ``nefumop`` model (or path) trained on the same dataset (closed loop; see the
+    module doc). ``robot`` defaults to the one named in the model's metadata, with the
+    dataset's ``h_max`` where the metadata records it.
     """
 
-    def __init__(self, model, robot=None, *, tol: float = 1e-6, goal_tol: float = 1e-2):
+    def __init__(self, model, robot=None, *, periods=None, tol: float = 1e-6, goal_tol: float = 1e-2):
         from jtraj import anfis, robots
 
-        if not isinstance(model, (anfis.Model, anfis.Ensemble)):
-            model = anfis.load(model, mapping="plan")
+        model = _load(model)
         meta = model.metadata
-        if meta.get("mapping") != "plan":
-            raise ValueError(f"the planner needs a model of mapping 'plan', got {meta.get('mapping')!r}")
-        self.model = model
-        self.robot = robot if robot is not None else robots.get(meta["robot"])
+        if meta.get("mapping") not in ("plan", "nefotc"):
+            raise ValueError(f"the planner needs a model of mapping 'plan', or 'nefotc' with periods=, got "
+                             f"{meta.get('mapping')!r}")
+        if meta["mapping"] == "nefotc":
+            if periods is None:
+                raise ValueError("a nefotc model plans in closed loop: give periods= (jtraj query --periods) a "
+                                 "nefumop model of the same dataset (its output h sets the sampling periods)")
+            periods = _load(periods)
+            pm = periods.metadata
+            if pm.get("mapping") != "nefumop" or pm.get("outputs", [None])[-1] != "h":
+                raise ValueError(f"periods must be a nefumop model (outputs ending with h), got mapping "
+                                 f"{pm.get('mapping')!r}")
+            if (pm.get("robot"), pm.get("N")) != (meta.get("robot"), meta.get("N")):
+                raise ValueError(f"periods was trained for robot {pm.get('robot')!r}, N = {pm.get('N')}; the "
+                                 f"model for robot {meta.get('robot')!r}, N = {meta.get('N')}")
+        elif periods is not None:
+            raise ValueError("periods= is for a nefotc model; a plan model predicts its own periods")
+        self.model, self.periods = model, periods
+        if robot is None:
+            robot = robots.get(meta["robot"], **({"h_max": meta["h_max"]} if meta.get("h_max") else {}))
+        self.robot = robot
         self.n = self.robot.n
         self.N = int(meta["N"])
-        if model.n_inputs != 2 * self.n or model.n_outputs != self.N * (self.n + 1):
-            raise ValueError(f"model shapes ({model.n_inputs} inputs, {model.n_outputs} outputs) do not match "
-                             f"robot {meta['robot']} (n = {self.n}) with N = {self.N}")
+        if meta["mapping"] == "plan":
+            if model.n_inputs != 2 * self.n or model.n_outputs != self.N * (self.n + 1):
+                raise ValueError(f"model shapes ({model.n_inputs} inputs, {model.n_outputs} outputs) do not "
+                                 f"match robot {meta['robot']} (n = {self.n}) with N = {self.N}")
+        else:
+            z = jnp.zeros(self.n)
+            for m in (model, periods):
+                d = model_inputs(m.metadata, self.robot, z, z, z, 0, self.N).shape[0]
+                if d != m.n_inputs:
+                    raise ValueError(f"the {m.metadata['mapping']} model has {m.n_inputs} inputs, its metadata "
+                                     f"describes {d}")
         self.tol, self.goal_tol = tol, goal_tol
-        self._plan = jax.jit(self._build())
+        self._plan = jax.jit(self._build() if periods is None else self._build_closed_loop())
+
+    def _report(self, q, qd, v, h, h_raw, qg):
+        rb = self.robot
+        lim = rb.limits
+        tau = jax.vmap(rb.inverse_dynamics)(q[:-1], qd[:-1], v)
+        hv = jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h_raw, h_raw - lim.h_max) / lim.h_max, 0.0))
+        qv = jnp.zeros(())
+        if lim.q_min is not None:
+            qv = jnp.max(jnp.maximum(jnp.maximum(lim.q_min - q, q - lim.q_max) / (lim.q_max - lim.q_min), 0.0))
+        return Plan(q, qd, v, tau, h, jnp.sum(h), _excess(tau, lim.tau_max), _excess(qd, lim.qd_max), qv, hv,
+                    jnp.linalg.norm(q[-1] - qg), jnp.linalg.norm(qd[-1]))
 
     def _build(self):
         f = self.model.predict_fn()
-        rb, N, n = self.robot, self.N, self.n
-        lim = rb.limits
+        N, n = self.N, self.n
+        lim = self.robot.limits
 
         def plan(qs, qg):
             y = f(jnp.concatenate([qs, qg])[None, :])[0]
@@ -87,13 +160,27 @@ class Planner:
             qd = jnp.concatenate([jnp.zeros((1, n), v.dtype), jnp.cumsum(dqd, axis=0)])
             dq = h[:, None] * qd[:-1] + 0.5 * (h**2)[:, None] * v
             q = jnp.concatenate([qs[None], qs + jnp.cumsum(dq, axis=0)])
-            tau = jax.vmap(rb.inverse_dynamics)(q[:-1], qd[:-1], v)
-            hv = jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h_raw, h_raw - lim.h_max) / lim.h_max, 0.0))
-            qv = jnp.zeros(())
-            if lim.q_min is not None:
-                qv = jnp.max(jnp.maximum(jnp.maximum(lim.q_min - q, q - lim.q_max) / (lim.q_max - lim.q_min), 0.0))
-            return Plan(q, qd, v, tau, h, jnp.sum(h), _excess(tau, lim.tau_max), _excess(qd, lim.qd_max), qv, hv,
-                        jnp.linalg.norm(q[-1] - qg), jnp.linalg.norm(qd[-1]))
+            return self._report(q, qd, v, h, h_raw, qg)
+        return plan
+
+    def _build_closed_loop(self):
+        ctl, per = self.model.predict_fn(), self.periods.predict_fn()
+        mc, mp = self.model.metadata, self.periods.metadata
+        rb, N = self.robot, self.N
+        lim = rb.limits
+        tau_max = jnp.inf if lim.tau_max is None else lim.tau_max
+
+        def plan(qs, qg):
+            def step(state, k):
+                q, qd = state
+                tau = jnp.clip(ctl(model_inputs(mc, rb, q, qd, qg, k, N)[None])[0], -tau_max, tau_max)
+                h_raw = per(model_inputs(mp, rb, q, qd, qg, k, N)[None])[0, -1]
+                h = jnp.clip(h_raw, lim.h_min, lim.h_max)
+                a = rb.forward_dynamics(q, qd, tau)
+                return (q + h * qd + 0.5 * h * h * a, qd + h * a), (q, qd, a, h, h_raw)
+
+            (qN, qdN), (q, qd, v, h, h_raw) = jax.lax.scan(step, (qs, jnp.zeros_like(qs)), jnp.arange(N))
+            return self._report(jnp.concatenate([q, qN[None]]), jnp.concatenate([qd, qdN[None]]), v, h, h_raw, qg)
         return plan
 
     def plan(self, q_start, q_goal) -> Plan:

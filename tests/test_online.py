@@ -225,8 +225,61 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
     np.testing.assert_allclose(np.asarray(Planner(twin).plan(qs, qg).q), np.asarray(p.q), rtol=1e-12, atol=1e-12)
     path = tmp_path / "otc.anfis"
     trajectory.train_mapping(data, "nefotc", n_rules=3, epochs=1)[0].save(path)
-    with pytest.raises(ValueError, match="mapping"):
-        Planner(str(path))
+    with pytest.raises(ValueError, match="periods="):
+        Planner(str(path))  # a nefotc model needs the periods of a nefumop model
+    with pytest.raises(ValueError, match="periods= is for a nefotc model"):
+        Planner(model, periods=str(path))
+    with pytest.raises(ValueError, match="periods must be a nefumop model"):
+        Planner(str(path), periods=model)
+    nefik = trajectory.train_mapping(data, "nefik", n_rules=2, epochs=1)[0]
+    with pytest.raises(ValueError, match="mapping 'plan', or 'nefotc'"):
+        Planner(nefik)
+
+
+def test_closed_loop_planner_rolls_the_controller_out_through_the_dynamics(data):
+    import jax.numpy as jnp
+
+    from jtraj import robots
+    from jtraj.online import Planner, model_inputs
+
+    limits = {"h_max": 0.2}  # as a jtraj dataset records its limits: the planner's robot takes h_max
+    d = dict(data, metadata=dict(data["metadata"], limits=limits))
+    ctl = trajectory.train_mapping(d, "nefotc", n_rules=3, epochs=2)[0]
+    per = trajectory.train_mapping(d, "nefumop", n_rules=3, epochs=2)[0]
+    assert ctl.metadata["h_max"] == per.metadata["h_max"] == 0.2
+    # the planner's inputs are the training view's rows (same goal offset and phase)
+    robot = robots.get("serial3")
+    for m, mapping in ((ctl, "nefotc"), (per, "nefumop")):
+        X, _, traj, _, _ = trajectory.view(d, mapping, goal=m.metadata["goal_inputs"], phase=True)
+        i, k = int(traj[13]), 13 % 10
+        mine = model_inputs(m.metadata, robot, jnp.asarray(d["q"][i, k]), jnp.asarray(d["qd"][i, k]),
+                            jnp.asarray(d["q_goal"][i]), k, 10)
+        np.testing.assert_allclose(np.asarray(mine), X[13], rtol=1e-12, atol=1e-12)
+    planner = Planner(ctl, periods=per)
+    assert float(planner.robot.limits.h_max) == 0.2
+    qs, qg = d["q_start"][2], d["q_goal"][2]
+    p = planner.plan(qs, qg)
+    assert p.q.shape == (11, 3) and p.v.shape == (10, 3) and p.h.shape == (10,)
+    np.testing.assert_allclose(p.q[0], qs)
+    np.testing.assert_array_equal(p.qd[0], 0.0)
+    # the decoupled recursion holds, torques are the clipped controller outputs and the
+    # accelerations their forward dynamics
+    q, qd, v, h, tau = (np.asarray(a) for a in (p.q, p.qd, p.v, p.h, p.tau))
+    np.testing.assert_allclose(q[1:], q[:-1] + h[:, None] * qd[:-1] + 0.5 * h[:, None] ** 2 * v, atol=1e-12)
+    np.testing.assert_allclose(qd[1:], qd[:-1] + h[:, None] * v, atol=1e-12)
+    tau_max = np.asarray(robot.limits.tau_max)
+    for k in (0, 5):
+        u = model_inputs(ctl.metadata, robot, jnp.asarray(q[k]), jnp.asarray(qd[k]), jnp.asarray(qg), k, 10)
+        np.testing.assert_allclose(tau[k], np.clip(np.asarray(ctl.predict(u)), -tau_max, tau_max), atol=1e-8)
+        h_k = np.asarray(per.predict(model_inputs(per.metadata, robot, jnp.asarray(q[k]), jnp.asarray(qd[k]),
+                                                  jnp.asarray(qg), k, 10)))[-1]
+        assert h[k] == pytest.approx(np.clip(h_k, robot.limits.h_min, 0.2), abs=1e-12)
+        np.testing.assert_allclose(v[k], np.asarray(robot.forward_dynamics(*map(jnp.asarray, (q[k], qd[k], tau[k])))),
+                                   atol=1e-9)
+    assert float(p.tau_violation) <= 1e-9  # clipped into the torque box
+    assert float(p.goal_error) == pytest.approx(np.linalg.norm(q[-1] - qg))
+    out = planner.query(qs, qg)
+    assert isinstance(out["feasible"], bool) and out["goal_error"] == pytest.approx(float(p.goal_error))
 
 
 def test_goal_inputs_append_offset_to_goal(data):

@@ -408,6 +408,9 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
               goal_inputs=goal, phase_input=bool(phase), augment="none" if why_not else "mirror")
     if meta.get("weights_text"):
         md["weights"] = meta["weights_text"]  # the cost the trajectories are optimal for (Planner refine)
+    h_max = (meta.get("limits") or {}).get("h_max")
+    if h_max is not None:
+        md["h_max"] = float(h_max)  # the dataset's sampling-period bound (the Planner's robot)
     t0 = time.perf_counter()
     options.setdefault("clip_outputs", True)  # targets bounded by the robot's limits (see Model)
     options.setdefault("ridge", 1e-6)  # as jtraj train: 1e-10 overfits sparse trajectory data

@@ -1,5 +1,10 @@
-"""Plan a trajectory for a start/goal pair with a trained planner model (mapping
-``plan``), report its feasibility, and optionally refine it with the exact solver."""
+"""Plan a trajectory for a start/goal pair with trained models, report its feasibility,
+and optionally refine it with the exact solver.
+
+Open loop: --model of mapping plan. Closed loop (the thesis' NeFOTC with NeFuMOP):
+--model of mapping nefotc (the torque controller) and --periods of mapping nefumop
+(its output h sets the sampling periods), rolled out through the robot's dynamics;
+much closer to the goal on serial3 (median 0.026 rad against 0.20 rad, README)."""
 
 HELP = "plan a trajectory with a trained ANFIS planner (optionally refine it exactly)"
 
@@ -13,7 +18,10 @@ PIN_ONE_CPU = True
 
 
 def configure(parser):
-    parser.add_argument("--model", required=True, help="model file from `jtraj train --mapping plan`")
+    parser.add_argument("--model", required=True,
+                        help="model file from `jtraj train --mapping plan`, or `--mapping nefotc` with --periods")
+    parser.add_argument("--periods", help="with a nefotc --model: a model file from `jtraj train --mapping nefumop` "
+                                          "on the same dataset (closed-loop planning)")
     parser.add_argument("--start", required=True, type=_vec, help="start joint positions, e.g. '0,0.52,0.52'")
     parser.add_argument("--goal", required=True, type=_vec, help="goal joint positions")
     parser.add_argument("--refine", action="store_true", help="warm-start the exact solver from the plan")
@@ -29,7 +37,7 @@ def run(args) -> int:
 
     from jtraj.online import Planner
 
-    planner = Planner(args.model)
+    planner = Planner(args.model, periods=getattr(args, "periods", None))
     if len(args.start) != planner.n or len(args.goal) != planner.n:
         raise ValueError(f"--start and --goal need {planner.n} values each")
     out = planner.query(args.start, args.goal, refine=args.refine, warm=getattr(args, "warm", "primal"))
