@@ -1,7 +1,8 @@
 """Exact refinement warm-started by the ANFIS planner vs the default cycloidal start.
 
     .venv/bin/python benchmarks/bench_refine.py --data DATASET [--model PLAN.anfis]
-        [--rules R] [--order 0|1] [--pairs 100] [--fresh-seed S] [--knn] [--primal] [--json out.json]
+        [--rules R] [--order 0|1] [--pairs 100] [--fresh-seed S] [--knn] [--primal] [--closed]
+        [--json out.json]
 
 Figures in the README (ANFIS section): ``--order 0 --pairs 100 --knn --primal`` on
 ``jtraj dataset --robot serial3 --pairs 300 --seed 2``.
@@ -18,7 +19,9 @@ For every pair ``jtraj.solve`` runs on the dataset's problem (robot, N, weights,
 default ``SolverOptions``) twice, in alternating order: warm-started from the planner's
 ``(v, h)`` (``init=``) and from the default cycloidal guess; with ``--knn`` also from
 the ``(v, h)`` of the training trajectory whose (q_start, q_goal) is nearest (a
-lookup baseline for the warm start); with ``--primal`` each warm start also once with
+lookup baseline for the warm start); with ``--closed`` also from the closed-loop
+planner (a nefotc controller and a nefumop period model, ``jtraj train`` defaults,
+trained here on the same split: ``closed``); with ``--primal`` each warm start also once with
 its primal point only (``*_primal``: multipliers zero and ``penalty_init`` as in a cold
 start, whereas ``jtraj.solve(init=...)`` also estimates multipliers and starts the
 penalty at ``penalty_max / 100``, which assumes the guess is near an optimum).
@@ -74,6 +77,8 @@ def main(argv=None):
     ap.add_argument("--primal", action="store_true",
                     help="also warm-start with the primal point only (multipliers and penalty as for a cold "
                          "start: jtraj.solve(..., warm='primal'))")
+    ap.add_argument("--closed", action="store_true",
+                    help="also warm-start from the closed-loop planner (nefotc + nefumop models trained here)")
     ap.add_argument("--json", help="write per-pair results and the summary")
     args = ap.parse_args(argv)
 
@@ -104,6 +109,15 @@ def main(argv=None):
               f" test RMSE {rep['test_rmse']:.4g} (linear {rep['linear_test_rmse']:.4g}, "
               f"5-NN {rep['knn_test_rmse']:.4g})")
     planner = Planner(model, robot)
+    closed = None
+    if args.closed:
+        t0 = time.perf_counter()
+        ctl, rc, _ = trajectory.train_mapping(data, "nefotc")
+        per, rp, _ = trajectory.train_mapping(data, "nefumop")
+        closed = Planner(ctl, robot, periods=per)
+        print(f"closed-loop planner trained here: nefotc {rc['n_rules']} rules (ratio to linear "
+              f"{rc['ratio_to_linear']:.3f}), nefumop {rp['n_rules']} rules ({rp['ratio_to_linear']:.3f}), "
+              f"{time.perf_counter() - t0:.1f} s")
 
     qs_all, qg_all = np.asarray(data["q_start"], float), np.asarray(data["q_goal"], float)
     test_ids = np.unique(traj[te])[: args.pairs]
@@ -130,7 +144,7 @@ def main(argv=None):
         y = Ytr_traj[j]
         return y[: N * n].reshape(N, n), y[N * n:]
 
-    labels = ["planner", "cycloidal"] + (["knn"] if args.knn else [])
+    labels = ["planner", "cycloidal"] + (["knn"] if args.knn else []) + (["closed"] if args.closed else [])
     if args.primal:
         labels += [lab + "_primal" for lab in labels if lab != "cycloidal"]
 
@@ -139,7 +153,13 @@ def main(argv=None):
         out = {"planner": (np.asarray(p.v), np.asarray(p.h)), "cycloidal": None}
         if args.knn:
             out["knn"] = knn_init(qs, qg)
+        if closed is not None:
+            pc = closed.plan(qs, qg)
+            out["closed"] = (np.asarray(pc.v), np.asarray(pc.h))
+            out["closed_goal_error"] = float(pc.goal_error)
         for lab in list(out):
+            if lab.endswith("_goal_error"):
+                continue
             if out[lab] is not None:
                 out[lab + "_primal"] = out[lab]
         return out, p
@@ -163,6 +183,8 @@ def main(argv=None):
         order = labels if i % 2 == 0 else labels[::-1]
         row = dict(source=src, q_start=qs.tolist(), q_goal=qg.tolist(), plan_feasible=planner.feasible(p),
                    plan_goal_error=float(p.goal_error), plan_T=float(p.T))
+        if closed is not None:
+            row["closed_goal_error"] = ini["closed_goal_error"]
         for lab in order:
             row[lab] = _solve(prob, ini[lab], options, lab.endswith("_primal"))
         rows.append(row)
@@ -178,6 +200,10 @@ def main(argv=None):
     print(f"\nplanner alone: feasible (limits and goal within {planner.goal_tol} rad) "
           f"{summary['plan_feasible']}/{P}; median goal error {summary['plan_goal_error_median']:.3g} rad; "
           f"plan call median {summary['plan_seconds_median'] * 1e3:.2f} ms (incl. Python overhead)")
+    if closed is not None:
+        ge = np.array([r["closed_goal_error"] for r in rows])
+        summary["closed_goal_error_median"] = float(np.median(ge))
+        print(f"closed-loop planner alone: goal error median {np.median(ge):.3g} rad, max {ge.max():.3g}")
     for lab in labels:
         rs = [r[lab] for r in rows]
         s = dict(converged=int(sum(r["converged"] for r in rs)), feasible=int(sum(r["feasible"] for r in rs)),

@@ -94,7 +94,7 @@ class Planner:
     """
 
     def __init__(self, model, robot=None, *, periods=None, tol: float = 1e-6, goal_tol: float = 1e-2):
-        from jtraj import anfis, robots
+        from jtraj import robots
 
         model = _load(model)
         meta = model.metadata

@@ -260,8 +260,6 @@ class Problem(eqx.Module):
 
         Raises ``ValueError`` when a point is unreachable.
         """
-        from .robots.ik import ik
-
         q_start = ik_or_raise(robot, p_start, q_init, "p_start", ik_method)
         q_goal = ik_or_raise(robot, p_goal, q_start, "p_goal", ik_method)
         return Problem(robot, q_start, q_goal, **kwargs)

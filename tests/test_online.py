@@ -128,7 +128,7 @@ def test_mirror_augmentation_adds_the_reflected_trajectories_where_the_robot_is_
     _, aug, _ = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1)  # "auto"
     assert plain["augment"] == "none" and aug["augment"] == "mirror" and "augment_note" not in aug
     (X0, Y0, (V0, W0)), (X1, Y1, (V1, W1)) = seen
-    n, nv = len(X0), len(V0)
+    n = len(X0)
     # fit and validation rows: the originals, then their mirror images (inputs
     # q_goal - q and qd negated, the phase kept; torques negated)
     flip = np.r_[-np.ones(X0.shape[1] - 1), 1.0]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jtraj.robots as robots
-from jtraj.robots import Actuator, Robot, serial_planar
+from jtraj.robots import Robot, serial_planar
 
 from helpers import (catalogue, pin_mass, pin_rnea, pin_tip, pinocchio_planar, sample_state,
                      two_link_closed_form)

@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .clustering import radius_for_rules, subclust
-from .model import KINDS, Model, _logit_clipped, features, forward, log_firing, n_coef, rule_outputs
+from .model import KINDS, Model, _logit_clipped, features, forward, log_firing, rule_outputs
 
 
 @dataclass
@@ -227,7 +227,7 @@ def train(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25,
         raise ValueError(f"fewer training samples ({Xt.shape[0]}) than rules (n_rules = {int(n_rules)})")
 
     # --- clustering (genfis2: joint input-output space)
-    d, m = Xt.shape[1], Yt.shape[1]
+    d = Xt.shape[1]
     XY = np.concatenate([Xt, Yt], axis=1)
     if n_rules is None:
         cl = subclust(XY, radius, squash=squash, accept=accept, reject=reject)
