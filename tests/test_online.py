@@ -236,7 +236,7 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
         Planner(nefik)
 
 
-def test_closed_loop_planner_rolls_the_controller_out_through_the_dynamics(data):
+def test_closed_loop_planner_rolls_the_controller_out_through_the_dynamics(tmp_path, data):
     import jax.numpy as jnp
 
     from jtraj import robots
@@ -280,6 +280,20 @@ def test_closed_loop_planner_rolls_the_controller_out_through_the_dynamics(data)
     assert float(p.goal_error) == pytest.approx(np.linalg.norm(q[-1] - qg))
     out = planner.query(qs, qg)
     assert isinstance(out["feasible"], bool) and out["goal_error"] == pytest.approx(float(p.goal_error))
+    # the command: jtraj query --model otc.anfis --periods mop.anfis
+    from jtraj.commands import query as cmd
+
+    ctl.save(tmp_path / "otc.anfis")
+    per.save(tmp_path / "mop.anfis")
+    args = type("A", (), dict(model=str(tmp_path / "otc.anfis"), periods=str(tmp_path / "mop.anfis"),
+                              start=list(qs), goal=list(qg), refine=False, warm="primal",
+                              json=str(tmp_path / "q.json")))
+    assert cmd.run(args) == 0
+    with open(args.json) as f:
+        assert json.load(f)["goal_error"] == pytest.approx(float(p.goal_error), rel=1e-9)
+    args.periods = None
+    with pytest.raises(ValueError, match="--periods"):
+        cmd.run(args)
 
 
 def test_goal_inputs_append_offset_to_goal(data):
