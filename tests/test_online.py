@@ -231,6 +231,9 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
         Planner(model, periods=str(path))
     with pytest.raises(ValueError, match="periods must be a nefumop model"):
         Planner(str(path), periods=model)
+    thesis = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, goal=False, phase=False)[0]
+    with pytest.raises(ValueError, match="no goal inputs"):
+        Planner(thesis, periods=model)
     nefik = trajectory.train_mapping(data, "nefik", n_rules=2, epochs=1)[0]
     with pytest.raises(ValueError, match="mapping 'plan', or 'nefotc'"):
         Planner(nefik)
