@@ -137,6 +137,13 @@ def test_mirror_augmentation_adds_the_reflected_trajectories_where_the_robot_is_
     np.testing.assert_array_equal(Y1, np.r_[Y0, -Y0])
     np.testing.assert_array_equal(V1, np.r_[V0, V0 * flip])
     np.testing.assert_array_equal(W1, np.r_[W0, -W0])
+    # the rule cap of radius "auto" counts the mirror images as trajectories of their own
+    counted = []
+    monkeypatch.setattr(trajectory, "_auto_radii", lambda X, Y, traj, o, sel: counted.append(
+        (len(X), np.unique(traj).size)) or [1.4])
+    for a in ("none", "mirror"):
+        trajectory.train_mapping(data, "nefotc", epochs=1, augment=a)
+    assert counted[1] == (2 * counted[0][0], 2 * counted[0][1])
     # the test split and the baselines are the same
     for k in ("n_samples_test", "n_samples_train", "linear_test_rmse", "knn_test_rmse"):
         assert aug[k] == plain[k]
