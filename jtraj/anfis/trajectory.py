@@ -380,18 +380,18 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     tr, te = split(traj, test_fraction)
     if not te.any():
         raise ValueError("need at least two converged trajectories to hold one out for testing")
+    tr_traj = traj[tr]
+    n_tr = np.unique(tr_traj).size
     if augment == "none":
         why_not = "not asked for"
     elif augment == "auto" and mapping not in MIRROR_AUTO_MAPPINGS:
         why_not = f"'auto' mirrors the mappings {MIRROR_AUTO_MAPPINGS} only"
+    elif augment == "auto" and n_tr >= MIRROR_AUTO_BELOW:
+        why_not = f"{n_tr} training trajectories ('auto' mirrors below {MIRROR_AUTO_BELOW})"
     else:
         why_not = mirror_symmetry(data)
     if augment == "mirror" and why_not:
         raise ValueError(f"augment='mirror': {why_not}")
-    tr_traj = traj[tr]
-    n_tr = np.unique(tr_traj).size
-    if augment == "auto" and not why_not and n_tr >= MIRROR_AUTO_BELOW:
-        why_not = f"{n_tr} training trajectories ('auto' mirrors below {MIRROR_AUTO_BELOW})"
     fit_rows, val_rows = split(tr_traj, 0.1)
     if not (val_rows.any() and fit_rows.any()):
         fit_rows, val_rows = np.ones_like(fit_rows), np.zeros_like(val_rows)
