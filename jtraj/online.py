@@ -77,8 +77,9 @@ def model_inputs(meta: dict, robot, q, qd, q_goal, k, N: int):
     else:
         x, xd = jax.jvp(robot.forward_kinematics, (q,), (qd,))
         xg = robot.forward_kinematics(q_goal)
-    goal = meta.get("goal_inputs") or False
-    parts = {"relative": [xg - x, xd], "append": [x, xd, xg - x]}.get(goal, [x, xd])
+    from jtraj.anfis.trajectory import goal_blocks
+
+    parts = goal_blocks(x, xd, xg, meta.get("goal_inputs"))
     if meta.get("phase_input"):
         parts.append(jnp.full((1,), k / N, x.dtype))
     return jnp.concatenate(parts)

@@ -104,17 +104,27 @@ def _goal_view(data, mapping, goal):
         raise ValueError(f"goal inputs are defined for the mappings nefotc and nefumop, not {mapping!r}")
     qg = np.asarray(data["q_goal"], float)[traj]
     if mapping == "nefotc":
-        d = qg.shape[1]
-        off, off_names = qg - X[:, :d], [f"dq_goal{j + 1}" for j in range(d)]
+        xg, d = qg, qg.shape[1]
+        off_names = [f"dq_goal{j + 1}" for j in range(d)]
     else:
         from jtraj.dataset import views
 
-        pg, _ = views.task_state(views.robot_of(data), qg, np.zeros_like(qg))
-        d = pg.shape[1]
-        off, off_names = pg - X[:, :d], ["d" + c + "_goal" for c in names_in[:d]]
-    if goal == "append":
-        return np.c_[X, off], Y, traj, names_in + off_names, names_out
-    return np.c_[off, X[:, d:]], Y, traj, off_names + names_in[d:], names_out
+        xg, _ = views.task_state(views.robot_of(data), qg, np.zeros_like(qg))
+        d = xg.shape[1]
+        off_names = ["d" + c + "_goal" for c in names_in[:d]]
+    names = goal_blocks(names_in[:d], names_in[d:], off_names, goal, names=True)
+    X = np.concatenate(goal_blocks(X[:, :d], X[:, d:], xg, goal), axis=1)
+    return X, Y, traj, [n for block in names for n in block], names_out
+
+
+def goal_blocks(x, xd, xg, goal, *, names: bool = False) -> list:
+    """The input blocks of nefotc / nefumop before the phase, for the position ``x``
+    (``q`` or the task point), its velocity ``xd`` and the goal ``xg`` (with ``names``,
+    ``xg`` is the offset's names): ``relative`` ``[xg - x, xd]``, ``append``
+    ``[x, xd, xg - x]``, none ``[x, xd]``. Shared by :func:`view` and the online
+    planner (:func:`jtraj.online.model_inputs`), so that both build the same inputs."""
+    off = xg if names else xg - x
+    return {"relative": [off, xd], "append": [x, xd, off]}.get(goal or False, [x, xd])
 
 
 def _view(data, mapping):
@@ -216,11 +226,6 @@ def mirrored(data):
 #: 2 and 7) 0.306 / 0.317 and 0.323 / 0.328; 899 (1000 pairs) 0.288 / 0.289, for twice
 #: the training time (194 s / 98 s)
 MIRROR_AUTO_BELOW = 500
-#: (The rule cap of radius "auto" counts the mirror images as trajectories, which allows
-#: more rules than counting the dataset's trajectories only: on the 18 slices mean 0.318
-#: against 0.329, max 0.428 against 0.451; on 96-pair task-space sets (seeds 5 and 2)
-#: 0.474 / 0.436 against 0.501 / 0.439; at up to 2.5x the training time, 47.6 s against
-#: 19.2 s on the seed-5 set.)
 #: the mappings augment="auto" mirrors. On the 300-pair seed-2 set the others did not
 #: gain: plan (8 rules, order 0) 1.12x the linear baseline with the mirror images against
 #: 1.01x without, nefik 0.913x against 0.909x
@@ -258,8 +263,9 @@ def mirror_symmetry(data, max_samples: int = 4096) -> str | None:
         return "the robot has a workspace box (its mirror image is not checked)"
     if getattr(robot, "path_constraints", None) is not None:
         return "the robot has path constraints (their mirror image is not checked)"
-    weights = dict(kv.strip().split("=", 1) for kv in str(md.get("weights_text") or "").split(",") if "=" in kv)
-    if weights.get("singularity", "0").strip() not in ("0", "0.0"):
+    from jtraj import Weights
+
+    if float(Weights.parse(md.get("weights_text") or "").singularity) != 0:
         return "the cost has a singularity term (its mirror image is not checked)"
     n = robot.n
     lo = np.full(n, -np.inf) if lim.q_min is None else np.asarray(lim.q_min, float)
@@ -399,7 +405,10 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     Xfit, Yfit, fit_traj, Xval, Yval = Xtr[fit_rows], Ytr[fit_rows], tr_traj[fit_rows], Xtr[val_rows], Ytr[val_rows]
     if not why_not:
         # the mirror images' rows are appended, and count as trajectories of their own for
-        # the rule cap (see MIRROR_AUTO_BELOW)
+        # the rule cap: more rules than counting the dataset's trajectories only (18 slices
+        # of 96 pairs: mean 0.318 against 0.329, max 0.428 against 0.451; 96-pair
+        # task-space sets of seeds 5 and 2: 0.474 / 0.436 against 0.501 / 0.439), at up to
+        # 2.5x the training time (47.6 s against 19.2 s on the seed-5 set)
         Xm, Ym = (a[tr] for a in view(mirrored(data), mapping, goal=goal, phase=phase)[:2])
         Xfit, Yfit, Xval, Yval = (np.r_[a, b] for a, b in ((Xfit, Xm[fit_rows]), (Yfit, Ym[fit_rows]),
                                                            (Xval, Xm[val_rows]), (Yval, Ym[val_rows])))
