@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import re
 import sys
 
 COMMANDS = {
@@ -77,9 +78,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: a comma-separated list of numbers whose first entry is negative ("-10,30,30")
+_NEGATIVE_LIST = re.compile(r"-(\d|\.\d)[^,]*(,[^,]*)+")
+
+
+def attach_negative_lists(argv: list[str]) -> list[str]:
+    """``--start-q -10,30,30`` -> ``--start-q=-10,30,30``: argparse takes a token that
+    starts with '-' for an option unless it is a single number, so a vector option whose
+    first entry is negative would fail with "expected one argument". A comma list never
+    names an option, so it is attached to the option before it."""
+    out: list[str] = []
+    for tok in argv:
+        prev = out[-1] if out else ""
+        if _NEGATIVE_LIST.fullmatch(tok) and prev.startswith("--") and "=" not in prev:
+            out[-1] = f"{prev}={tok}"
+        else:
+            out.append(tok)
+    return out
+
+
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(attach_negative_lists(sys.argv[1:] if argv is None else list(argv)))
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2

@@ -97,6 +97,16 @@ def test_solve_bad_input_exits_2(argv, needle, capsys):
     assert err.startswith("jtraj solve: error:") and needle in err, err
 
 
+def test_negative_vectors_need_no_equals_sign(capsys):
+    assert cli.attach_negative_lists(["solve", "--start-q", "-10,30,30", "--goal-q", "-.5,1e-3,-2", "--T-max", "-1",
+                                      "--via=-1,2", "--deg"]) == [
+        "solve", "--start-q=-10,30,30", "--goal-q=-.5,1e-3,-2", "--T-max", "-1", "--via=-1,2", "--deg"]
+    # parsed all the way to the input checks: the start is accepted, the goal's NaN named
+    rc = cli.main(["solve", "--start-q", "-10,30,30", "--goal-q", "-10,nan,0", "--deg"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--goal-q must be finite numbers" in err, err
+
+
 def test_gradcheck_command(monkeypatch, tmp_path, capsys):
     """Command plumbing with a stubbed checker (the real check is tests/test_gradcheck.py)."""
     from jtraj import gradcheck as gc

@@ -6,7 +6,7 @@ solved by inverse kinematics). Example (the README demo):
 
     jtraj solve --robot serial3 --start-q 0,30,30 --goal-xy 1.35,1.30 --deg --plot serial3.png
 
-Negative values must be attached with '=': --start-q=-10,30,30.
+Negative entries need no quoting: --start-q -10,30,30 works.
 Exit status: 0 when the solution converged (strictly verified), 1 when the solver
 stopped without convergence (the summary, JSON and plot are still written), 2 on bad
 input. Solve time is reported without compilation: the problem is solved twice and the
