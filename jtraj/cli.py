@@ -115,6 +115,9 @@ def main(argv=None) -> int:
     except ValueError as exc:  # bad input: one readable line, no traceback
         print(f"jtraj {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a file the commands' own checks did not catch (removed meanwhile, disk full)
+        print(f"jtraj {args.command}: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

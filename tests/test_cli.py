@@ -107,6 +107,28 @@ def test_negative_vectors_need_no_equals_sign(capsys):
     assert rc == 2 and "--goal-q must be finite numbers" in err, err
 
 
+@pytest.mark.parametrize("argv, needle", [
+    (["solve", "--start-q", START, "--goal-q", GOAL, "--deg", "--json", "{missing}/sol.json"], "--json"),
+    (["solve", "--start-q", START, "--goal-q", GOAL, "--deg", "--plot", "{tmp}"], "--plot"),
+    (["gradcheck", "--json", "{missing}/g.json"], "--json"),
+    (["train", "--data", "{tmp}", "--out", "{missing}/m.anfis"], "--out"),
+    (["query", "--model", "{missing}/m.anfis", "--start", "0,0,0", "--goal", "1,1,1"], "--model"),
+    (["dataset", "plot", "{tmp}", "--out", "{missing}/p.png"], "--out"),
+])
+def test_paths_are_checked_before_any_compute(argv, needle, tmp_path, capsys, monkeypatch):
+    # an unusable output path is refused up front, not after the solve it would lose
+    import jtraj
+
+    def never(*a, **k):
+        raise AssertionError("computed before checking the paths")
+
+    monkeypatch.setattr(jtraj, "solve", never)
+    argv = [a.format(tmp=tmp_path, missing=tmp_path / "no_such_folder") for a in argv]
+    rc = cli.main(argv)
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith(f"jtraj {argv[0]}: error: {needle}"), err
+
+
 def test_gradcheck_command(monkeypatch, tmp_path, capsys):
     """Command plumbing with a stubbed checker (the real check is tests/test_gradcheck.py)."""
     from jtraj import gradcheck as gc

@@ -105,7 +105,10 @@ def run(args) -> int:
     if action == "plot":
         from jtraj.dataset.plot import plot
 
+        from jtraj.commands import check_output_file
+
         out = args.out or (os.path.abspath(path).rstrip(os.sep) + "-overview.png")
+        check_output_file(out, "--out")
         plot(path, out)
         print(f"wrote {out}")
         return 0

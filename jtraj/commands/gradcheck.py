@@ -33,6 +33,9 @@ def run(args) -> int:
     from jtraj import robots
     from jtraj.problem import Weights
 
+    from jtraj.commands import check_output_file
+
+    check_output_file(args.json, "--json")
     if args.robot != "all" and args.robot not in robots.names():
         raise ValueError(f"--robot must be 'all' or one of {robots.names()}, got {args.robot!r}")
     if args.N < 2:

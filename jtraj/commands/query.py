@@ -35,8 +35,12 @@ def configure(parser):
 def run(args) -> int:
     import json
 
+    from jtraj.commands import check_input_file, check_output_file
     from jtraj.online import Planner
 
+    check_input_file(args.model, "--model")
+    check_input_file(getattr(args, "periods", None), "--periods")
+    check_output_file(args.json, "--json")
     planner = Planner(args.model, periods=getattr(args, "periods", None))
     if len(args.start) != planner.n or len(args.goal) != planner.n:
         raise ValueError(f"--start and --goal need {planner.n} values each")

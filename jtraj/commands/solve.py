@@ -202,6 +202,10 @@ def run(args) -> int:
 
     import jtraj
 
+    from jtraj.commands import check_output_file
+
+    check_output_file(args.json, "--json")
+    check_output_file(args.plot, "--plot")
     robot, problem = build_problem(args)
     t0 = time.perf_counter()
     sol = jtraj.solve(problem, transcription=args.transcription)

@@ -83,8 +83,12 @@ def run(args) -> int:
 
     from jtraj.anfis import trajectory
 
+    from jtraj.commands import check_output_file
+
     if not os.path.exists(args.data):
         raise ValueError(f"--data {args.data!r} does not exist")
+    for option in ("out", "json", "plot"):
+        check_output_file(getattr(args, option), f"--{option}")
     model, report, hist = trajectory.train_mapping(
         args.data, args.mapping, n_rules=args.rules, radius=args.radius, epochs=args.epochs, kind=args.kind,
         order=args.order, ridge=args.ridge, progress=not args.no_progress,
