@@ -86,6 +86,22 @@ def _signals_with_limits(ax, draw, sol, guess, key, bound, ylabel, title):
     ax.legend(fontsize=7)
 
 
+def _efforts_between_samples(robot, solution, per_interval: int = 8):
+    """(t, tau) of the constant-acceleration motion inside every interval (NaN rows
+    between intervals, so that a line breaks where the acceleration jumps), or None for
+    a trajectory that is not one (see :mod:`jtraj.resample`)."""
+    from .resample import interval_times, resample
+
+    try:
+        s = resample(solution, robot, times=interval_times(_np(solution.h), per_interval))
+    except ValueError:
+        return None
+    t, tau = _np(s.t).reshape(-1, per_interval), _np(s.tau).reshape(-1, per_interval, s.tau.shape[-1])
+    gap = np.full(t.shape[:1] + (1,), np.nan)
+    return (np.concatenate([t, gap], axis=1).ravel(),
+            np.concatenate([tau, np.full(tau.shape[:1] + (1, tau.shape[2]), np.nan)], axis=1).reshape(-1, tau.shape[2]))
+
+
 def _energy(tau, h, tau_max):
     scale = 1.0 if tau_max is None else _np(tau_max)
     return np.concatenate([[0.0], np.cumsum(h * np.sum((tau / scale) ** 2, axis=1))])
@@ -168,8 +184,13 @@ def plot_solution(problem, solution, *, guess: bool = True, title: str | None = 
                          "joint velocities and limits")
 
     # tau(t)
+    dense = _efforts_between_samples(robot, solution)
     _signals_with_limits(axs[1, 0], _stairs, sol, g, "tau", lim.tau_max, "tau [N m]",
-                         "actuator efforts and limits (dashed)")
+                         "actuator efforts and limits (dashed)" if dense is None else
+                         "efforts at the samples (steps), between them (thin)")
+    if dense is not None:
+        for j in range(dense[1].shape[1]):
+            axs[1, 0].plot(dense[0], dense[1][:, j], color=f"C{j}", lw=0.7)
 
     # h_k
     ax = axs[1, 1]

@@ -303,6 +303,10 @@ class Transcription:
         if self.name in ("decoupled", "spline"):
             if lim.tau_max is not None:  # otherwise tau is a control, boxed exactly
                 ineq["tau"] = box(tau, lim.tau_max, at)
+        if self.name == "decoupled" and problem.efforts == "intervals" and lim.tau_max is not None:
+            # the effort at the interval's end: the state has moved on, the acceleration is still a
+            q1, qd1 = recursion_step(q, qd, a, h)
+            ineq["tau_end"] = box(robot.inverse_dynamics(q1, qd1, a), lim.tau_max, sd.is_interval)
         if self.name != "decoupled" and lim.qdd_max is not None:
             ineq["qdd"] = box(a, lim.qdd_max, at)
         if lim.qd_max is not None:

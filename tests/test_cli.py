@@ -40,7 +40,7 @@ def test_solve_writes_consistent_json_and_png(tmp_path, capsys):
 
     out_json, out_png = tmp_path / "sol.json", tmp_path / "sol.png"
     rc = cli.main(["solve", "--robot", "serial3", "--start-q", START, "--goal-q", GOAL, "--deg", "--N", "10",
-                   "--weights", "time=1,energy=0.5", "--json", str(out_json), "--plot", str(out_png)])
+                   "--weights", "time=1,energy=0.5", "--json", str(out_json), "--plot", str(out_png), "--rate", "200"])
     text = capsys.readouterr().out
     d = json.loads(out_json.read_text())
     assert rc == (0 if d["converged"] else 1)
@@ -70,6 +70,17 @@ def test_solve_writes_consistent_json_and_png(tmp_path, capsys):
     assert d["max_violation"]["overall"] >= d["max_violation"]["goal"]
     assert np.all(h >= 0.005 - 1e-12) and np.all(h <= 0.1 + 1e-12)
     assert math.isclose(d["cost"], sum(d["cost_terms"].values()), rel_tol=1e-9)
+    # the motion between the samples: the 200 Hz grid from 0 to T, its ends the solution's,
+    # and the effort ratio along it at least the samples' own
+    r = d["resampled"]
+    t = np.asarray(r["t"])
+    assert r["rate"] == 200 and t[0] == 0 and math.isclose(t[-1], d["T"], rel_tol=1e-12)
+    assert np.allclose(np.diff(t[:-1]), 1 / 200) and 0 < t[-1] - t[-2] <= 1 / 200 + 1e-12
+    np.testing.assert_allclose(np.asarray(r["q"])[[0, -1]], q[[0, -1]], atol=1e-12)
+    assert np.asarray(r["tau"]).shape == (t.size, 3) and d["efforts"] == "samples"
+    tau_max = np.asarray(__import__("jtraj").robots.get("serial3").limits.tau_max)
+    assert d["effort_between_samples"] >= np.max(np.abs(np.asarray(d["tau"])) / tau_max) - 1e-12
+    assert "efforts between the samples" in text
     png = out_png.read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
 
@@ -89,6 +100,11 @@ def test_solve_writes_consistent_json_and_png(tmp_path, capsys):
     (["--start-q", START, "--goal-q", "170,10,20", "--deg", "--N", "10"], "--N"),  # too far for N h_max
     (["--start-q", START, "--goal-xy", "1.3"], "--goal-xy"),
     (["--start-q", START, "--goal-xy", "5,5"], "--goal-xy"),  # unreachable (runs the IK)
+    (["--start-q", START, "--goal-q", GOAL, "--json", "x.json", "--rate", "0"], "--rate"),
+    (["--start-q", START, "--goal-q", GOAL, "--rate", "100"], "--rate"),  # needs --json
+    (["--start-q", START, "--goal-q", GOAL, "--json", "x.json", "--rate", "100", "--transcription", "spline"],
+     "--rate"),
+    (["--start-q", START, "--goal-q", GOAL, "--efforts", "intervals", "--transcription", "coupled"], "--efforts"),
 ])
 def test_solve_bad_input_exits_2(argv, needle, capsys):
     rc = cli.main(["solve", "--deg", *argv] if "--deg" not in argv else ["solve", *argv])

@@ -54,6 +54,7 @@ def test_single_call_and_round_trip(serial3):
     assert int(res.iterations) >= 1
     res_default = ik(serial3, p)  # default start
     assert int(res_default.status) == SUCCESS
+    assert np.linalg.norm(tip_serial3(np.asarray(res_default.q)) - p) < 1e-10
 
 
 @pytest.mark.parametrize("method", ["weighted", "dls"])
@@ -79,11 +80,16 @@ def test_joint_limit_null_space_motion():
 
 
 def test_other_robots():
+    # the platform robots' configuration is the platform position: IK must return the target
     p3 = robots.get("parallel3")
-    assert int(ik(p3, jnp.array([0.2, -0.1])).status) == SUCCESS
+    res = ik(p3, jnp.array([0.2, -0.1]))
+    assert int(res.status) == SUCCESS
+    np.testing.assert_allclose(np.asarray(res.q), [0.2, -0.1], atol=1e-10)
     assert int(ik(p3, jnp.array([1.5, 1.5])).status) == NOT_CONVERGED  # legs cannot close
     pkm = robots.get("pkm2")
-    assert int(ik(pkm, jnp.array([0.3, -1.0]), method="dls").status) == SUCCESS
+    res = ik(pkm, jnp.array([0.3, -1.0]), method="dls")
+    assert int(res.status) == SUCCESS
+    np.testing.assert_allclose(np.asarray(res.q), [0.3, -1.0], atol=1e-10)
     assert int(ik(pkm, jnp.array([1.5, -1.0]), method="dls").status) == NOT_CONVERGED
     w = robots.get("wmr")
     res = ik(w, jnp.array([10.0, 12.0]), method="dls")

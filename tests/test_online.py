@@ -2,12 +2,16 @@
 synthetic dataset built here (no dependency on the dataset builder or the solver)."""
 
 import json
+import os
+import sys
 
 import numpy as np
 import pytest
 
 from jtraj import anfis
 from jtraj.anfis import trajectory
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 
 
 @pytest.fixture(scope="module")
@@ -222,11 +226,27 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
     qs, qg = data["q_start"][0], data["q_goal"][0]
     p = planner.plan(qs, qg)
     assert p.q.shape == (11, 3) and p.tau.shape == (10, 3) and p.h.shape == (10,)
-    np.testing.assert_allclose(p.q[0], qs)
-    for f in ("tau_violation", "qd_violation", "goal_error", "h_violation"):
-        assert np.isfinite(float(getattr(p, f)))
+    # the plan is the model's output read as (v, h), run through the recursion, with the
+    # efforts of Pinocchio's RNEA and the report's measures written out here
+    N, n, lim = 10, 3, planner.robot.limits
+    y = np.asarray(model.predict(np.concatenate([qs, qg])))
+    np.testing.assert_allclose(p.v, y[:N * n].reshape(N, n), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(p.h, np.clip(y[N * n:], float(lim.h_min), float(lim.h_max)), rtol=1e-12)
+    V = pytest.importorskip("peers.verify")
+    q_sim, qd_sim = V.simulate(qs, np.asarray(p.v), np.asarray(p.h))
+    np.testing.assert_allclose(p.q, q_sim, atol=1e-12)
+    np.testing.assert_allclose(p.qd, qd_sim, atol=1e-12)
+    tau = np.array([V.rnea(q_sim[k], qd_sim[k], np.asarray(p.v)[k]) for k in range(N)])
+    np.testing.assert_allclose(p.tau, tau, rtol=1e-9, atol=1e-9)
+    tau_max, qd_max = np.asarray(lim.tau_max), np.asarray(lim.qd_max)
+    assert float(p.tau_violation) == pytest.approx(max(np.max(np.abs(tau) / tau_max - 1), 0.0), abs=1e-12)
+    assert float(p.qd_violation) == pytest.approx(max(np.max(np.abs(qd_sim) / qd_max - 1), 0.0), abs=1e-12)
+    assert float(p.goal_error) == pytest.approx(np.linalg.norm(q_sim[-1] - qg), abs=1e-12)
+    assert float(p.T) == pytest.approx(np.sum(np.asarray(p.h)), rel=1e-12)
     out = planner.query(qs, qg)
-    assert isinstance(out["feasible"], bool) and out["goal_error"] >= 0
+    worst = max(out["tau_violation"], out["qd_violation"], out["q_violation"])
+    assert out["feasible"] == (worst <= planner.tol and out["goal_error"] <= planner.goal_tol)
+    assert out["goal_error"] == pytest.approx(float(p.goal_error), rel=1e-12)
     # an ensemble plans too: of two copies of the model, the model's own plan
     twin = anfis.Ensemble.from_models([model, model], [1.0, 3.0], model.metadata)
     np.testing.assert_allclose(np.asarray(Planner(twin).plan(qs, qg).q), np.asarray(p.q), rtol=1e-12, atol=1e-12)

@@ -76,6 +76,36 @@ def test_serial_against_pinocchio(case):
             assert rel_err(arm.mass_matrix(q), M_ref + N**2 * Jm * np.eye(arm.n)) < 1e-10
 
 
+def test_friction_and_ballscrew_drive_against_pinocchio():
+    """Khoukhi's drive model written out here, tau_m = M_a qdd + V_a qd + K_a (f_rigid +
+    f_friction) with M_a = 2 pi / (n p) (J_s + n^2 J_m), V_a = 2 pi / (n p) (b_s + n^2 b_m),
+    K_a = p / (2 pi n), on Pinocchio's rigid-body efforts; a ballscrew pitch (not the
+    rotary 2 pi) and friction with both terms, which no built-in robot has."""
+    pytest.importorskip("pinocchio")
+    base = SERIAL_CASES["serial5"]()
+    n = base.n
+    ratio, pitch = np.array([10.0, 20, 30, 15, 25]), np.array([0.01, 0.02, 0.005, 0.01, 0.04])
+    Js, Jm, bs, bm = np.full(n, 2e-4), np.full(n, 1e-4), np.full(n, 3e-3), np.full(n, 5e-4)
+    visc, coul, sharp = np.array([0.5, 0.4, 0.3, 0.2, 0.1]), np.array([2.0, 1.5, 1.0, 0.5, 0.25]), 40.0
+    arm = dataclasses.replace(
+        base, friction=robots.Friction(viscous=jnp.asarray(visc), coulomb=jnp.asarray(coul), sharpness=sharp),
+        actuator=robots.Actuator(gear_ratio=jnp.asarray(ratio), pitch=jnp.asarray(pitch), J_s=jnp.asarray(Js),
+                                 J_m=jnp.asarray(Jm), b_s=jnp.asarray(bs), b_m=jnp.asarray(bm)))
+    model, data, _ = pinocchio_planar(np.asarray(arm.lengths), np.asarray(arm.masses), np.asarray(arm.inertias),
+                                      np.asarray(arm.com), float(arm.gravity_accel))
+    Ka = pitch / (2 * np.pi * ratio)
+    Ma = 2 * np.pi / (ratio * pitch) * (Js + ratio**2 * Jm)
+    Va = 2 * np.pi / (ratio * pitch) * (bs + ratio**2 * bm)
+    rng = np.random.default_rng(7)
+    for _ in range(4):
+        q, qd, qdd = rng.uniform(-np.pi, np.pi, n), rng.uniform(-2, 2, n), rng.uniform(-3, 3, n)
+        friction = visc * qd + coul * (2 / np.pi) * np.arctan(sharp * qd)
+        tau_m = Ma * qdd + Va * qd + Ka * (pin_rnea(model, data, q, qd, qdd) + friction)
+        assert rel_err(arm.inverse_dynamics(q, qd, qdd), tau_m) < 1e-10
+        # forward dynamics inverts it
+        assert rel_err(arm.forward_dynamics(q, qd, jnp.asarray(tau_m)), qdd) < 1e-9
+
+
 # ----- catalogue-wide structure -------------------------------------------------------
 def frictionless(robot):
     """The robot with friction and actuator damping removed (for energy conservation)."""

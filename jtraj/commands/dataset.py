@@ -54,6 +54,9 @@ def configure(parser):
     parser.add_argument("--h-max", default="auto",
                         help="sampling-period bound [s]: auto (default: twice the robot's, so that the bound "
                              "does not decide which pairs are feasible), robot (the robot's own), or seconds")
+    parser.add_argument("--efforts", choices=("samples", "intervals"), default="samples",
+                        help="where the torque bound holds: at the samples (default, the thesis) or also at each "
+                             "interval's end, so that the executed motion meets it (see jtraj.Problem)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--solver", default="jtraj:solve_batch", help=argparse.SUPPRESS)  # tests: module:function
 
@@ -130,7 +133,7 @@ def run(args) -> int:
                              batch=batch, space=args.space,
                              start_range=args.start_range, step_range=args.step_range,
                              min_separation=args.min_separation, ik_method=args.ik_method, options=options,
-                             solver=args.solver, h_max=_h_max(args.h_max))
+                             solver=args.solver, h_max=_h_max(args.h_max), efforts=args.efforts)
     stats = dataset.build(spec, args.out, ray=args.ray, workers=getattr(args, "workers", None),
                           progress=not args.no_progress)
     P = stats["pairs_done"]

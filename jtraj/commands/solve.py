@@ -19,6 +19,9 @@ HELP = "solve one trajectory problem (summary, --json, --plot)"
 #: the CLI pins this command to one CPU core before JAX starts (jtraj._cpu)
 PIN_ONE_CPU = True
 
+#: transcriptions whose motion between the samples is known exactly (jtraj.resample)
+CONSTANT_ACCELERATION = ("decoupled", "coupled")
+
 
 def configure(parser):
     parser.add_argument("--robot", default="serial3", help="robot name (see `jtraj robots`), default serial3")
@@ -36,10 +39,17 @@ def configure(parser):
                         help="decoupled (thesis ALD, default), coupled, or Chettibi's collocation "
                              "(midpoint rule), shooting (RK4) and spline (clamped cubic knots)")
     parser.add_argument("--T-max", type=float, default=None, help="upper bound on the total time [s]")
+    parser.add_argument("--efforts", choices=("samples", "intervals"), default="samples",
+                        help="where the torque bound holds: at the samples (default, the thesis) or also at each "
+                             "interval's end, so that the executed motion meets it (decoupled; see jtraj.Problem)")
     parser.add_argument("--via", action="append", default=[], metavar="X,Y",
                         help="imposed passage point of the tip (repeatable)")
     parser.add_argument("--via-tol", type=float, default=1e-3, help="via-point tolerance [m] (default 1e-3)")
     parser.add_argument("--json", metavar="PATH", help="write the solution as JSON")
+    parser.add_argument("--rate", type=float, default=None, metavar="HZ",
+                        help="with --json: also write the trajectory resampled at this rate (t, q, qd, qdd, tau "
+                             "on a 1/HZ grid, the last step ending at T), as a controller would execute it "
+                             "(decoupled and coupled transcriptions)")
     parser.add_argument("--plot", metavar="PATH", help="write the figures (PNG, PDF, SVG by extension)")
 
 
@@ -104,6 +114,18 @@ def build_problem(args):
         raise ValueError(f"--weights: {exc}") from None
     if args.T_max is not None and not (math.isfinite(args.T_max) and args.T_max > 0):
         raise ValueError(f"--T-max must be a finite number > 0, got {args.T_max}")
+    if getattr(args, "efforts", "samples") != "samples" and args.transcription != "decoupled":
+        raise ValueError(f"--efforts {args.efforts} needs the decoupled transcription, got --transcription "
+                         f"{args.transcription}")
+    rate = getattr(args, "rate", None)
+    if rate is not None:
+        if not (math.isfinite(rate) and rate > 0):
+            raise ValueError(f"--rate must be a finite number of Hz > 0, got {rate}")
+        if args.transcription not in CONSTANT_ACCELERATION:
+            raise ValueError(f"--rate needs a constant-acceleration transcription {CONSTANT_ACCELERATION}, "
+                             f"got {args.transcription!r}")
+        if not args.json:
+            raise ValueError("--rate writes into the JSON file: give --json too")
     if not (math.isfinite(args.via_tol) and args.via_tol > 0):
         raise ValueError(f"--via-tol must be a finite number > 0, got {args.via_tol}")
     d = int(np.asarray(robot.forward_kinematics(np.zeros(n))).shape[0])
@@ -117,7 +139,8 @@ def build_problem(args):
     if q_goal is None:
         q_goal = np.asarray(_ik(robot, p_goal, q_start, "--goal-xy"))
     try:
-        problem = Problem(robot, q_start, q_goal, N=args.N, weights=weights, via_points=vias, T_max=args.T_max)
+        problem = Problem(robot, q_start, q_goal, N=args.N, weights=weights, via_points=vias, T_max=args.T_max,
+                          efforts=getattr(args, "efforts", "samples"))
     except ValueError as exc:  # name the CLI argument behind the Problem argument
         msg = str(exc)
         for api, cli in (("q_start", "--start-q" if args.start_q else "--start-xy"),
@@ -156,7 +179,7 @@ def solution_dict(args, problem, sol, solve_s, compile_s) -> dict:
 
     w = problem.weights
     return {
-        "robot": args.robot, "N": problem.N, "transcription": args.transcription,
+        "robot": args.robot, "N": problem.N, "transcription": args.transcription, "efforts": problem.efforts,
         "weights": {k: float(getattr(w, k)) for k in ("time", "energy", "kinetic", "singularity")},
         "q_start": _tolist(problem.q_start), "q_goal": _tolist(problem.q_goal),
         "qd_start": _tolist(problem.qd_start), "qd_goal": _tolist(problem.qd_goal),
@@ -191,6 +214,11 @@ def summary(d: dict) -> str:
              f"{_f(d['kkt_error'], '.1e')}",
              f"iterations: {d['iterations']} Newton, {d['outer_iterations']} outer; solve {d['solve_seconds']:.3f} s "
              f"(compile {d['compile_seconds']:.1f} s)"]
+    if "effort_between_samples" in d:
+        where = ("at the samples only; --efforts intervals bounds the interval ends too"
+                 if d.get("efforts", "samples") == "samples" else "at the samples and the interval ends")
+        lines.append(f"efforts between the samples (constant acceleration, inverse dynamics): up to "
+                     f"{d['effort_between_samples']:.4f} x tau_max (bounded {where})")
     return "\n".join(lines)
 
 
@@ -199,9 +227,9 @@ def run(args) -> int:
     import time
 
     import jax
+    import jax.numpy as jnp
 
     import jtraj
-
     from jtraj.commands import check_output_file
 
     check_output_file(args.json, "--json")
@@ -216,6 +244,15 @@ def run(args) -> int:
     jax.block_until_ready(sol)
     solve_s = time.perf_counter() - t0
     d = solution_dict(args, problem, sol, solve_s, max(first - solve_s, 0.0))
+    if args.transcription in CONSTANT_ACCELERATION and bool(jnp.all(jnp.isfinite(sol.q))):
+        from jtraj.resample import intersample_effort, resample
+
+        if robot.limits.tau_max is not None:
+            d["effort_between_samples"] = float(intersample_effort(sol, robot))
+        if getattr(args, "rate", None):
+            s = resample(sol, robot, dt=1.0 / args.rate)
+            d["resampled"] = dict(rate=args.rate, **{k: _tolist(getattr(s, k))
+                                                    for k in ("t", "q", "qd", "qdd", "tau")})
     print(summary(d))
     if args.json:
         with open(args.json, "w") as fh:

@@ -103,6 +103,7 @@ class Spec:
     options: tuple = ()  # (name, value) overrides of SolverOptions
     solver: str = DEFAULT_SOLVER
     h_max: float | None = None  # sampling-period bound [s] replacing the robot's (None: the robot's)
+    efforts: str = "samples"  # where the torque bound holds (jtraj.Problem's efforts)
 
     @property
     def n_chunks(self) -> int:
@@ -143,6 +144,9 @@ class Spec:
             "distribution": self.distribution.describe(),
             "solver": self.solver,
             "solver_options": _plain(self.options_obj()),
+            # only where it differs from the default, so that datasets started before the
+            # option existed keep their identity (and resume)
+            **({} if self.efforts == "samples" else {"efforts": self.efforts}),
         }
 
 
@@ -192,7 +196,9 @@ def compute_chunk(spec: Spec, c: int) -> dict:
     # before its first iteration (padding with a real pair solved it B - count times over)
     qs_p = np.concatenate([qs, np.repeat(qs[-1:], pad, 0)]) if pad else qs
     qg_p = np.concatenate([qg, np.full((pad, qg.shape[1]), np.nan)]) if pad else qg
-    sol = spec.solve_fn()(robot, qs_p, qg_p, N=spec.N, weights=spec.weights_obj(), options=spec.options_obj())
+    extra = {} if spec.efforts == "samples" else {"efforts": spec.efforts}
+    sol = spec.solve_fn()(robot, qs_p, qg_p, N=spec.N, weights=spec.weights_obj(), options=spec.options_obj(),
+                          **extra)
     import jax
 
     sol = jax.device_get(sol)
@@ -283,13 +289,14 @@ def _versions() -> dict:
 
 def make_spec(robot: str, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=None, space="joint",
               start_range=1.2, step_range=0.8, min_separation=0.05, ik_method="weighted", options=None,
-              solver=DEFAULT_SOLVER, h_max="auto") -> Spec:
+              solver=DEFAULT_SOLVER, h_max="auto", efforts="samples") -> Spec:
     """Validated :class:`Spec` (raises ``ValueError`` naming the bad argument; no compute).
 
     ``h_max``: the sampling-period bound [s] of the dataset's problems: ``"auto"``
     (default) is :data:`H_MAX_FACTOR` times the robot's own bound, ``"robot"`` keeps the
-    robot's, a number sets it (it must exceed the robot's h_min). ``batch=None``: see
-    :func:`default_batch`."""
+    robot's, a number sets it (it must exceed the robot's h_min). ``efforts``: where the
+    torque bound holds, "samples" or "intervals" (see :class:`jtraj.Problem`).
+    ``batch=None``: see :func:`default_batch`."""
     from jtraj import robots
 
     if not isinstance(robot, str) or robot not in robots.names():
@@ -326,8 +333,12 @@ def make_spec(robot: str, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=N
             raise ValueError(f"h_max must be a number of seconds above the robot's h_min = {limits.h_min}, "
                              f"got {h_max!r}")
         h_max = float(h_max)
+    from jtraj.problem import EFFORTS
+
+    if efforts not in EFFORTS:
+        raise ValueError(f"efforts must be one of {EFFORTS}, got {efforts!r}")
     spec = Spec(robot=robot, pairs=pairs, seed=seed, N=N, weights=weights, batch=batch, distribution=dist,
-                options=opts, solver=solver, h_max=h_max)
+                options=opts, solver=solver, h_max=h_max, efforts=efforts)
     sampling.check(spec.robot_model(), dist)
     return spec
 
@@ -344,6 +355,7 @@ def metadata(spec: Spec) -> dict:
         "batch": spec.batch,
         "chunks": spec.n_chunks,
         "weights_text": spec.weights,
+        "efforts": spec.efforts,
         "sampling": spec.distribution.describe(),
         "versions": _versions(),
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
