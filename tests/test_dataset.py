@@ -455,7 +455,7 @@ def test_real_solver_end_to_end(tmp_path):
     np.testing.assert_array_equal(np.asarray(ref.kkt_error), data["kkt_error"])
     assert np.all(np.isfinite(data["kkt_error"]))
     sel = data["kkt_error"][data["converged"]]
-    assert len(sel) >= 7  # measured: 8 of 8 (N h_max = 2 s is long enough for this family)
+    assert len(sel) >= 5  # measured: 6 of 8 at N = 10
     assert f"KKT error: median {np.median(sel):.4g}" in dataset.summary(out)
     # every pair flagged converged passes the independent NumPy + Pinocchio re-simulation
     sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
