@@ -116,6 +116,9 @@ def iter_chunks(path: str, keys=None):
         yield c, store.read_chunk(path, c, keys, man["identity_hash"])
 
 
+_EFFORTS_TEXT = {"samples": "samples", "intervals": "samples and interval ends"}
+
+
 def summary(path: str) -> str:
     """Human-readable summary (``jtraj dataset info``)."""
     from jtraj.solver import Status
@@ -125,7 +128,8 @@ def summary(path: str) -> str:
     lines = [f"dataset {data.path}",
              f"  robot {md['robot']} (n = {md['n']}), N = {md['N']}, weights {md['weights_text']}, "
              f"seed {md['seed']}, batch {md['batch']}",
-             f"  h in [{md['limits']['h_min']:g}, {md['limits']['h_max']:g}] s (T <= {md['N'] * md['limits']['h_max']:g} s)",
+             f"  h in [{md['limits']['h_min']:g}, {md['limits']['h_max']:g}] s (T <= {md['N'] * md['limits']['h_max']:g} s)"
+             f"; torque bound at the {_EFFORTS_TEXT[md.get('efforts', 'samples')]}",
              f"  sampling: {md['sampling']['space']} space, {md['sampling']['law']}",
              f"  created {md['created']} with jtraj {md['versions'].get('jtraj')}, jax {md['versions'].get('jax')}",
              f"  chunks {len(data.chunks)}/{md['chunks']}" + ("" if data.complete else " (incomplete: re-run to resume)")]
