@@ -80,8 +80,8 @@ def _arrays(solution, robot):
     q, qd, v, h = (np.asarray(x, dtype=float) for x in fields)
     if q.ndim not in (2, 3) or qd.shape != q.shape or v.shape != q.shape[:-2] + (q.shape[-2] - 1, q.shape[-1]) \
             or h.shape != v.shape[:-1]:
-        raise ValueError(f"solution: q, qd (…, N+1, n), v (…, N, n), h (…, N) expected, got {q.shape}, {qd.shape}, "
-                         f"{v.shape}, {h.shape}")
+        raise ValueError(f"solution: q, qd (..., N+1, n), v (..., N, n), h (..., N) expected, got {q.shape}, "
+                         f"{qd.shape}, {v.shape}, {h.shape}")
     single = q.ndim == 2
     if single:
         q, qd, v, h = q[None], qd[None], v[None], h[None]

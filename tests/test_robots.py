@@ -210,10 +210,47 @@ def test_transforms_on_every_function(name):
         assert val.shape[0] == 3 and np.all(np.isfinite(np.asarray(val))), key
     for g in grads:
         assert g.shape[0] == 3 and np.all(np.isfinite(np.asarray(g)))
-    # gradient with respect to the robot's parameters (sensitivities) of the inverse dynamics
-    g_robot = eqx.filter_jit(eqx.filter_grad(lambda r: jnp.sum(r.inverse_dynamics(Q[0], QD[0], QDD[0]))))(robot)
-    leaves = [x for x in jax.tree_util.tree_leaves(g_robot) if eqx.is_array(x)]
-    assert leaves and all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
+    # the batched, jitted results are the per-sample ones, and the gradients central
+    # differences of the summed outputs (step 1e-6, float64)
+    scalar = jax.jit(lambda *x: everything(robot, *x)[0])
+    for i in range(3):
+        args = [np.asarray(a[i]) for a in (Q, QD, QDD, TAU)]
+        one = everything(robot, *(jnp.asarray(a) for a in args))[1]
+        for key in out:
+            np.testing.assert_allclose(out[key][i], one[key], rtol=1e-10, atol=1e-12, err_msg=key)
+        for a, g in enumerate(grads):
+            fd = np.zeros_like(args[a])
+            for j in range(fd.size):
+                up, dn = [x.copy() for x in args], [x.copy() for x in args]
+                up[a][j] += 1e-6
+                dn[a][j] -= 1e-6
+                fd[j] = (float(scalar(*up)) - float(scalar(*dn))) / 2e-6
+            np.testing.assert_allclose(g[i], fd, rtol=1e-5, atol=1e-6 * max(1.0, np.abs(fd).max()))
+    # gradient with respect to the robot's own parameters (masses, lengths, ...; the way
+    # jtraj.sensitivity substitutes them, Python floats included) of the inverse dynamics,
+    # against central differences in every entry
+    limit_fields = {f.name for f in dataclasses.fields(robots.Limits)}
+    names = [k for k in robots.parameter_names(robot) if k not in limit_fields
+             and np.size(getattr(robot, k)) and np.all(np.isfinite(np.asarray(getattr(robot, k), float)))]
+    theta0 = {k: jnp.asarray(getattr(robot, k), float) for k in names}
+
+    def id_sum(th):
+        r = eqx.tree_at(lambda rb: [getattr(rb, k) for k in names], robot, [th[k] for k in names])
+        return jnp.sum(r.inverse_dynamics(Q[0], QD[0], QDD[0]))
+
+    value, grad = jax.jit(id_sum), jax.jit(jax.grad(id_sum))(theta0)
+    assert max(float(jnp.max(jnp.abs(g))) for g in grad.values()) > 0
+    for k in names:
+        base = np.asarray(theta0[k])
+        for j in range(base.size):
+            step = 1e-6 * max(1.0, abs(base.flat[j]))
+            up, dn = base.copy(), base.copy()
+            up.flat[j] += step
+            dn.flat[j] -= step
+            fd = (float(value({**theta0, k: jnp.asarray(up)}))
+                  - float(value({**theta0, k: jnp.asarray(dn)}))) / (2 * step)
+            g = float(np.asarray(grad[k]).flat[j])
+            assert abs(g - fd) <= 1e-5 * max(1.0, abs(fd)), (k, j, g, fd)
 
 
 # ----- pkm2 ---------------------------------------------------------------------------
