@@ -919,7 +919,7 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
     verified = overall <= opts.verify_tol
     # the loop certifies optimality on the AL's own measure at the end of a subproblem;
     # a point it left uncertified (iteration limit) may still be a KKT point of the
-    # original problem, which the least-squares multipliers decide
+    # original problem: the KKT error with the best of three multiplier estimates decides
     kkt = jnp.minimum(_kkt_error(nlp, s.z), _al_kkt_error(nlp, s.z, s.mult, s.mu))
     certified = s.done | (kkt <= opts.tol_optimality)
     unfinished = jnp.where(s.stalled, Status.LIKELY_INFEASIBLE, Status.MAX_ITERATIONS)
