@@ -510,34 +510,51 @@ def _residual(nlp: _NLP, z, act_tol, violated_only: bool = False):
     return jnp.concatenate(rows)
 
 
-def _polish(nlp: _NLP, z, iterations: int = 4, act_tol: float = 1e-3):
+def _polish(nlp: _NLP, z, iterations: int = 4, act_tol: float = 1e-3, release: bool = False):
     """Feasibility polish: a few Gauss-Newton projections of z onto the manifold of the
     equalities and nearly-active inequalities (minimum-norm corrections, simple bounds
     held). The AL leaves O((lambda* - lambda)/mu) violations; this removes them without
-    changing the optimum to first order. A step is kept only if the violation shrinks."""
+    changing the optimum to first order. A step is kept only if the violation shrinks.
+
+    By default a satisfied nearly-active inequality is held where it is to first order.
+    With ``release`` it is left free unless the correction would take it across its
+    boundary (then it is moved onto it): holding it fails where it is nearly parallel to
+    a violated one (``Problem(efforts="intervals")``: the effort at an interval's end and
+    at the next sample), whose correction it then cancels (see :func:`_finish`)."""
     lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
+    n_eq = sum(x.size for x in jax.tree.leaves(nlp.constraints(z)[0]))
 
     def viol(zz):
         return _violation(*nlp.constraints(zz))
 
+    def correction(J, r, fixed):
+        # normal equations in z (nz x nz, smaller than the row space); the tiny ridge
+        # selects the minimum-norm correction when J is rank deficient
+        Jf = jnp.where(fixed[None, :], 0.0, J)
+        A = Jf.T @ Jf
+        A = A + (1e-10 * (1.0 + jnp.max(jnp.diag(A)))) * jnp.eye(A.shape[0], dtype=A.dtype)
+        return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(A), True), Jf.T @ r)
+
     def body(_, carry):
         z, v = carry
-        r = _residual(nlp, z, act_tol, True)
         J = jax.jacfwd(_residual, argnums=1)(nlp, z, act_tol)
-
-        def correction(fixed):
-            # normal equations in z (nz x nz, smaller than the row space); the tiny ridge
-            # selects the minimum-norm correction when J is rank deficient
-            Jf = jnp.where(fixed[None, :], 0.0, J)
-            A = Jf.T @ Jf
-            A = A + (1e-10 * (1.0 + jnp.max(jnp.diag(A)))) * jnp.eye(A.shape[0], dtype=A.dtype)
-            return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(A), True), Jf.T @ r)
-
         fixed = (z <= lo + 1e-12) | (z >= hi - 1e-12)
-        dz = correction(fixed)
+        if release:
+            raw = _residual(nlp, z, act_tol)
+            is_ineq = jnp.arange(raw.size) >= n_eq
+            rows = ~is_ineq | (raw > 0)  # equalities and violated inequalities
+            # satisfied rows the correction would take across their boundary join it (a
+            # few rounds: each correction can cross others)
+            for _ in range(4):
+                dz = correction(jnp.where(rows[:, None], J, 0.0), jnp.where(rows, raw, 0.0), fixed)
+                rows = rows | (is_ineq & (raw - J @ dz > 0))
+            J, r = jnp.where(rows[:, None], J, 0.0), jnp.where(rows, raw, 0.0)
+        else:
+            r = _residual(nlp, z, act_tol, True)
+            dz = correction(J, r, fixed)
         # variables the correction would push through a bound are held there and the
         # correction recomputed (clipping it would undo part of it)
-        dz = correction(fixed | (z - dz < lo) | (z - dz > hi))
+        dz = correction(J, r, fixed | (z - dz < lo) | (z - dz > hi))
         z_new = jnp.clip(z - dz, lo, hi)
         v_new = viol(z_new)
         better = jnp.isfinite(v_new) & (v_new < v)
@@ -545,6 +562,20 @@ def _polish(nlp: _NLP, z, iterations: int = 4, act_tol: float = 1e-3):
 
     z, _ = jax.lax.fori_loop(0, iterations, body, (z, viol(z)))
     return z
+
+
+def _final_polish(nlp: _NLP, z, opts: SolverOptions):
+    """:func:`_polish`; with ``Problem(efforts="intervals")``, where it leaves more than
+    ``verify_tol``, followed by the releasing variant. On 96 dataset pairs (seed 5, h_max
+    0.2 s) the holding polish left 4 certified optima violated by 2e-6 to 1.7e-5
+    (``VERIFICATION_FAILED``): nearly parallel effort rows cancelled its corrections; the
+    releasing one brought all 4 below 1e-15 (costs within 2.5e-5). The default problem
+    keeps the holding polish alone (no such failure measured, and its results unchanged)."""
+    z1 = _polish(nlp, z)
+    if nlp.problem.efforts == "samples":
+        return z1
+    z2 = _polish(nlp, z1, release=True)
+    return jnp.where(_violation(*nlp.constraints(z1)) > opts.verify_tol, z2, z1)
 
 
 def _init_multipliers(nlp: _NLP, z) -> Multipliers:
@@ -697,7 +728,7 @@ def _restart(nlp: _NLP, s: _State, opts: SolverOptions) -> _State:
     :func:`_finish` certifies it."""
     # a warm start at the polished point: least-squares multipliers, fresh schedules, and
     # finished at once where that point is already certified
-    fresh = _init_state(nlp, _polish(nlp, s.z), opts, warm=True)
+    fresh = _init_state(nlp, _final_polish(nlp, s.z, opts), opts, warm=True)
     need = _needs_restart(s, opts) & ~fresh.done
     dt = s.z.dtype
     new = fresh._replace(mu=jnp.asarray(opts.restart_penalty_max * 1e-2, dt),
@@ -885,7 +916,7 @@ def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, 
 
 def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
     problem, tr = nlp.problem, nlp.tr
-    s = s._replace(z=_polish(nlp, s.z))
+    s = s._replace(z=_final_polish(nlp, s.z, opts))
     _, h = nlp.layout.unpack(s.z)
     W = nlp.W(s.z)
     q, qd, c, _ = jax.vmap(lambda w: tr.split_stage(problem, w))(W)
