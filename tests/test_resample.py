@@ -162,6 +162,18 @@ def test_efforts_intervals_bounds_the_executed_motion():
             assert ratio <= 1 + 1e-3  # between the ends: measured 1 + 2.4e-4 at most on 57 benchmark pairs
     # a smaller feasible set: no lower optimum (same start point, same local basin)
     assert float(sols["intervals"].cost) >= float(sols["samples"].cost) * (1 - 1e-6)
+    # pair 44 of `jtraj dataset --pairs 96 --seed 5` (h_max 0.2 s): the holding feasibility
+    # polish left its certified optimum 6.6e-6 outside the effort box (nearly parallel
+    # rows); the releasing one (solver._final_polish) makes it verify
+    long_steps = jtraj.robots.get("serial3", h_max=0.2)
+    a, b = [-0.17935802040533577, -0.2729153904459174, 0.43714046091579206], \
+        [0.2820074688736016, -0.5362270260943265, 0.34308692781562267]
+    sol = jtraj.solve(jtraj.Problem(long_steps, a, b, N=20, weights=w, efforts="intervals"))
+    assert bool(sol.converged), sol.status_message
+    r = V.verify(a, b, sol.v, sol.h, h_max=0.2, tol=1e-6)
+    assert r["ok"], (r["goal_error"], r["max_rel_violation"])
+    q, qd, v = (np.asarray(x) for x in (sol.q, sol.qd, sol.v))
+    assert max(np.abs(V.rnea(q[k + 1], qd[k + 1], v[k]) / tau_max).max() for k in range(20)) <= 1 + 1e-6
     with pytest.raises(ValueError, match="efforts"):
         jtraj.Problem(robot, q0, q1, efforts="midpoints")
     with pytest.raises(ValueError, match="decoupled"):
