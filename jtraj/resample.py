@@ -6,11 +6,12 @@ is known exactly::
 
     q(t_k + s) = q_k + s qd_k + s^2/2 v_k,   qd(t_k + s) = qd_k + s v_k,   qdd = v_k
 
-and the efforts that realise it are ``tau(t) = ID(q(t), qd(t), v_k)``. The solver
-constrains the efforts at the samples only; between them they vary with the state, and
-may exceed ``tau_max`` slightly. :func:`resample` returns them, and
-:func:`intersample_effort` measures that excess (the README's Limits quote it on the
-benchmark family).
+and the efforts that realise it are ``tau(t) = ID(q(t), qd(t), v_k)``. By default
+(``Problem(efforts="samples")``, the thesis) the solver bounds the efforts at the
+samples only; between them they vary with the state and exceed ``tau_max`` at the end of
+an interval (``efforts="intervals"`` bounds those too). :func:`resample` returns them,
+and :func:`intersample_effort` measures the excess (README, "Efforts between the
+samples").
 
 The other transcriptions are not constant-acceleration trajectories (the spline's
 acceleration is linear between knots, shooting and collocation integrate the forward
@@ -184,12 +185,12 @@ def intersample_effort(solution, robot, *, per_interval: int = 16) -> Array:
     evenly spaced points of every interval (both ends included, :func:`interval_times`),
     per trajectory.
 
-    The solver bounds the ratio by 1 at the samples only; this is what the executed
-    motion asks of the actuators in between. Raises ValueError for a robot without
-    ``tau_max``.
+    By default the solver bounds the ratio by 1 at the samples only; this is what the
+    executed motion asks of the actuators in between. Raises ValueError for a robot
+    without ``tau_max``.
     """
+    single, *_, h = _arrays(solution, robot)
     if robot.limits.tau_max is None:
         raise ValueError("robot has no tau_max: the effort ratio is undefined")
-    single, *_, h = _arrays(solution, robot)
     samples = resample(solution, robot, times=interval_times(h[0] if single else h, per_interval))
     return jnp.max(jnp.abs(samples.tau) / robot.limits.tau_max, axis=(-2, -1))
