@@ -225,6 +225,12 @@ class Planner:
                    q_violation=float(p.q_violation), h_violation=float(p.h_violation),
                    goal_error=float(p.goal_error), goal_velocity=float(p.goal_velocity),
                    q=np.asarray(p.q).tolist(), h=np.asarray(p.h).tolist())
+        if self.robot.limits.tau_max is not None and np.all(np.isfinite(np.asarray(p.q))):
+            # the plan holds v_k over each interval too: its efforts between the samples
+            from .resample import intersample_effort
+
+            out["effort_between_samples"] = float(intersample_effort(
+                {"q": p.q, "qd": p.qd, "v": p.v, "h": p.h}, self.robot))
         if refine:
             import jtraj
 

@@ -247,6 +247,11 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
     worst = max(out["tau_violation"], out["qd_violation"], out["q_violation"])
     assert out["feasible"] == (worst <= planner.tol and out["goal_error"] <= planner.goal_tol)
     assert out["goal_error"] == pytest.approx(float(p.goal_error), rel=1e-12)
+    # the efforts between the samples reach at least those at the samples and at every
+    # interval's end (Pinocchio: the new state with the interval's own acceleration)
+    ends = np.array([V.rnea(q_sim[k + 1], qd_sim[k + 1], np.asarray(p.v)[k]) for k in range(N)])
+    lower = max(np.max(np.abs(tau) / tau_max), np.max(np.abs(ends) / tau_max))
+    assert lower - 1e-9 <= out["effort_between_samples"] <= lower * 1.5
     # an ensemble plans too: of two copies of the model, the model's own plan
     twin = anfis.Ensemble.from_models([model, model], [1.0, 3.0], model.metadata)
     np.testing.assert_allclose(np.asarray(Planner(twin).plan(qs, qg).q), np.asarray(p.q), rtol=1e-12, atol=1e-12)

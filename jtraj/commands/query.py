@@ -46,7 +46,9 @@ def run(args) -> int:
         raise ValueError(f"--start and --goal need {planner.n} values each")
     out = planner.query(args.start, args.goal, refine=args.refine, warm=getattr(args, "warm", "primal"))
     print(f"plan: T = {out['T']:.4f} s, feasible = {out['feasible']}, goal error {out['goal_error']:.3g} rad, "
-          f"tau over limit {out['tau_violation']:.3g}, qd over limit {out['qd_violation']:.3g}")
+          f"tau over limit {out['tau_violation']:.3g}, qd over limit {out['qd_violation']:.3g}"
+          + (f" (between the samples: up to {out['effort_between_samples']:.4f} x tau_max)"
+             if "effort_between_samples" in out else ""))
     if args.refine:
         print(f"refined ({out['refined_warm']} warm start): {out['refined_status']} in "
               f"{out['refined_iterations']} iterations, {out['refined_seconds']:.2f} s "
