@@ -162,7 +162,7 @@ class Problem(eqx.Module):
             ``ID(q_{k+1}, qd_{k+1}, v_k)``, the effort at each interval's end, so the
             bound holds at both ends of every interval (and between them within 2.4e-4
             relative on 64 benchmark pairs, 1.7e-3 on 96 dataset pairs with h_max 0.2 s),
-            for 1.56x the solve time. Decoupled transcription only.
+            for 1.56-1.77x the solve time. Decoupled transcription only.
     """
 
     robot: Robot
