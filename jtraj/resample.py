@@ -32,6 +32,7 @@ from jaxtyping import Array
 
 from .robots import Robot
 from .solver import Solution
+from .transcription import integrate, recursion_step
 
 __all__ = ["Samples", "intersample_effort", "interval_times", "resample"]
 
@@ -59,10 +60,8 @@ def _evaluate(robot, q, qd, v, h, t):
     N = h.shape[0]
     starts = jnp.concatenate([jnp.zeros(1, h.dtype), jnp.cumsum(h)[:-1]])
     k = jnp.clip(jnp.searchsorted(starts, t, side="right") - 1, 0, N - 1)
-    s = (t - starts[k])[:, None]
     vk = v[k]
-    qt = q[k] + s * qd[k] + 0.5 * s**2 * vk
-    qdt = qd[k] + s * vk
+    qt, qdt = recursion_step(q[k], qd[k], vk, (t - starts[k])[:, None])
     tau = jax.vmap(robot.inverse_dynamics)(qt, qdt, vk)
     return Samples(t=t, q=qt, qd=qdt, qdd=vk, tau=tau, interval=k)
 
@@ -95,16 +94,11 @@ def _arrays(solution, robot):
         raise ValueError(f"solution holds non-finite values or non-positive periods{which}; "
                          "resample only solutions whose status says they hold a trajectory")
     # the constant-acceleration recursion from (q_0, qd_0, v, h) must reproduce the states
-    qs, qds = q[:, 0], qd[:, 0]
-    worst = np.zeros(q.shape[0])
-    for k in range(h.shape[1]):
-        hk = h[:, k, None]
-        qs, qds = qs + hk * qds + 0.5 * hk**2 * v[:, k], qds + hk * v[:, k]
-        scale = 1.0 + np.abs(q[:, k + 1]) + np.abs(qd[:, k + 1])
-        err = np.maximum(np.abs(qs - q[:, k + 1]), np.abs(qds - qd[:, k + 1])) / scale
-        worst = np.maximum(worst, err.max(axis=1))
-    if (worst > 1e-6).any():
-        which = "" if single else f" (samples {np.flatnonzero(worst > 1e-6)[:10].tolist()})"
+    qs, qds = (np.asarray(x) for x in jax.vmap(integrate)(q[:, 0], qd[:, 0], v, h))
+    worst = np.max(np.maximum(np.abs(qs - q), np.abs(qds - qd)) / (1.0 + np.abs(q) + np.abs(qd)), axis=(1, 2))
+    tol = max(1e-6, 100 * float(np.finfo(qs.dtype).eps))  # float32 without x64
+    if (worst > tol).any():
+        which = "" if single else f" (samples {np.flatnonzero(worst > tol)[:10].tolist()})"
         raise ValueError(f"solution: its states do not follow the constant-acceleration recursion from its "
                          f"(v, h){which} (largest relative mismatch {worst.max():.2g}); resample supports "
                          "the decoupled and coupled transcriptions")
@@ -131,7 +125,11 @@ def resample(solution, robot, *, dt: float | None = None, num: int | None = None
     """
     if sum(x is not None for x in (dt, num, times)) != 1:
         raise ValueError("give exactly one of dt (grid step, s), num (number of grid points) and times")
-    single, q, qd, v, h = _arrays(solution, robot)
+    return _resample(robot, *_arrays(solution, robot), dt=dt, num=num, times=times)
+
+
+def _resample(robot, single, q, qd, v, h, *, dt=None, num=None, times=None) -> Samples:
+    """:func:`resample` on the arrays :func:`_arrays` checked."""
     B, T = q.shape[0], h.sum(axis=1)
     if dt is not None:
         try:
@@ -189,8 +187,8 @@ def intersample_effort(solution, robot, *, per_interval: int = 16) -> Array:
     executed motion asks of the actuators in between. Raises ValueError for a robot
     without ``tau_max``.
     """
-    single, *_, h = _arrays(solution, robot)
+    single, q, qd, v, h = _arrays(solution, robot)
     if robot.limits.tau_max is None:
         raise ValueError("robot has no tau_max: the effort ratio is undefined")
-    samples = resample(solution, robot, times=interval_times(h[0] if single else h, per_interval))
+    samples = _resample(robot, single, q, qd, v, h, times=interval_times(h[0] if single else h, per_interval))
     return jnp.max(jnp.abs(samples.tau) / robot.limits.tau_max, axis=(-2, -1))

@@ -643,11 +643,10 @@ def _multiplier_kkt_error(nlp: _NLP, z, mult: Multipliers):
         val = sum(nlp.cost_terms(zz).values()) + jnp.sum(mult.glob * glob)
         for c, l in zip(jax.tree.leaves((eq, ineq)), jax.tree.leaves((mult.eq, mult.ineq))):
             val = val + jnp.sum(l * c)
-        return val
+        return val, (ineq, glob)
 
-    g = jax.grad(lagrangian)(z)
+    g, (ineq, glob) = jax.grad(lagrangian, has_aux=True)(z)
     pg = jnp.max(jnp.abs(z - jnp.clip(z - g, lo, hi)))
-    _, ineq, glob = nlp.constraints(z)
     comp = [jnp.max(r * jnp.abs(c)) for c, r in zip(jax.tree.leaves(ineq) + [glob],
                                                       jax.tree.leaves(mult.ineq) + [mult.glob])]
     return jnp.maximum(pg, jnp.max(jnp.stack(comp)))
