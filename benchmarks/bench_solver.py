@@ -13,7 +13,8 @@ verifier (tolerance 1e-6). Printed: verified success rates, false "converged" co
 cost gaps where both succeed, warm single-solve latency (median over pairs), batch
 throughput on all cores (IPOPT: one process per core; jtraj: vmapped batches, one
 process pinned to each core, ``--workers``), compile time, and, with ``--scaling``,
-time per problem against N and B (one process).
+time per problem against N and B (one process). ``--json`` also holds every pair's
+statuses, costs and iterations (``per_pair``).
 Ratios are jtraj / IPOPT or IPOPT / jtraj as labelled; > 1 means jtraj is ahead.
 The peer is the "lifted" CasADi form by default (states as variables, sparse; the fast
 one); "condensed" (states eliminated) is 4-6x slower per IPOPT iteration.
@@ -203,13 +204,23 @@ def main(argv=None):
         "jtraj_iteration_share_by_status": {
             int(k): float(jt["iterations"][jt["status"] == k].sum() / max(jt["iterations"].sum(), 1))
             for k in np.unique(jt["status"])},
+        # per pair, in the order of benchmark_pairs(pairs, seed): which pairs either side lost
+        "per_pair": {
+            "ipopt_verified": ip_ver.tolist(), "ipopt_cost": ip_cost.tolist(),
+            "ipopt_iterations": [int(r["iterations"]) for r in ip],
+            "jtraj_status": jt["status"].astype(int).tolist(), "jtraj_verified": jt_ver.tolist(),
+            "jtraj_cost": jt["cost"].tolist(), "jtraj_iterations": jt["iterations"].astype(int).tolist(),
+        },
     }
     print(f"  success: IPOPT {report['ipopt_verified']}/{args.pairs} verified; jtraj converged "
           f"{report['jtraj_converged']}/{args.pairs} (verified {report['jtraj_verified_converged']}), "
           f"feasible (verified) {report['jtraj_feasible_verified']}; false converged: {false_conv}")
     if both.any():
         print(f"  cost gap where both succeed ({both.sum()} pairs): median {report['cost_gap_pct_median_both']:+.4f} %, "
-              f"max {report['cost_gap_pct_max_both']:+.4f} %")
+              f"max {report['cost_gap_pct_max_both']:+.4f} % (pair {int(np.argmax(np.where(both, gap, -np.inf)))})")
+    lost = np.where(ip_ver & ~jt_conv)[0]
+    if lost.size:
+        print(f"  pairs IPOPT solves and jtraj does not: {lost.tolist()} (statuses {jt['status'][lost].tolist()})")
     print(f"  throughput: IPOPT {ip_thr:.2f} pairs/s on {ip.processes} processes; jtraj {jt_thr:.2f} pairs/s "
           f"(batch {args.batch}, {args.workers} processes) -> ratio {report['throughput_ratio']:.2f}x")
     print(f"  warm single solve (median of {L}): IPOPT {report['ipopt_single_median_s'] * 1e3:.0f} ms, jtraj "

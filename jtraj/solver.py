@@ -180,7 +180,9 @@ class SolverOptions(eqx.Module):
             certified 0.47 % above IPOPT's cost (350 iterations and 0.09 % with the
             defaults). From the first iteration (``kink_after=0``) the curvature also
             holds constraints that should leave their bound: margin 1e-3 cost 65-75 %
-            more iterations and 5 converged pairs per seed, 1e-4 +6 %. Measured (2 cores,
+            more iterations and 5 converged pairs per seed, 1e-4 +6 %; ``kink_after=10``
+            +10 % (seeds 1, 21, 23), margin 1e-2 after 20 +11 % (seed 1), for median cost
+            gaps lower by about 0.003 %. Measured (2 cores,
             2026-11-28, bench_solver's 256 pairs per seed, IPOPT in the same run), margin
             0 against the defaults: seeds 0, 1, 11, 21-24 converged 1598 / 1599 of 1792
             (IPOPT 1598; seed 1: 225 / 226, IPOPT 226), iterations +0.5 % in all (-3.8 %
