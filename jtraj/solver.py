@@ -270,8 +270,6 @@ class _NLP(eqx.Module):
     #: Newton directions by the stage-wise Riccati recursion (decoupled only, see
     #: :mod:`jtraj.lq`) instead of dense Cholesky factorisations of the Hessian in z
     stagewise: bool = eqx.field(static=True, default=False)
-    #: see SolverOptions.kink_margin
-    kink: float = eqx.field(static=True, default=0.0)
 
     def W(self, z):
         return self.tr.stage_vectors(self.problem, self.layout, z)
@@ -297,13 +295,13 @@ class _NLP(eqx.Module):
         per_stage = jax.vmap(self.stage_al, in_axes=(0, 0, _stage_axes(mult), None))(W, self.sd, _stage_mult(mult), mu)
         return jnp.sum(per_stage) + self.global_al(z, mult, mu)
 
-    def stage_derivatives(self, W, mult, mu, kink_on=1.0):
+    def stage_derivatives(self, W, mult, mu, kink=None):
         """Per-stage values, gradients and Hessians of the AL terms in w_k: (val (N+1,),
-        c (N+1, nw), Hk (N+1, nw, nw)), one forward-over-reverse pass per stage. ``kink_on``
-        (traced, 0 or 1) scales the margin of :func:`_kink_curvature` in Hk."""
+        c (N+1, nw), Hk (N+1, nw, nw)), one forward-over-reverse pass per stage. ``kink``
+        (None, or a traced margin): Hk includes :func:`_kink_curvature` with that margin."""
 
         def value_grad(w, sdk, mk, mu_):
-            v, gw = jax.value_and_grad(self.stage_al)(w, sdk, mk, mu_, self.kink * kink_on if self.kink > 0 else None)
+            v, gw = jax.value_and_grad(self.stage_al)(w, sdk, mk, mu_, kink)
             return gw, (v, gw)
 
         Hk, (val_k, c) = jax.vmap(jax.jacfwd(value_grad, has_aux=True), in_axes=(0, 0, _stage_axes(mult), None))(
@@ -314,12 +312,12 @@ class _NLP(eqx.Module):
         """The global AL term as a function of the total time T (see global_al)."""
         return _phr(self.tr.time_inequalities(self.problem, T), mult.glob, mu)
 
-    def al_derivatives(self, z, mult, mu, kink_on=1.0):
-        """Value, gradient and Hessian of the AL in z, from per-stage pieces (exact; with
-        ``kink_on`` and ``SolverOptions.kink_margin`` plus the curvature of the inequalities
-        just short of their PHR kink, see :func:`_kink_curvature`)."""
+    def al_derivatives(self, z, mult, mu, kink=None):
+        """Value, gradient and Hessian of the AL in z, from per-stage pieces (exact; with a
+        ``kink`` margin plus the curvature of the inequalities just short of their PHR
+        kink, see :func:`_kink_curvature`)."""
         W, W_vjp = jax.vjp(self.W, z)
-        val_k, c, Hk = self.stage_derivatives(W, mult, mu, kink_on)
+        val_k, c, Hk = self.stage_derivatives(W, mult, mu, kink)
         # the gradient is reverse-mode autodiff through the recursion (the co-states)
         g = W_vjp(c)[0]
         if self.tr.name == "decoupled" and not self.generic_hessian:
@@ -344,11 +342,11 @@ class _NLP(eqx.Module):
                               jax.hessian(self.global_al)(z, mult, mu))
         return jnp.sum(val_k) + gval, g + ggrad, H + ghess
 
-    def stage_newton_model(self, z, mult, mu, kink_on=1.0):
+    def stage_newton_model(self, z, mult, mu, kink=None):
         """(value, stage model, pieces for :meth:`hessian_bounds`) of the AL for the
         stage-wise Newton solve (decoupled transcription; the Hessian in z is never formed)."""
         W = self.W(z)
-        val_k, c, Hk = self.stage_derivatives(W, mult, mu, kink_on)
+        val_k, c, Hk = self.stage_derivatives(W, mult, mu, kink)
         T = jnp.sum(W[:-1, -1])
         d1 = jax.grad(self.time_al)
         dphi, d2phi = d1(T, mult, mu), jax.grad(d1)(T, mult, mu)
@@ -472,15 +470,15 @@ def _held(z, g, lo, hi, hdiag, eps):
             | ((z >= hi - eps) & (g < 0) & (-g >= curv * (hi - z))))
 
 
-def _newton_step(nlp: _NLP, z, mult, mu, damping, kink_on=1.0):
+def _newton_step(nlp: _NLP, z, mult, mu, damping, kink=None):
     # the barrier materialises the derivatives once, so that XLA cannot fuse their
     # assembly into each of the shifted factorisations below (a guard: on serial3 the
     # timings with and without it were within the machine's noise)
     if nlp.stagewise:
-        val, model, pieces = jax.lax.optimization_barrier(nlp.stage_newton_model(z, mult, mu, kink_on))
+        val, model, pieces = jax.lax.optimization_barrier(nlp.stage_newton_model(z, mult, mu, kink))
         g = model.g
     else:
-        val, g, H = jax.lax.optimization_barrier(nlp.al_derivatives(z, mult, mu, kink_on))
+        val, g, H = jax.lax.optimization_barrier(nlp.al_derivatives(z, mult, mu, kink))
     lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
     pg = z - jnp.clip(z - g, lo, hi)  # projected-gradient residual
     eps = jnp.minimum(1e-3, jnp.max(jnp.abs(pg)))
@@ -829,8 +827,10 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
         return ~_finished(s, opts) if limit is None else ~_finished(s, opts) & (s.it < limit)
 
     def body(s: _State):
-        kink_on = (s.inner >= opts.kink_after).astype(s.z.dtype)
-        z, damping, pg, _, moved = _newton_step(nlp, s.z, s.mult, s.mu, s.damping, kink_on)
+        # the kink curvature's margin, zero until the subproblem has run kink_after iterations
+        kink = (None if opts.kink_margin == 0
+                else jnp.where(s.inner >= opts.kink_after, opts.kink_margin, 0.0).astype(s.z.dtype))
+        z, damping, pg, _, moved = _newton_step(nlp, s.z, s.mult, s.mu, s.damping, kink)
         failed = ~jnp.all(jnp.isfinite(z))
         inner = s.inner + 1
         stat = _stationarity(nlp, z, s.mult, s.mu)
@@ -956,8 +956,7 @@ def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, war
     """(nlp, starting state, valid) for one problem; invalid samples start from a finite
     placeholder and are flagged at the end."""
     layout = tr.layout(problem)
-    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem), stagewise=_stagewise(opts, tr),
-               kink=opts.kink_margin)
+    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem), stagewise=_stagewise(opts, tr))
     u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
     # what a single Problem rejects up front (a batch builds its problems unvalidated;
