@@ -454,6 +454,13 @@ class _State(NamedTuple):
 # against 95 with 4 x 6.)
 _LADDER = np.linspace(0.0, 1.0, 4)  # exponents of the geometric shift ladder
 _STEPS = np.array([1.0, 0.5, 0.25, 0.1])
+#: the trial points (index into the ladder, step length): every step on every shift but
+#: the top (Gershgorin) one, which takes only the full step. On 24 benchmark pairs (2,355
+#: iterations) the top shift won 4.5 % of the iterations, 0.5 % with a shorter step; 13
+#: trials instead of 16 (2026-11-28, 256 pairs of seeds 1 and 11, one core each, the
+#: same converged): iterations +1.0 % / -0.6 %, time 0.98x / 0.95x. 3 step lengths
+#: (1, 0.4, 0.1) on every shift: +7.5 % / +4 % iterations, no faster.
+_TRIALS = [(i, t) for i in range(len(_LADDER)) for t in (_STEPS if i < len(_LADDER) - 1 else _STEPS[:1])]
 
 
 def _held(z, g, lo, hi, hdiag, eps):
@@ -503,7 +510,9 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping, kink=None):
     gersh = jnp.maximum(0.0, jnp.max(excess)) + damping
     # geometric ladder from damping / 8 to the Gershgorin bound (always PD)
     low = damping / 8.0
-    steps, ladder = jnp.asarray(_STEPS, z.dtype), jnp.asarray(_LADDER, z.dtype)
+    ladder = jnp.asarray(_LADDER, z.dtype)
+    trial_shift = np.array([i for i, _ in _TRIALS])
+    steps = jnp.asarray([t for _, t in _TRIALS], z.dtype)
     shifts = low * (jnp.maximum(gersh, 8.0 * low) / low) ** ladder
     if nlp.stagewise:
         d_free, good = lq.newton_directions(model, free, shifts)
@@ -521,21 +530,20 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping, kink=None):
     d_held = -g[None, :] / (jnp.abs(hdiag)[None, :] + shifts[:, None])
     d = jnp.where(free[None, :], d_free, d_held)  # (S, nz)
     d = jnp.where(jnp.all(jnp.isfinite(d), axis=1, keepdims=True), d, -g[None, :])
-    S, K = shifts.shape[0], steps.shape[0]
-    candidates = jnp.clip(z[None, None, :] + steps[None, :, None] * d[:, None, :], lo, hi).reshape(S * K, -1)
+    candidates = jnp.clip(z[None, :] + steps[:, None] * d[trial_shift], lo, hi)
     values = jax.vmap(nlp.al_value, in_axes=(0, None, None))(candidates, mult, mu)
     decrease = jnp.einsum("i,ki->k", g, candidates - z[None, :])
-    ok = (values <= val + 1e-4 * decrease) & jnp.isfinite(values) & jnp.repeat(good, K)
+    ok = (values <= val + 1e-4 * decrease) & jnp.isfinite(values) & good[trial_shift]
     # far from a stationary point the lowest value found wins (fewest iterations on the
     # benchmark); close to one (projected gradient < 1e-3) the least-damped direction
     # that takes a long step (>= 1/4) does, which keeps Newton's fast local convergence
     # (the lowest value is then decided by rounding)
-    long_ok = ok & (jnp.tile(steps, S) >= 0.25) & (jnp.max(jnp.abs(pg)) < 1e-3)
+    long_ok = ok & (steps >= 0.25) & (jnp.max(jnp.abs(pg)) < 1e-3)
     best = jnp.where(jnp.any(long_ok), jnp.argmax(long_ok), jnp.argmin(jnp.where(ok, values, jnp.inf)))
     any_ok = jnp.any(ok)
     z_new = jnp.where(any_ok, candidates[best], z)
-    step = steps[best % K]
-    used = shifts[best // K]
+    step = steps[best]
+    used = shifts[jnp.asarray(trial_shift)[best]]
     damping = jnp.where(any_ok, jnp.where(step == 1.0, used * 0.5, used * 2.0), shifts[-1])
     damping = jnp.clip(jnp.where(jnp.isfinite(damping), damping, 1e10), 1e-12, 1e10)
     return z_new, damping, jnp.max(jnp.abs(pg)), val, any_ok
