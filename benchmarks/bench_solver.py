@@ -66,7 +66,8 @@ def _jtraj_batch(q0, q1, N, B, weights, workers=1, options=None):
     """Throughput of solve_batch on chunks of B pairs: in this process (workers = 1) or in
     ``workers`` processes pinned one per core (jtraj.dataset's local
     backend; one JAX process does not use several cores well). The first chunk per worker
-    (compilation, or loading it from the persistent cache) is timed apart."""
+    (compilation, or loading it from the persistent cache) is timed apart; with workers,
+    every worker first solves every chunk untimed (see below)."""
     P = len(q0)
     pad = (-P) % B
     q0p = np.concatenate([q0, np.repeat(q0[-1:], pad, 0)])
@@ -83,8 +84,14 @@ def _jtraj_batch(q0, q1, N, B, weights, workers=1, options=None):
         from jtraj.dataset._local import worker_pool
 
         with worker_pool(workers) as pool:
+            # every worker solves every chunk once untimed: a chunk compiles the paths its
+            # problems take (the restart of an uncertified run, the narrower lanes of the
+            # stragglers), and warming up on the first chunk alone left a compilation
+            # inside the timed pass where only a later chunk needed a restart (seed 11:
+            # 15.2 instead of ~28 pairs/s)
             t0 = time.perf_counter()
-            list(pool.map(_solve_chunk, *zip(*[chunks[0]] * workers)))  # one warm-up per worker
+            for c in chunks:
+                list(pool.map(_solve_chunk, *zip(*[c] * workers)))
             first = time.perf_counter() - t0
             t0 = time.perf_counter()
             parts = list(pool.map(_solve_chunk, *zip(*chunks)))
@@ -225,7 +232,8 @@ def main(argv=None):
           f"(batch {args.batch}, {args.workers} processes) -> ratio {report['throughput_ratio']:.2f}x")
     print(f"  warm single solve (median of {L}): IPOPT {report['ipopt_single_median_s'] * 1e3:.0f} ms, jtraj "
           f"{report['jtraj_single_median_s'] * 1e3:.0f} ms -> ratio {report['latency_ratio']:.2f}x")
-    print(f"  compile: single {compile_single:.1f} s, batch {jt['compile_and_first_batch']:.1f} s (incl. first batch)")
+    print(f"  compile: single {compile_single:.1f} s, batch {jt['compile_and_first_batch']:.1f} s "
+          "(incl. the untimed warm-up pass)")
     print(f"  iterations median: jtraj {report['jtraj_iterations_median']:.0f}, IPOPT {report['ipopt_iterations_median']:.0f}; "
           f"jtraj statuses {report['jtraj_status_counts']}")
     print("  share of jtraj's iterations by status: " + ", ".join(

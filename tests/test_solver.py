@@ -386,6 +386,34 @@ def test_kkt_error_tells_an_optimum_from_a_feasible_point(robot, single):
     assert float(other.kkt_error) <= tol  # the kinetic-energy problem's own optimum
 
 
+def test_least_squares_multipliers_match_numpy_lstsq(single):
+    """The certificate's multipliers (solved in the variables' space by the push-through
+    identity) are the ridge-regularised least-squares solution of grad f + J_A^T lam = 0
+    over the free variables, solved in the rows' space by NumPy (to 1e-8), and within the
+    ridge's bias (1e-4) the minimum-norm one of NumPy's SVD-based lstsq (inequality
+    multipliers clipped at 0)."""
+    import equinox as eqx
+
+    from jtraj.solver import _NLP, _ls_multipliers
+    from jtraj.transcription import Transcription
+
+    problem, sol = single
+    tr = Transcription("decoupled")
+    nlp = _NLP(problem=problem, tr=tr, layout=tr.layout(problem), sd=tr.stage_data(problem))
+    z = nlp.layout.pack(tr.controls_of(sol), sol.h)
+    lam, J, gf, n_eq = (np.asarray(x) for x in eqx.filter_jit(_ls_multipliers)(nlp, z))
+    lo, hi, zz = (np.asarray(x) for x in (nlp.layout.z_lo, nlp.layout.z_hi, z))
+    free = ~((zz <= lo + 1e-12) | (zz >= hi - 1e-12))
+    Jf = np.where(free[None, :], J, 0.0)
+    eps = 1e-10 * (1.0 + np.max(np.sum(Jf**2, axis=1)))  # the solver's ridge
+    ridge = np.linalg.solve(Jf @ Jf.T + eps * np.eye(len(J)), -Jf @ np.where(free, gf, 0.0))
+    svd = np.linalg.lstsq(J[:, free].T, -gf[free], rcond=None)[0]
+    for ref, rtol in ((ridge, 1e-8), (svd, 1e-4)):
+        ref[n_eq:] = np.clip(ref[n_eq:], 0.0, None)
+        assert np.count_nonzero(np.abs(ref) > 1e-3) >= 6  # the goal rows at least
+        np.testing.assert_allclose(lam, ref, rtol=rtol, atol=rtol * 1e-3 * np.max(np.abs(ref)))
+
+
 def test_restart_resumes_a_run_cut_short(single):
     """A run that ends uncertified is restarted once (solver._restart): with the first
     run cut to 12 iterations, the restart must still reach the default solve's optimum."""
