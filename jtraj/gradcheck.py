@@ -75,7 +75,6 @@ Use :func:`gradcheck` per robot (or ``jtraj gradcheck --robot NAME|all``).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from typing import Any, Callable
 
@@ -256,27 +255,12 @@ def _rel(a, b):
 _FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 
 
-@functools.partial(jax.jit, static_argnums=0, compiler_options=_FAST_COMPILE)
-def _all_gradients_jit(static, dynamic):
-    treedef, fixed = static
-    leaves = [d if f is _ARRAY else f for d, f in zip(dynamic, fixed)]
-    problem, v, h, mult, mu, step, adjoint = jax.tree.unflatten(treedef, leaves)
+@eqx.filter_jit(compiler_options=_FAST_COMPILE)
+def _all_gradients(problem, v, h, mult, mu, step, adjoint):
     ad = autodiff_gradients(problem, v, h, mult, mu)
     adj = adjoint_gradients(problem, v, h, mult, mu, adjoint=adjoint)
     fd = fd_gradients(problem, v, h, mult, mu, step)
     return ad, adj, fd
-
-
-_ARRAY = object()  # placeholder for a traced leaf in the static part
-
-
-def _all_gradients(problem, v, h, mult, mu, step, adjoint):
-    # like eqx.filter_jit (arrays traced, everything else static), with compiler options
-    leaves, treedef = jax.tree.flatten((problem, v, h, mult, mu, step, adjoint))
-    is_arr = [eqx.is_array(x) for x in leaves]
-    dynamic = [x if a else None for x, a in zip(leaves, is_arr)]
-    fixed = tuple(_ARRAY if a else x for x, a in zip(leaves, is_arr))
-    return _all_gradients_jit((treedef, fixed), dynamic)
 
 
 def check_point(problem, v, h, mult, mu, *, fd_step=DEFAULT_FD_STEP,

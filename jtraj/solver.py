@@ -1049,12 +1049,19 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
                     iterations=s.it, outer_iterations=s.outer, history=s.history, kkt_error=kkt)
 
 
-@eqx.filter_jit
+# The solver's kernels are small, loop-heavy programs; XLA CPU's legacy loop emitters
+# compile them a third faster and run them about 10 % faster than its newer fusion
+# emitters (serial3, N = 20, 64 pairs on one core: compile 67 -> 45 s, solve 5.4 -> 4.9 s,
+# identical iterates). The option is a CPU one and has no effect on other backends.
+_jit = eqx.filter_jit(compiler_options={"xla_cpu_use_fusion_emitters": False})
+
+
+@_jit
 def _guess_jit(problem, opts, transcription):
     return initial_guess(problem, opts, Transcription(transcription))
 
 
-@eqx.filter_jit
+@_jit
 def _solve_jit(problem, opts, transcription, init, warm):
     # init is always arrays (the default guess is computed by _guess_jit) and warm a
     # traced bool, so a warm start does not trigger a second compilation
@@ -1115,45 +1122,45 @@ def _check_init(problem, init, transcription):
     return u, h
 
 
-@eqx.filter_jit
+@_jit
 def _solve_batch_jit(problems, opts, transcription, init, warm):
     tr = Transcription(transcription)
     return eqx.filter_vmap(lambda p, i: _solve_core(p, opts, tr, i, warm))(problems, init)
 
 
-@eqx.filter_jit
+@_jit
 def _prepare_batch_jit(problems, opts, transcription, init, warm):
     tr = Transcription(transcription)
     return eqx.filter_vmap(lambda p, i: _prepare(p, opts, tr, i, warm))(problems, init)
 
 
-@eqx.filter_jit
+@_jit
 def _segment_jit(nlps, states, opts, steps):
     return eqx.filter_vmap(lambda n, s: _loop(n, s, opts, s.it + steps))(nlps, states)
 
 
-@eqx.filter_jit
+@_jit
 def _gather_jit(nlps, states, idx):
     return _take(nlps, idx), _take(states, idx)
 
 
-@eqx.filter_jit
+@_jit
 def _scatter_jit(states, sub, idx, opts):
     return jax.tree.map(lambda a, b: a.at[idx].set(b), states, sub), _finished(sub, opts)
 
 
-@eqx.filter_jit
+@_jit
 def _needs_restart_jit(states, opts):
     return _needs_restart(states, opts)
 
 
-@eqx.filter_jit
+@_jit
 def _restart_jit(nlps, states, opts, idx):
     sub = eqx.filter_vmap(lambda n, s: _restart(n, s, opts))(_take(nlps, idx), _take(states, idx))
     return jax.tree.map(lambda a, b: a.at[idx].set(b), states, sub)
 
 
-@eqx.filter_jit
+@_jit
 def _finish_batch_jit(nlps, states, opts, valid):
     return eqx.filter_vmap(lambda n, s, v: _finish(n, s, opts, v))(nlps, states, valid)
 
@@ -1231,7 +1238,7 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
             idx = np.concatenate([open_, np.repeat(pad, counts[0] - len(open_))])
 
 
-@eqx.filter_jit
+@_jit
 def _guess_batch_jit(problems, opts, transcription):
     tr = Transcription(transcription)
     return eqx.filter_vmap(lambda p: initial_guess(p, opts, tr))(problems)
