@@ -51,7 +51,7 @@ import numpy as np
 
 from .problem import Problem
 from .robots import Limits, parameter_names
-from .solver import _NLP, SolverOptions, Status, _finish, _run
+from .solver import _NLP, SolverOptions, Status, _finish, _jit, _run
 from .transcription import Transcription
 
 __all__ = ["sensitivity", "solve_with_multipliers"]
@@ -63,7 +63,7 @@ _BOUND_TOL = 1e-9
 # solving with the final multipliers exposed
 
 
-@eqx.filter_jit
+@_jit  # the solver's compiler options
 def _solve_state(problem: Problem, opts: SolverOptions, transcription: str, init):
     from .initial_guess import GUESSES
 
@@ -249,7 +249,7 @@ def _implicit(problem, tr, wrt, theta0, sol, mult):
     }
 
 
-@eqx.filter_jit
+@_jit  # the solver's compiler options
 def _pieces(problem, tr_name: str, wrt: str, z, th, lam):
     """Every derivative the KKT sensitivity needs, at (z, theta) with multipliers lam."""
     tr = Transcription(tr_name)
