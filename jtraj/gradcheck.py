@@ -78,10 +78,11 @@ import dataclasses
 import math
 from typing import Any, Callable
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from ._compile import cpu_jit
 
 TOL_ADJOINT = 1e-8
 TOL_FD = 1e-6
@@ -251,11 +252,12 @@ def _rel(a, b):
 
 
 # The check is compiled once per robot and shape; XLA's backend optimisations buy
-# nothing for a handful of evaluations and cost half the compile time on a CPU.
+# nothing for a handful of evaluations and cost half the compile time on a CPU (other
+# backends compile with their defaults: XLA GPU refuses optimisation level 0).
 _FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 
 
-@eqx.filter_jit(compiler_options=_FAST_COMPILE)
+@cpu_jit(_FAST_COMPILE)
 def _all_gradients(problem, v, h, mult, mu, step, adjoint):
     ad = autodiff_gradients(problem, v, h, mult, mu)
     adj = adjoint_gradients(problem, v, h, mult, mu, adjoint=adjoint)

@@ -39,7 +39,6 @@ Shapes follow :mod:`jtraj.transcription`.
 from __future__ import annotations
 
 import enum
-import functools
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -49,6 +48,7 @@ import numpy as np
 from jaxtyping import Array
 
 from . import lq
+from ._compile import cpu_jit
 from .problem import Problem, Weights
 from .transcription import Layout, StageData, Transcription, decoupled_hessian, decoupled_hessian_bounds
 
@@ -1054,20 +1054,7 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
 # compile them a third faster and run them about 10 % faster than its newer fusion
 # emitters (serial3, N = 20, 64 pairs on one core: compile 67 -> 45 s, solve 5.4 -> 4.9 s,
 # identical iterates; the CLI's first solve compiles in 19 instead of 25 s).
-_CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
-
-
-def _jit(fn):
-    """``eqx.filter_jit`` with :data:`_CPU_COMPILER_OPTIONS` when JAX's default backend
-    is the CPU (checked at each call; other backends compile without them)."""
-    on_cpu = eqx.filter_jit(fn, compiler_options=_CPU_COMPILER_OPTIONS)
-    other = eqx.filter_jit(fn)
-
-    @functools.wraps(fn)
-    def call(*args, **kwargs):
-        return (on_cpu if jax.default_backend() == "cpu" else other)(*args, **kwargs)
-
-    return call
+_jit = cpu_jit({"xla_cpu_use_fusion_emitters": False})
 
 
 @_jit
