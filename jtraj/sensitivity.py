@@ -49,9 +49,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._compile import solver_jit
 from .problem import Problem
 from .robots import Limits, parameter_names
-from .solver import _NLP, SolverOptions, Status, _finish, _jit, _run
+from .solver import _NLP, SolverOptions, Status, _finish, _run
 from .transcription import Transcription
 
 __all__ = ["sensitivity", "solve_with_multipliers"]
@@ -63,7 +64,7 @@ _BOUND_TOL = 1e-9
 # solving with the final multipliers exposed
 
 
-@_jit  # the solver's compiler options
+@solver_jit
 def _solve_state(problem: Problem, opts: SolverOptions, transcription: str, init):
     from .initial_guess import GUESSES
 
@@ -249,7 +250,7 @@ def _implicit(problem, tr, wrt, theta0, sol, mult):
     }
 
 
-@_jit  # the solver's compiler options
+@solver_jit
 def _pieces(problem, tr_name: str, wrt: str, z, th, lam):
     """Every derivative the KKT sensitivity needs, at (z, theta) with multipliers lam."""
     tr = Transcription(tr_name)

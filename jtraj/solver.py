@@ -48,7 +48,7 @@ import numpy as np
 from jaxtyping import Array
 
 from . import lq
-from ._compile import cpu_jit
+from ._compile import solver_jit as _jit
 from .problem import Problem, Weights
 from .transcription import Layout, StageData, Transcription, decoupled_hessian, decoupled_hessian_bounds
 
@@ -1050,14 +1050,7 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
                     iterations=s.it, outer_iterations=s.outer, history=s.history, kkt_error=kkt)
 
 
-# The solver's kernels are small, loop-heavy programs; XLA CPU's legacy loop emitters
-# compile them a third faster and run them about 10 % faster than its newer fusion
-# emitters (serial3, N = 20, 64 pairs on one core: compile 67 -> 45 s, solve 5.4 -> 4.9 s,
-# identical iterates; the CLI's first solve compiles in 19 instead of 25 s).
-_jit = cpu_jit({"xla_cpu_use_fusion_emitters": False})
-
-
-@_jit
+@_jit  # jtraj._compile.solver_jit: the solver's XLA CPU options
 def _guess_jit(problem, opts, transcription):
     return initial_guess(problem, opts, Transcription(transcription))
 
