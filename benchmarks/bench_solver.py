@@ -13,7 +13,9 @@ verifier (tolerance 1e-6). Printed: verified success rates, false "converged" co
 cost gaps where both succeed, warm single-solve latency (median over pairs), batch
 throughput on all cores (IPOPT: one process per core; jtraj: vmapped batches, one
 process pinned to each core, ``--workers``), compile time, and, with ``--scaling``,
-time per problem against N and B (one process). ``--json`` also holds every pair's
+time per problem against N = 10..80 for both solvers on all cores (T <= 2 s throughout)
+and against the batch size B = 64..4096 for jtraj on one core (``_scaling``; ``--plot``
+draws both). ``--json`` also holds every pair's
 statuses, costs and iterations (``per_pair``).
 Ratios are jtraj / IPOPT or IPOPT / jtraj as labelled; > 1 means jtraj is ahead.
 The peer is the "lifted" CasADi form by default (states as variables, sparse; the fast
@@ -37,14 +39,21 @@ KEYS = ("v", "h", "cost", "converged", "status", "iterations")
 WEIGHTS = dict(time=1.0, energy=0.1)  # the benchmark's cost (plain values: sent to workers)
 
 
-def _solve_chunk(q0, q1, N, weights, options=None):
-    """One solve_batch call (runs in a worker process or here); numpy arrays."""
+def _robot(h_max=None):
+    import jtraj
+
+    return jtraj.robots.get("serial3", **({} if h_max is None else {"h_max": h_max}))
+
+
+def _solve_chunk(q0, q1, N, weights, options=None, h_max=None):
+    """One solve_batch call (runs in a worker process or here); numpy arrays. ``h_max``:
+    the robot's period bound unless given (the scaling study keeps N h_max at 2 s)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import jtraj
 
-    sol = jtraj.solve_batch(jtraj.robots.get("serial3"), q0, q1, N=N, weights=jtraj.Weights(**weights),
+    sol = jtraj.solve_batch(_robot(h_max), q0, q1, N=N, weights=jtraj.Weights(**weights),
                             options=jtraj.SolverOptions(**(options or {})))
     return {k: np.asarray(getattr(sol, k)) for k in KEYS}
 
@@ -62,7 +71,7 @@ def _option(text):
     return key, value
 
 
-def _jtraj_batch(q0, q1, N, B, weights, workers=1, options=None):
+def _jtraj_batch(q0, q1, N, B, weights, workers=1, options=None, h_max=None):
     """Throughput of solve_batch on chunks of B pairs: in this process (workers = 1) or in
     ``workers`` processes pinned one per core (jtraj.dataset's local
     backend; one JAX process does not use several cores well). The first chunk per worker
@@ -72,7 +81,7 @@ def _jtraj_batch(q0, q1, N, B, weights, workers=1, options=None):
     pad = (-P) % B
     q0p = np.concatenate([q0, np.repeat(q0[-1:], pad, 0)])
     q1p = np.concatenate([q1, np.repeat(q1[-1:], pad, 0)])
-    chunks = [(q0p[s:s + B], q1p[s:s + B], N, weights, options) for s in range(0, len(q0p), B)]
+    chunks = [(q0p[s:s + B], q1p[s:s + B], N, weights, options, h_max) for s in range(0, len(q0p), B)]
     if workers == 1:
         t0 = time.perf_counter()
         _solve_chunk(*chunks[0])
@@ -136,6 +145,120 @@ def _pinned_single_latency(q0, q1, N, weights, options=None):
         return pool.submit(_jtraj_single_latency, q0, q1, N, weights, 3, options).result()
 
 
+#: the scaling study (``--scaling``): numbers of samples, and batch sizes in one process
+SCALING_N = (10, 20, 40, 80)
+SCALING_B = (64, 256, 1024, 4096)
+SCALING_T = 2.0  # s: N h_max, held fixed over N (the canonical 20 x 0.1 s)
+
+
+def _batch_scan(Bs, seed, N, weights, options=None):
+    """jtraj's time per problem against the batch size, in this (pinned) process: for each
+    B one ``solve_batch`` of B fresh benchmark pairs, after a call on B non-finite pairs
+    that compiles the B-wide kernels (preparation, guess, finish) without iterating
+    (those samples are ``INVALID_INPUT`` at once); the solver's loop kernels do not depend
+    on B (fixed lanes, see ``jtraj.solve_batch``) and are compiled by a first small batch."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from peers.pairs import benchmark_pairs
+
+    _solve_chunk(*benchmark_pairs(Bs[0], seed + 100), N, weights, options)  # loop kernels
+    rows = []
+    for B in Bs:
+        q0, q1 = benchmark_pairs(B, seed)
+        _solve_chunk(np.full_like(q0, np.nan), q1, N, weights, options)
+        t0 = time.perf_counter()
+        res = _solve_chunk(q0, q1, N, weights, options)
+        wall = time.perf_counter() - t0
+        rows.append({"axis": "B", "value": B, "jtraj_ms": 1e3 * wall / B,
+                     "jtraj_converged": int(res["converged"].sum()), "pairs": B,
+                     "jtraj_iterations_median": float(np.median(res["iterations"]))})
+    return rows
+
+
+def _scaling(args, opts):
+    """``--scaling``: (1) time per problem against N, both solvers on all cores on the same
+    ``--scaling-pairs`` pairs, with the bound on T held at ``SCALING_T`` (h_max = 2 s / N,
+    so that only the discretisation changes: with the robot's 0.1 s, N = 10 would cap T
+    at 1 s, which most pairs need more than); every success of either side verified
+    (1e-6); (2) jtraj's time per problem against the batch size B, in one process pinned
+    to one core (IPOPT's time per problem on one core is its all-core time times its
+    processes, from the N = 20 row)."""
+    from peers.ipopt_peer import benchmark_pairs, solve_many
+    from peers.verify import verify
+
+    from jtraj.dataset._local import worker_pool
+
+    P = args.scaling_pairs
+    q0, q1 = benchmark_pairs(P, args.seed + 1)
+    rows = []
+    for N in SCALING_N:
+        h_max = SCALING_T / N
+        ip = solve_many(q0, q1, N=N, h_max=h_max, formulation=args.peer_formulation)
+        ip_ok = np.array([r["success"] and verify(a, b, r["v"], r["h"], h_max=h_max, tol=1e-6)["ok"]
+                          for a, b, r in zip(q0, q1, ip)])
+        jt = _jtraj_batch(q0, q1, N, -(-P // args.workers), WEIGHTS, args.workers, opts, h_max)
+        jt_ok = jt["converged"].astype(bool) & np.array(
+            [verify(a, b, v, h, h_max=h_max, tol=1e-6)["ok"] for a, b, v, h in zip(q0, q1, jt["v"], jt["h"])])
+        row = {"axis": "N", "value": N, "h_max": h_max, "pairs": P,
+               "ipopt_ms": 1e3 * ip.wall_seconds / P, "jtraj_ms": 1e3 * jt["wall"] / P,
+               "ipopt_processes": ip.processes, "ipopt_verified": int(ip_ok.sum()), "jtraj_converged": int(jt_ok.sum()),
+               "jtraj_false_converged": int(np.sum(jt["converged"].astype(bool) & ~jt_ok)),
+               "ipopt_iterations_median": float(np.median([r["iterations"] for r in ip])),
+               "jtraj_iterations_median": float(np.median(jt["iterations"])),
+               "jtraj_compile_and_first_pass_s": jt["compile_and_first_batch"]}
+        row["throughput_ratio"] = row["ipopt_ms"] / row["jtraj_ms"]
+        rows.append(row)
+        print(f"  N = {N:2d} (h_max {h_max:.4g} s, {P} pairs, all cores): IPOPT {row['ipopt_ms']:.1f} ms per problem "
+              f"({row['ipopt_verified']} verified, median {row['ipopt_iterations_median']:.0f} it), jtraj "
+              f"{row['jtraj_ms']:.1f} ms ({row['jtraj_converged']} converged, {row['jtraj_false_converged']} false, "
+              f"median {row['jtraj_iterations_median']:.0f} it) -> {row['throughput_ratio']:.2f}x")
+    with worker_pool(1) as pool:  # a spawned process pinned to one core before JAX starts
+        b_rows = pool.submit(_batch_scan, SCALING_B, args.seed + 2, args.N, WEIGHTS, opts).result()
+    ip_core_ms = next(r["ipopt_ms"] * r["ipopt_processes"] for r in rows if r["value"] == 20)
+    for r in b_rows:
+        r["ipopt_one_core_ms_at_N20"] = ip_core_ms
+        print(f"  B = {r['value']:4d} (N = {args.N}, one process on one core): jtraj {r['jtraj_ms']:.1f} ms per problem "
+              f"({r['jtraj_converged']}/{r['pairs']} converged); IPOPT on one core {ip_core_ms:.1f} ms")
+    return rows + b_rows
+
+
+def _plot_scaling(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    n_rows = [r for r in rows if r["axis"] == "N"]
+    b_rows = [r for r in rows if r["axis"] == "B"]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+    Ns = [r["value"] for r in n_rows]
+    ax[0].loglog(Ns, [r["jtraj_ms"] for r in n_rows], "o-", label="jtraj (vmapped, all cores)")
+    ax[0].loglog(Ns, [r["ipopt_ms"] for r in n_rows], "s--", c="k", label="CasADi + IPOPT (all cores)")
+    for r in n_rows:
+        ax[0].annotate(f"{r['jtraj_converged']}/{r['ipopt_verified']}", (r["value"], r["jtraj_ms"]),
+                       textcoords="offset points", xytext=(4, -12), fontsize=7)
+    ax[0].set_xticks(Ns, [str(n) for n in Ns], minor=False)
+    ax[0].xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+    ax[0].set_xlabel(f"N (T <= {SCALING_T:g} s: h_max = {SCALING_T:g} s / N)")
+    ax[0].set_ylabel("wall ms per problem")
+    ax[0].set_title("against N (labels: converged jtraj / IPOPT)", fontsize=9)
+    ax[0].legend(fontsize=8)
+    Bs = [r["value"] for r in b_rows]
+    ax[1].semilogx(Bs, [r["jtraj_ms"] for r in b_rows], "o-", label="jtraj, one core")
+    ax[1].axhline(b_rows[0]["ipopt_one_core_ms_at_N20"], ls="--", c="k", label="IPOPT, one core")
+    ax[1].set_xticks(Bs, [str(b) for b in Bs])
+    ax[1].xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+    ax[1].set_ylim(bottom=0)
+    ax[1].set_xlabel("batch size B (N = 20)")
+    ax[1].set_ylabel("wall ms per problem")
+    ax[1].set_title("against the batch size", fontsize=9)
+    ax[1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", type=int, default=64)
@@ -145,7 +268,9 @@ def main(argv=None):
     ap.add_argument("--latency-pairs", type=int, default=8)
     ap.add_argument("--workers", type=int, default=None,
                     help="jtraj batch processes, one pinned to each core (default: all cores, as IPOPT)")
-    ap.add_argument("--scaling", action="store_true", help="also time N = 10..80 and B = 64..4096")
+    ap.add_argument("--scaling", action="store_true",
+                    help="also time N = 10..80 against IPOPT and B = 64..4096 (see _scaling; --plot draws it)")
+    ap.add_argument("--scaling-pairs", type=int, default=64, help="pairs per N in the scaling study")
     ap.add_argument("--peer-formulation", choices=("lifted", "condensed"), default="lifted",
                     help="CasADi form of the IPOPT peer (default lifted, the fast one; see peers/ipopt_peer.py)")
     ap.add_argument("--linear-solver", choices=("auto", "riccati", "dense"), default="auto",
@@ -240,34 +365,9 @@ def main(argv=None):
         f"{k}: {100 * v:.0f} %" for k, v in report["jtraj_iteration_share_by_status"].items()))
 
     if args.scaling:
-        rows = []
-        for N in (10, 20, 40, 80):
-            r = _jtraj_batch(q0[:64], q1[:64], N, 64, WEIGHTS)
-            rows.append(("N", N, r["wall"] / 64))
-            print(f"  N = {N:3d}, B = 64: {1e3 * r['wall'] / 64:.1f} ms per problem")
-        for B in (64, 256, 1024, 4096):
-            qa, qb = benchmark_pairs(B, args.seed + 1)
-            r = _jtraj_batch(qa, qb, args.N, B, WEIGHTS)
-            rows.append(("B", B, r["wall"] / B))
-            print(f"  B = {B:5d}, N = {args.N}: {1e3 * r['wall'] / B:.1f} ms per problem")
-        report["scaling"] = rows
+        report["scaling"] = _scaling(args, opts)
         if args.plot:
-            import matplotlib
-
-            matplotlib.use("Agg")
-            import matplotlib.pyplot as plt
-
-            fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
-            for a, key in zip(ax, ("N", "B")):
-                xs = [r[1] for r in rows if r[0] == key]
-                ys = [1e3 * r[2] for r in rows if r[0] == key]
-                a.loglog(xs, ys, "o-", label="jtraj (vmapped)")
-                a.axhline(1e3 / ip_thr, ls="--", c="k", label="IPOPT, all cores")
-                a.set_xlabel(key)
-                a.set_ylabel("ms per problem")
-                a.legend()
-            fig.tight_layout()
-            fig.savefig(args.plot, dpi=120)
+            _plot_scaling(report["scaling"], args.plot)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(report, f, indent=2)

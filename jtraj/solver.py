@@ -1174,8 +1174,8 @@ def _lane_counts(slots: int) -> list[int]:
 
 
 def _solve_compacted(problems, opts, transcription, init, warm, slots: int, steps: int):
-    """Solve B > slots problems with a fixed number of vmapped slots, refilled as problems
-    finish. A vmapped ``while_loop`` runs every member until the slowest is done, so one
+    """Solve B problems (more than the smallest lane count) with a fixed number of
+    vmapped slots, refilled as problems finish. A vmapped ``while_loop`` runs every member until the slowest is done, so one
     batch costs max(iterations) per problem; running segments of ``steps`` iterations and
     handing finished slots to pending problems brings the cost to about the mean. Once
     nothing is pending, the unfinished problems move to fewer lanes (see
@@ -1251,16 +1251,24 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         T_max: optional scalar or (B,) bound on the total time.
         init: optional warm start (u (B, N, m_u), h (B, N)).
         efforts: "samples" or "intervals" (see :class:`jtraj.Problem`).
-        slots, segment: when B > slots, the batch is solved by ``slots`` vmapped lanes
-            in segments of ``segment`` iterations, each lane taking the next pending
-            problem when its own finishes (same results, cost ~ mean instead of max
-            iterations; compiled once for ``slots``, and on a CPU for slots / 4 and / 16,
-            which take the stragglers). ``slots=None`` solves all B at once; "auto"
-            (default) is 32 on a CPU (96 pairs on 2 cores: 16 lanes 19.0 s, 32 lanes
-            17.8 s, 64 lanes 23.8 s; segments of 5 / 10 / 25 / 50 iterations: 20.6 / 17.8 /
-            19.2 / 21.7 s) and 1024 on an
-            accelerator (an H200 ran 766 pairs/s at B = 1024 solved at once, 1573 at
-            B = 16,384 with 4096 slots).
+        slots, segment: the batch is solved by ``slots`` vmapped lanes in segments of
+            ``segment`` iterations, each lane taking the next pending problem when its
+            own finishes, and on a CPU the last unfinished problems move to slots / 4 and
+            slots / 16 lanes (same results up to rounding, cost ~ mean instead of max
+            iterations; compiled once per lane count). This applies when B exceeds the
+            smallest lane count: on a CPU a batch smaller than ``slots`` steps down too
+            (64 benchmark pairs in batches of 32, one core: 4.05 s against 9.62 s solved
+            at once, whose cost is the slowest problem's iterations on every lane); on an
+            accelerator when B > slots. ``slots=None`` solves all B at once. "auto"
+            (default) is 8 on a CPU and 1024 on an accelerator. On a CPU a vmapped
+            iteration costs about its lane count, and more per lane above ~12 lanes:
+            2026-11-29, 128 benchmark pairs, one process per core, seeds 0 / 1, best of
+            two interleaved runs: 4 lanes 5.42 / 5.11 s, 8 lanes 5.39 / 5.06, 12 lanes
+            5.34 / 5.18, 16 lanes 6.16 / 5.70, 32 lanes 6.57 / 6.46 (the default until
+            then). Earlier, with the dense Newton solve (96 pairs on 2 cores): 16 lanes
+            19.0 s, 32 lanes 17.8 s, 64 lanes 23.8 s; segments of 5 / 10 / 25 / 50
+            iterations: 20.6 / 17.8 / 19.2 / 21.7 s. An H200 ran 766 pairs/s at B = 1024
+            solved at once, 1573 at B = 16,384 with 4096 slots.
 
     Returns a :class:`Solution` whose fields carry a leading batch axis. Samples with
     non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch
@@ -1313,11 +1321,11 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
                              f"got ({u.shape}, {h.shape})")
         init = (u, h)
     if slots == "auto":
-        slots = 32 if jax.default_backend() == "cpu" else 1024
+        slots = 8 if jax.default_backend() == "cpu" else 1024
     if slots is not None and (not isinstance(slots, int) or isinstance(slots, bool) or slots < 1):
         raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
     if not isinstance(segment, int) or segment < 1:
         raise ValueError(f"segment must be a positive integer, got {segment!r}")
-    if slots is not None and B > slots:
+    if slots is not None and B > min(_lane_counts(slots)):
         return _solve_compacted(problems, opts, transcription, init, jnp.asarray(warm), slots, segment)
     return _solve_batch_jit(problems, opts, transcription, init, jnp.asarray(warm))

@@ -49,7 +49,8 @@ def batch(robot):
     q1[3] = np.nan  # one bad sample must not poison the others
     # and one that jtraj.Problem refuses (the move needs 2 s, N h_max = 1 s)
     q0, q1 = np.vstack([q0, q0[2]]), np.vstack([q1, q0[2] + 3.0])
-    return q0, q1, jtraj.solve_batch(robot, q0, q1, N=N, weights=W)
+    # solved at once (slots=None): the reference of the compacted batches below
+    return q0, q1, jtraj.solve_batch(robot, q0, q1, N=N, weights=W, slots=None)
 
 
 def test_single_solve_converges_and_verifies_independently(single):
@@ -344,11 +345,13 @@ def test_structured_hessian_matches_differences_of_the_gradient(name, transcript
         np.testing.assert_allclose(H, H2, rtol=0, atol=1e-12 * float(np.max(np.abs(H2))))
 
 
-def test_compacted_batch_equals_one_shot_batch(robot, batch):
-    """slots < B: lanes refilled as problems finish; every problem must take the same
+@pytest.mark.parametrize("slots", [2, "auto"])
+def test_compacted_batch_equals_one_shot_batch(robot, batch, slots):
+    """Lanes refilled as problems finish (slots=2 < B) or, on a CPU, a batch smaller than
+    ``slots`` stepping down to fewer lanes ("auto"): every problem must take the same
     iterations and reach the same point as in the one-shot vmapped batch."""
     q0, q1, sol = batch
-    lanes = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, slots=2, segment=7)
+    lanes = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, slots=slots, segment=7)
     np.testing.assert_array_equal(np.asarray(lanes.status), np.asarray(sol.status))
     np.testing.assert_array_equal(np.asarray(lanes.iterations), np.asarray(sol.iterations))
     # same iterations; XLA may round differently at another batch width (seen: 5e-12)
