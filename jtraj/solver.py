@@ -48,6 +48,7 @@ import numpy as np
 from jaxtyping import Array
 
 from . import lq
+from ._compile import SOLVER_XLA_OPTIONS, cpu_jit
 from ._compile import solver_jit as _jit
 from .problem import Problem, Weights
 from .transcription import Layout, StageData, Transcription, decoupled_hessian, decoupled_hessian_bounds
@@ -1138,7 +1139,10 @@ def _gather_jit(nlps, states, idx):
     return _take(nlps, idx), _take(states, idx)
 
 
-@_jit
+# The batch's states are donated, so the lanes are written back in place. Copying them
+# made each segment cost O(B) and a batch O(B^2): one core, N = 20, 37.6 / 41.0 / 46.1 /
+# 49.6 ms per problem at B = 64 / 256 / 1024 / 4096 before.
+@cpu_jit(SOLVER_XLA_OPTIONS, donate="all")
 def _scatter_jit(states, sub, idx, opts):
     return jax.tree.map(lambda a, b: a.at[idx].set(b), states, sub), _finished(sub, opts)
 
@@ -1171,6 +1175,16 @@ def _lane_counts(slots: int) -> list[int]:
     if jax.default_backend() != "cpu":
         return [slots]
     return sorted({slots, max(slots // 4, 1), max(slots // 16, 1)}, reverse=True)
+
+
+def _cpu_lanes(nz: int) -> int:
+    """The default lane count on a CPU for problems of about ``nz`` unknowns: 8 at
+    serial3's N = 20 (nz = 80), fewer for larger problems, at least 4. Above a dozen lanes
+    at N = 20 each lane costs more (the working set outgrows the core's cache), and the
+    threshold falls as N grows. Measured on one core (2026-11-29, benchmark pairs, T <= 2
+    s): N = 40, 64 pairs: 2 / 4 / 8 lanes 10.14 / 10.12 / 12.99 s; N = 80, 32 pairs:
+    16.11 / 14.86 / 17.71 s (see :func:`solve_batch` for N = 20)."""
+    return int(min(8, max(4, 640 // max(nz, 1))))
 
 
 def _solve_compacted(problems, opts, transcription, init, warm, slots: int, steps: int):
@@ -1260,7 +1274,8 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
             (64 benchmark pairs in batches of 32, one core: 4.05 s against 9.62 s solved
             at once, whose cost is the slowest problem's iterations on every lane); on an
             accelerator when B > slots. ``slots=None`` solves all B at once. "auto"
-            (default) is 8 on a CPU and 1024 on an accelerator. On a CPU a vmapped
+            (default) is 1024 on an accelerator and, on a CPU, 8 for serial3 at N = 20,
+            down to 4 for larger problems (:func:`_cpu_lanes`). On a CPU a vmapped
             iteration costs about its lane count, and more per lane above ~12 lanes:
             2026-11-29, 128 benchmark pairs, one process per core, seeds 0 / 1, best of
             two interleaved runs: 4 lanes 5.42 / 5.11 s, 8 lanes 5.39 / 5.06, 12 lanes
@@ -1321,7 +1336,7 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
                              f"got ({u.shape}, {h.shape})")
         init = (u, h)
     if slots == "auto":
-        slots = 8 if jax.default_backend() == "cpu" else 1024
+        slots = _cpu_lanes(N * (n + 1)) if jax.default_backend() == "cpu" else 1024
     if slots is not None and (not isinstance(slots, int) or isinstance(slots, bool) or slots < 1):
         raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
     if not isinstance(segment, int) or segment < 1:
