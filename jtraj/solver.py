@@ -154,7 +154,8 @@ class SolverOptions(eqx.Module):
             checked offline). The second (2026-11-29) stops the runs that used to end at
             the outer-iteration limit with the violation frozen at 3e-4 to 6e-3 and the
             penalty at its cap for 15-20 outer iterations, restarted once and frozen
-            again (11 pairs on seven benchmark seeds, all infeasible for IPOPT; the
+            again (14 pairs on seven benchmark seeds, all infeasible for IPOPT: 414-879
+            instead of 611-1,009 iterations each, the converged pairs unchanged; the
             restart rescues feasible runs, which end their first run near a feasible
             point, below 6e-4 there). Decoupled transcription only: with the
             collocation's defect equalities it stopped a feasible problem of the test
