@@ -218,7 +218,8 @@ def _scaling(args, opts):
     ip_core_ms = next(r["ipopt_ms"] * r["ipopt_processes"] for r in rows if r["value"] == 20)
     for r in b_rows:
         r["ipopt_one_core_ms_at_N20"] = ip_core_ms
-        print(f"  B = {r['value']:4d} (N = {args.N}, one process on one core): jtraj {r['jtraj_ms']:.1f} ms per problem "
+        print(f"  B = {r['value']:4d} (N = {args.N}, one process on one core): "
+              f"jtraj {r['jtraj_ms']:.1f} ms per problem "
               f"({r['jtraj_converged']}/{r['pairs']} converged); IPOPT on one core {ip_core_ms:.1f} ms")
     return rows + b_rows
 

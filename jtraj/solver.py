@@ -1152,9 +1152,10 @@ def _gather_jit(nlps, states, idx):
     return _take(nlps, idx), _take(states, idx)
 
 
-# The batch's states are donated, so the lanes are written back in place. Copying them
-# made each segment cost O(B) and a batch O(B^2): one core, N = 20, 37.6 / 41.0 / 46.1 /
-# 49.6 ms per problem at B = 64 / 256 / 1024 / 4096 before.
+# The batch's states are donated, so the lanes are written back in place instead of
+# copying the whole batch's state at every segment (O(B) per segment, O(B^2) per batch):
+# one core, N = 20, B = 1024: 46.3 -> 43.9 ms per problem; a gather and a scatter now
+# take 0.3 ms at B = 256 as at B = 4096.
 @cpu_jit(SOLVER_XLA_OPTIONS, donate="all")
 def _scatter_jit(states, sub, idx, opts):
     return jax.tree.map(lambda a, b: a.at[idx].set(b), states, sub), _finished(sub, opts)
@@ -1213,8 +1214,9 @@ def _cpu_lanes(nz: int) -> int:
 
 def _solve_compacted(problems, opts, transcription, init, warm, slots: int, steps: int):
     """Solve B problems (more than the smallest lane count) with a fixed number of
-    vmapped slots, refilled as problems finish. A vmapped ``while_loop`` runs every member until the slowest is done, so one
-    batch costs max(iterations) per problem; running segments of ``steps`` iterations and
+    vmapped slots, refilled as problems finish. A vmapped ``while_loop`` runs every
+    member until the slowest is done, so one batch costs max(iterations) per problem;
+    running segments of ``steps`` iterations and
     handing finished slots to pending problems brings the cost to about the mean. Once
     nothing is pending, the unfinished problems move to fewer lanes (see
     :func:`_lane_counts`). Each problem takes the iterations it takes in a one-shot batch

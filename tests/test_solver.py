@@ -143,6 +143,21 @@ def test_problem_needing_more_time_than_n_h_max_stops_as_likely_infeasible(robot
     assert int(sol.iterations) < SolverOptions().max_iter
 
 
+def test_a_penalty_stuck_at_its_cap_also_stops_as_likely_infeasible(robot):
+    """The same infeasible problem with the penalty capped at 4x its start: it can never
+    grow 16x, so only the second rule of ``SolverOptions.detect_infeasible`` (violation
+    hardly shrinking with the penalty at its cap) can stop it early; without detection
+    the run goes on to the outer-iteration limit, its violation frozen."""
+    q0 = np.array([0.0, 0.3, -0.3])
+    problem = jtraj.Problem(robot, q0, q0 + 0.7, N=N, weights=W)
+    capped = SolverOptions(penalty_max=40.0, restart_iter=0)
+    sol = jtraj.solve(problem, options=capped)
+    assert int(sol.status) == Status.LIKELY_INFEASIBLE, sol.status_message
+    assert int(sol.outer_iterations) < capped.max_outer // 2
+    off = jtraj.solve(problem, options=SolverOptions(penalty_max=40.0, restart_iter=0, detect_infeasible=False))
+    assert int(off.status) == Status.MAX_ITERATIONS and int(off.outer_iterations) == capped.max_outer
+
+
 def test_batch_matches_single(robot, batch):
     q0, q1, sol = batch
     one = jtraj.solve(jtraj.Problem(robot, q0[0], q1[0], N=N, weights=W))
