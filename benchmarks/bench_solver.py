@@ -162,15 +162,16 @@ def _batch_scan(Bs, seed, N, weights, options=None):
     jax.config.update("jax_enable_x64", True)
     from peers.pairs import benchmark_pairs
 
-    _solve_chunk(*benchmark_pairs(Bs[0], seed + 100), N, weights, options)  # loop kernels
+    h_max = SCALING_T / N  # as in the N scan
+    _solve_chunk(*benchmark_pairs(Bs[0], seed + 100), N, weights, options, h_max)  # loop kernels
     rows = []
     for B in Bs:
         q0, q1 = benchmark_pairs(B, seed)
-        _solve_chunk(np.full_like(q0, np.nan), q1, N, weights, options)
+        _solve_chunk(np.full_like(q0, np.nan), q1, N, weights, options, h_max)
         t0 = time.perf_counter()
-        res = _solve_chunk(q0, q1, N, weights, options)
+        res = _solve_chunk(q0, q1, N, weights, options, h_max)
         wall = time.perf_counter() - t0
-        rows.append({"axis": "B", "value": B, "jtraj_ms": 1e3 * wall / B,
+        rows.append({"axis": "B", "value": B, "N": N, "jtraj_ms": 1e3 * wall / B,
                      "jtraj_converged": int(res["converged"].sum()), "pairs": B,
                      "jtraj_iterations_median": float(np.median(res["iterations"]))})
     return rows
@@ -183,7 +184,7 @@ def _scaling(args, opts):
     at 1 s, which most pairs need more than); every success of either side verified
     (1e-6); (2) jtraj's time per problem against the batch size B, in one process pinned
     to one core (IPOPT's time per problem on one core is its all-core time times its
-    processes, from the N = 20 row)."""
+    processes, from the row of the same N, if the N scan has one)."""
     from peers.ipopt_peer import benchmark_pairs, solve_many
     from peers.verify import verify
 
@@ -215,12 +216,12 @@ def _scaling(args, opts):
               f"median {row['jtraj_iterations_median']:.0f} it) -> {row['throughput_ratio']:.2f}x")
     with worker_pool(1) as pool:  # a spawned process pinned to one core before JAX starts
         b_rows = pool.submit(_batch_scan, SCALING_B, args.seed + 2, args.N, WEIGHTS, opts).result()
-    ip_core_ms = next(r["ipopt_ms"] * r["ipopt_processes"] for r in rows if r["value"] == 20)
+    ip_core_ms = next((r["ipopt_ms"] * r["ipopt_processes"] for r in rows if r["value"] == args.N), None)
     for r in b_rows:
-        r["ipopt_one_core_ms_at_N20"] = ip_core_ms
+        r["ipopt_one_core_ms"] = ip_core_ms
         print(f"  B = {r['value']:4d} (N = {args.N}, one process on one core): "
-              f"jtraj {r['jtraj_ms']:.1f} ms per problem "
-              f"({r['jtraj_converged']}/{r['pairs']} converged); IPOPT on one core {ip_core_ms:.1f} ms")
+              f"jtraj {r['jtraj_ms']:.1f} ms per problem ({r['jtraj_converged']}/{r['pairs']} converged)"
+              + ("" if ip_core_ms is None else f"; IPOPT on one core {ip_core_ms:.1f} ms"))
     return rows + b_rows
 
 
@@ -248,11 +249,12 @@ def _plot_scaling(rows, path):
     ax[0].legend(fontsize=8)
     Bs = [r["value"] for r in b_rows]
     ax[1].semilogx(Bs, [r["jtraj_ms"] for r in b_rows], "o-", label="jtraj, one core")
-    ax[1].axhline(b_rows[0]["ipopt_one_core_ms_at_N20"], ls="--", c="k", label="IPOPT, one core")
+    if b_rows[0]["ipopt_one_core_ms"] is not None:
+        ax[1].axhline(b_rows[0]["ipopt_one_core_ms"], ls="--", c="k", label="IPOPT, one core")
     ax[1].set_xticks(Bs, [str(b) for b in Bs])
     ax[1].xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
     ax[1].set_ylim(bottom=0)
-    ax[1].set_xlabel("batch size B (N = 20)")
+    ax[1].set_xlabel(f"batch size B (N = {b_rows[0]['N']})")
     ax[1].set_ylabel("wall ms per problem")
     ax[1].set_title("against the batch size", fontsize=9)
     ax[1].legend(fontsize=8)
