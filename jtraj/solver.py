@@ -286,17 +286,37 @@ class _NLP(eqx.Module):
         return self.tr.stage_vectors(self.problem, self.layout, z)
 
     def stage_al(self, w, sdk, mult_k, mu, kink=None):
+        return self._stage_al_parts(w, sdk, mult_k, mu, kink)[0]
+
+    def _stage_al_parts(self, w, sdk, mult_k, mu, kink=None):
+        """(AL value, equalities, inequalities, cost terms) of one sample."""
         # the dynamics once per sample, shared by the cost and the constraints
         a_tau = self.tr.accel_and_tau(self.problem, *self.tr.split_stage(self.problem, w)[:3])
         eq, ineq = self.tr.stage_constraints(self.problem, w, sdk, a_tau)
-        val = sum(self.tr.stage_cost_terms(self.problem, w, sdk, a_tau).values())
+        terms = self.tr.stage_cost_terms(self.problem, w, sdk, a_tau)
+        val = sum(terms.values())
         for key, c in eq.items():
             val = val + jnp.sum(mult_k.eq[key] * c) + 0.5 * mu * jnp.sum(c**2)
         for key, g in ineq.items():
             val = val + _phr(g, mult_k.ineq[key], mu)
             if kink is not None:
                 val = val + _kink_curvature(g, mult_k.ineq[key], mu, kink)
-        return val
+        return val, eq, ineq, terms
+
+    def al_grad_and_parts(self, z, mult, mu):
+        """(gradient of the AL in z, (equalities, inequalities, global inequalities), cost):
+        one pass through the dynamics for what :func:`_stationarity`, :meth:`constraints`
+        and :meth:`cost_terms` compute apart (the loop's test after each Newton step)."""
+
+        def value(zz):
+            val, eq, ineq, terms = jax.vmap(self._stage_al_parts, in_axes=(0, 0, _stage_axes(mult), None))(
+                self.W(zz), self.sd, _stage_mult(mult), mu)
+            cost = sum(jnp.sum(v) for v in terms.values())
+            glob = self.tr.global_inequalities(self.problem, self.layout, zz)
+            return jnp.sum(val) + self.global_al(zz, mult, mu), ((eq, ineq, glob), cost)
+
+        g, parts = jax.grad(value, has_aux=True)(z)
+        return g, parts
 
     def global_al(self, z, mult, mu):
         return self.time_al(jnp.sum(self.layout.unpack(z)[1]), mult, mu)
@@ -560,8 +580,9 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping, kink=None):
     return z_new, damping, jnp.max(jnp.abs(pg)), val, any_ok
 
 
-def _stationarity(nlp: _NLP, z, mult, mu):
-    g = jax.grad(nlp.al_value)(z, mult, mu)
+def _stationarity(nlp: _NLP, z, mult, mu, g=None):
+    """The projected gradient's largest entry (``g``: the AL's gradient at z, if known)."""
+    g = jax.grad(nlp.al_value)(z, mult, mu) if g is None else g
     return jnp.max(jnp.abs(z - jnp.clip(z - g, nlp.layout.z_lo, nlp.layout.z_hi)))
 
 
@@ -867,10 +888,10 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
         z, damping, pg, _, moved = _newton_step(nlp, s.z, s.mult, s.mu, s.damping, kink)
         failed = ~jnp.all(jnp.isfinite(z))
         inner = s.inner + 1
-        stat = _stationarity(nlp, z, s.mult, s.mu)
+        g, ((eq, ineq, glob), cost) = nlp.al_grad_and_parts(z, s.mult, s.mu)
+        stat = _stationarity(nlp, z, s.mult, s.mu, g)
         subproblem_done = (stat <= s.omega) | (inner >= opts.max_inner) | (~moved & (damping >= 1e9))
         # ---- outer update (computed always, applied where subproblem_done) ----
-        eq, ineq, glob = nlp.constraints(z)
         viol = _violation(eq, ineq, glob, s.mult, s.mu)
         new_eq = jax.tree.map(lambda l, c: jnp.clip(l + s.mu * c, -1e10, 1e10), s.mult.eq, eq)
         new_ineq = jax.tree.map(lambda r, g: jnp.clip(r + s.mu * g, 0.0, 1e10), s.mult.ineq, ineq)
@@ -892,7 +913,6 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
         omega = _next_inner_tol(opts, s.omega, viol)
         plain_viol = _violation(eq, ineq, glob)
         converged = (plain_viol <= opts.tol_feasibility) & (stat <= opts.tol_optimality)
-        cost = sum(nlp.cost_terms(z).values())
         hist = s.history.at[jnp.minimum(s.outer, opts.max_outer - 1)].set(jnp.stack([cost, plain_viol, s.mu]))
         # likely infeasible: two outer iterations ago the violation was hardly larger
         # although the penalty has grown 16x since (history rows: cost, violation, mu),
