@@ -154,16 +154,25 @@ SCALING_T = 2.0  # s: N h_max, held fixed over N (the canonical 20 x 0.1 s)
 def _batch_scan(Bs, seed, N, weights, options=None):
     """jtraj's time per problem against the batch size, in this (pinned) process: for each
     B one ``solve_batch`` of B fresh benchmark pairs, after a call on B non-finite pairs
-    that compiles the B-wide kernels (preparation, guess, finish) without iterating
-    (those samples are ``INVALID_INPUT`` at once); the solver's loop kernels do not depend
-    on B (fixed lanes, see ``jtraj.solve_batch``) and are compiled by a first small batch."""
+    that compiles the B-wide kernels (preparation, guess, gather and scatter) without
+    iterating (those samples are ``INVALID_INPUT`` at once); the solver's loop, restart
+    and finish kernels do not depend on B (fixed lanes, see ``jtraj.solve_batch``) and are
+    compiled by the first small batches."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
     from peers.pairs import benchmark_pairs
 
+    from jtraj import SolverOptions
+
     h_max = SCALING_T / N  # as in the N scan
-    _solve_chunk(*benchmark_pairs(Bs[0], seed + 100), N, weights, options, h_max)  # loop kernels
+    # the loop's and the restart's kernels (they do not depend on B): warm-up batches until
+    # one of them had a restart (iterations beyond max_iter), at most four
+    max_iter = SolverOptions(**(options or {})).max_iter
+    for k in range(4):
+        if np.any(_solve_chunk(*benchmark_pairs(Bs[0], seed + 100 + k), N, weights, options, h_max)["iterations"]
+                  > max_iter):
+            break
     rows = []
     for B in Bs:
         q0, q1 = benchmark_pairs(B, seed)
