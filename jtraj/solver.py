@@ -304,8 +304,8 @@ class _NLP(eqx.Module):
         return val, eq, ineq, terms
 
     def al_grad_and_parts(self, z, mult, mu):
-        """(gradient of the AL in z, (equalities, inequalities, global inequalities), cost):
-        one pass through the dynamics for what :func:`_stationarity`, :meth:`constraints`
+        """(gradient of the AL in z, ((equalities, inequalities, global inequalities), cost)):
+        one pass through the dynamics for what ``jax.grad(al_value)``, :meth:`constraints`
         and :meth:`cost_terms` compute apart (the loop's test after each Newton step)."""
 
         def value(zz):
@@ -315,8 +315,7 @@ class _NLP(eqx.Module):
             glob = self.tr.global_inequalities(self.problem, self.layout, zz)
             return jnp.sum(val) + self.global_al(zz, mult, mu), ((eq, ineq, glob), cost)
 
-        g, parts = jax.grad(value, has_aux=True)(z)
-        return g, parts
+        return jax.grad(value, has_aux=True)(z)
 
     def global_al(self, z, mult, mu):
         return self.time_al(jnp.sum(self.layout.unpack(z)[1]), mult, mu)
@@ -580,9 +579,8 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping, kink=None):
     return z_new, damping, jnp.max(jnp.abs(pg)), val, any_ok
 
 
-def _stationarity(nlp: _NLP, z, mult, mu, g=None):
-    """The projected gradient's largest entry (``g``: the AL's gradient at z, if known)."""
-    g = jax.grad(nlp.al_value)(z, mult, mu) if g is None else g
+def _stationarity(nlp: _NLP, z, g):
+    """The largest entry of the projected gradient at z (``g``: the AL's gradient there)."""
     return jnp.max(jnp.abs(z - jnp.clip(z - g, nlp.layout.z_lo, nlp.layout.z_hi)))
 
 
@@ -894,7 +892,7 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
         failed = ~jnp.all(jnp.isfinite(z))
         inner = s.inner + 1
         g, ((eq, ineq, glob), cost) = nlp.al_grad_and_parts(z, s.mult, s.mu)
-        stat = _stationarity(nlp, z, s.mult, s.mu, g)
+        stat = _stationarity(nlp, z, g)
         subproblem_done = (stat <= s.omega) | (inner >= opts.max_inner) | (~moved & (damping >= 1e9))
         # ---- outer update (computed always, applied where subproblem_done) ----
         viol = _violation(eq, ineq, glob, s.mult, s.mu)
