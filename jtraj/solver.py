@@ -303,27 +303,26 @@ class _NLP(eqx.Module):
                 val = val + _kink_curvature(g, mult_k.ineq[key], mu, kink)
         return val, eq, ineq, terms
 
+    def al_and_parts(self, z, mult, mu):
+        """(AL value, ((equalities, inequalities, global inequalities), cost)) at z, from
+        one pass through the dynamics (the parts are what :meth:`constraints` and
+        :meth:`cost_terms` compute apart)."""
+        val, eq, ineq, terms = jax.vmap(self._stage_al_parts, in_axes=(0, 0, _stage_axes(mult), None))(
+            self.W(z), self.sd, _stage_mult(mult), mu)
+        cost = sum(jnp.sum(v) for v in terms.values())
+        glob = self.tr.global_inequalities(self.problem, self.layout, z)
+        return jnp.sum(val) + self.global_al(z, mult, mu), ((eq, ineq, glob), cost)
+
     def al_grad_and_parts(self, z, mult, mu):
-        """(gradient of the AL in z, ((equalities, inequalities, global inequalities), cost)):
-        one pass through the dynamics for what ``jax.grad(al_value)``, :meth:`constraints`
-        and :meth:`cost_terms` compute apart (the loop's test after each Newton step)."""
-
-        def value(zz):
-            val, eq, ineq, terms = jax.vmap(self._stage_al_parts, in_axes=(0, 0, _stage_axes(mult), None))(
-                self.W(zz), self.sd, _stage_mult(mult), mu)
-            cost = sum(jnp.sum(v) for v in terms.values())
-            glob = self.tr.global_inequalities(self.problem, self.layout, zz)
-            return jnp.sum(val) + self.global_al(zz, mult, mu), ((eq, ineq, glob), cost)
-
-        return jax.grad(value, has_aux=True)(z)
+        """(gradient of the AL in z, parts of :meth:`al_and_parts`): the loop's test after
+        each Newton step."""
+        return jax.grad(self.al_and_parts, has_aux=True)(z, mult, mu)
 
     def global_al(self, z, mult, mu):
         return self.time_al(jnp.sum(self.layout.unpack(z)[1]), mult, mu)
 
     def al_value(self, z, mult, mu):
-        W = self.W(z)
-        per_stage = jax.vmap(self.stage_al, in_axes=(0, 0, _stage_axes(mult), None))(W, self.sd, _stage_mult(mult), mu)
-        return jnp.sum(per_stage) + self.global_al(z, mult, mu)
+        return self.al_and_parts(z, mult, mu)[0]
 
     def stage_derivatives(self, W, mult, mu, kink=None):
         """Per-stage values, gradients and Hessians of the AL terms in w_k: (val (N+1,),
@@ -1215,11 +1214,17 @@ def _finish_lanes(nlps, states, opts, valid, slots: int):
     B = int(valid.shape[0])
     parts = []
     for start in range(0, B, slots):
-        group = np.arange(start, min(start + slots, B))
-        idx = jnp.asarray(np.concatenate([group, np.repeat(group[:1], slots - group.size)]))
+        idx = _padded(np.arange(start, min(start + slots, B)), slots)
         sub_nlps, (sub_states, sub_valid) = _gather_jit(nlps, (states, valid), idx)
         parts.append(_finish_batch_jit(sub_nlps, sub_states, opts, sub_valid))
     return jax.tree.map(lambda *xs: jnp.concatenate(xs)[:B], *parts)
+
+
+def _padded(group, width: int):
+    """Lane indices for ``group`` (a NumPy index array, at most ``width`` long) padded to
+    ``width`` with repeats of its first entry (a fixed width, one compilation; a repeated
+    lane computes and writes back the same result twice)."""
+    return jnp.asarray(np.concatenate([group, np.repeat(group[:1], width - group.size)]))
 
 
 def _take(tree, idx):
@@ -1264,10 +1269,7 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     states = _run_lanes(nlps, states, np.arange(int(valid.shape[0])), opts, slots, steps)
     todo = np.flatnonzero(np.asarray(_needs_restart_jit(states, opts)))  # none if restart_iter == 0
     for start in range(0, todo.size, slots):
-        # padded with a repeat of the group's first problem: the same result is written
-        # twice (a fixed gather width, one compilation)
-        group = todo[start:start + slots]
-        idx = jnp.asarray(np.concatenate([group, np.repeat(group[:1], slots - group.size)]))
+        idx = _padded(todo[start:start + slots], slots)
         states, _ = _scatter_jit(states, _restart_jit(*_gather_jit(nlps, states, idx), opts), idx, opts)
     if todo.size:
         states = _run_lanes(nlps, states, todo, opts, slots, steps)
