@@ -276,7 +276,8 @@ class _NLP(eqx.Module):
     tr: Transcription = eqx.field(static=True)
     layout: Layout
     sd: StageData
-    #: assemble the decoupled Hessian with jacfwd like the other transcriptions (tests)
+    #: the reference path of the tests: stage Hessians by one forward-over-reverse pass
+    #: and the decoupled Hessian in z assembled with jacfwd, like the other transcriptions
     generic_hessian: bool = eqx.field(static=True, default=False)
     #: Newton directions by the stage-wise Riccati recursion (decoupled only, see
     #: :mod:`jtraj.lq`) instead of dense Cholesky factorisations of the Hessian in z
@@ -288,10 +289,15 @@ class _NLP(eqx.Module):
     def stage_al(self, w, sdk, mult_k, mu, kink=None):
         return self._stage_al_parts(w, sdk, mult_k, mu, kink)[0]
 
-    def _stage_al_parts(self, w, sdk, mult_k, mu, kink=None):
-        """(AL value, equalities, inequalities, cost terms) of one sample."""
+    def _stage_al_parts(self, w, sdk, mult_k, mu, kink=None, tau=None):
+        """(AL value, equalities, inequalities, cost terms) of one sample. ``tau``: the
+        sample's efforts as an input of their own (transcriptions whose control slot is
+        the acceleration, see :meth:`_stage_derivatives_split`) instead of the dynamics."""
         # the dynamics once per sample, shared by the cost and the constraints
-        a_tau = self.tr.accel_and_tau(self.problem, *self.tr.split_stage(self.problem, w)[:3])
+        if tau is None:
+            a_tau = self.tr.accel_and_tau(self.problem, *self.tr.split_stage(self.problem, w)[:3])
+        else:
+            a_tau = (self.tr.split_stage(self.problem, w)[2], tau)
         eq, ineq = self.tr.stage_constraints(self.problem, w, sdk, a_tau)
         terms = self.tr.stage_cost_terms(self.problem, w, sdk, a_tau)
         val = sum(terms.values())
@@ -326,16 +332,65 @@ class _NLP(eqx.Module):
 
     def stage_derivatives(self, W, mult, mu, kink=None):
         """Per-stage values, gradients and Hessians of the AL terms in w_k: (val (N+1,),
-        c (N+1, nw), Hk (N+1, nw, nw)), one forward-over-reverse pass per stage. ``kink``
-        (None, or a traced margin): Hk includes :func:`_kink_curvature` with that margin."""
+        c (N+1, nw), Hk (N+1, nw, nw)). ``kink`` (None, or a traced margin): Hk includes
+        :func:`_kink_curvature` with that margin. Where the control slot is the
+        acceleration (decoupled, spline) by :meth:`_stage_derivatives_split`, elsewhere
+        (and with ``generic_hessian``) by one forward-over-reverse pass per stage."""
+        split = self.tr.name in ("decoupled", "spline") and not self.generic_hessian
+        per_stage = self._stage_derivatives_split if split else self._stage_derivatives_plain
+        return jax.vmap(per_stage, in_axes=(0, 0, _stage_axes(mult), None, None))(
+            W, self.sd, _stage_mult(mult), mu, kink)
 
-        def value_grad(w, sdk, mk, mu_):
-            v, gw = jax.value_and_grad(self.stage_al)(w, sdk, mk, mu_, kink)
+    def _stage_derivatives_plain(self, w, sdk, mk, mu, kink):
+        def value_grad(w_):
+            v, gw = jax.value_and_grad(self.stage_al)(w_, sdk, mk, mu, kink)
             return gw, (v, gw)
 
-        Hk, (val_k, c) = jax.vmap(jax.jacfwd(value_grad, has_aux=True), in_axes=(0, 0, _stage_axes(mult), None))(
-            W, self.sd, _stage_mult(mult), mu)
-        return val_k, c, Hk
+        H, (val, g) = jax.jacfwd(value_grad, has_aux=True)(w)
+        return val, g, H
+
+    def _stage_derivatives_split(self, w, sdk, mk, mu, kink):
+        """(value, gradient, Hessian) of one sample's AL by the chain rule through its
+        efforts tau = ID(q, qd, a), exact: with phi(w, tau) the AL with tau as an input,
+        lam = d phi / d tau and J = d tau / dw,
+
+            H = phi_ww + phi_wt J + J^T phi_tw + J^T phi_tt J + sum_i lam_i d2 tau_i / dw2.
+
+        phi (boxes, penalties, cost) is cheap to differentiate twice; the dear part, the
+        last term, is forward-over-reverse on lam . tau along q and qd only: tau is affine
+        in the acceleration for every rigid-body model (M(q) a + b(q, qd), see
+        :class:`jtraj.robots.Robot`), so its acceleration block is zero and its cross
+        block is the transpose of rows already computed (serial3, 8 lanes: the stage
+        derivatives 83 -> 66 us per problem and iteration against one pass over all of w)."""
+        robot = self.problem.robot
+        n, nw = robot.n, w.shape[0]
+        nx, na = 2 * n, nw - 2 * n - 1  # state (q, qd), acceleration slot
+        x, a = w[:nx], w[nx:nx + na]
+
+        def tau_of(s, acc):
+            return robot.inverse_dynamics(s[:n], s[n:], acc)
+
+        tau = tau_of(x, a)
+
+        def phi_grad(y):
+            v, gy = jax.value_and_grad(lambda yy: self._stage_al_parts(yy[:nw], sdk, mk, mu, kink, yy[nw:])[0])(y)
+            return gy, (v, gy)
+
+        Hy, (val, gy) = jax.jacfwd(phi_grad, has_aux=True)(jnp.concatenate([w, tau]))
+        lam = gy[nw:]
+
+        def weighted(s):  # (gradient of lam . tau in (q, qd, a), tau) at state s
+            t, vjp = jax.vjp(tau_of, s, a)
+            gs, ga = vjp(lam)
+            return jnp.concatenate([gs, ga]), t
+
+        R, Js = jax.jacfwd(weighted)(x)  # (nx + na, nx), (m, nx)
+        Ja = jax.jacfwd(lambda acc: tau_of(x, acc))(a)  # (m, na)
+        J = jnp.zeros((tau.shape[0], nw), w.dtype).at[:, :nx].set(Js).at[:, nx:nx + na].set(Ja)
+        Hs = jnp.zeros((nw, nw), w.dtype).at[:nx + na, :nx].set(R).at[:nx, nx:nx + na].set(R[nx:].T)
+        A = Hy[:nw, nw:] @ J
+        H = Hy[:nw, :nw] + A + A.T + J.T @ Hy[nw:, nw:] @ J + Hs
+        return val, gy[:nw] + J.T @ lam, H
 
     def time_al(self, T, mult, mu):
         """The global AL term as a function of the total time T (see global_al)."""

@@ -360,6 +360,40 @@ def test_structured_hessian_matches_differences_of_the_gradient(name, transcript
         np.testing.assert_allclose(H, H2, rtol=0, atol=1e-12 * float(np.max(np.abs(H2))))
 
 
+@pytest.mark.parametrize("name, transcription", [
+    ("ibm7535", "decoupled"), ("pkm2", "decoupled"), ("serial3_vertical", "decoupled"), ("wmr", "decoupled"),
+    pytest.param("serial3", "decoupled", marks=pytest.mark.slow),
+    pytest.param("parallel3", "decoupled", marks=pytest.mark.slow),  # ~45 s to compile
+    pytest.param("serial3", "spline", marks=pytest.mark.slow),
+])
+def test_split_stage_derivatives_match_one_pass(name, transcription):
+    """The stage derivatives by the chain rule through the efforts (what the solver uses
+    where the control slot is the acceleration; it relies on the inverse dynamics being
+    affine in the acceleration) against one forward-over-reverse pass over the whole
+    stage (``generic_hessian``), at a random point with every cost term, a via point, an
+    active T_max, random multipliers and the kink curvature on rows within 0.5 of their
+    PHR switch: agreement to rounding (1e-11 relative). Robots with actuators (ibm7535),
+    a closed chain (pkm2), gravity and a mobile base in the default suite."""
+    import equinox as eqx
+
+    from jtraj.gradcheck import default_weights, random_point
+    from jtraj.solver import _NLP, _init_multipliers
+    from jtraj.transcription import Transcription
+
+    rng = np.random.default_rng(3)
+    tr = Transcription(transcription)
+    problem, v, h, _, mu, _ = random_point(jtraj.robots.get(name), rng, N=4, weights=default_weights())
+    lay = tr.layout(problem)
+    split = _NLP(problem=problem, tr=tr, layout=lay, sd=tr.stage_data(problem))
+    plain = _NLP(problem=problem, tr=tr, layout=lay, sd=split.sd, generic_hessian=True)
+    z = lay.pack(tr.initial_controls(problem, v, h), h)
+    mult = jax.tree.map(lambda x: x + jnp.asarray(rng.uniform(0, 2, x.shape)), _init_multipliers(split, z))
+    derivs = eqx.filter_jit(lambda n, zz, m: n.stage_derivatives(n.W(zz), m, mu, jnp.asarray(0.5)))
+    for got, want, what in zip(derivs(split, z, mult), derivs(plain, z, mult), ("value", "gradient", "Hessian")):
+        assert np.all(np.isfinite(np.asarray(got))), what
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-11 * float(np.max(np.abs(want))), err_msg=what)
+
+
 @pytest.mark.parametrize("slots", [2, "auto"])
 def test_compacted_batch_equals_one_shot_batch(robot, batch, slots):
     """Lanes refilled as problems finish (slots=2 < B) or, on a CPU, a batch smaller than
