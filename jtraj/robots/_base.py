@@ -167,7 +167,10 @@ class Robot(eqx.Module):
     :meth:`rigid_body_forces` with a faster formulation (e.g. recursive Newton-Euler),
     which must then be tested against the Lagrangian one, and
     :meth:`generalized_to_actuator` for robots whose actuated joints are not the
-    generalised coordinates (parallel robots).
+    generalised coordinates (parallel robots). :meth:`inverse_dynamics` must stay affine
+    in the acceleration (``M(q) qdd + b(q, qd)`` mapped linearly to the actuators), as
+    every rigid-body model is: the solver's stage Hessians rely on it (tested for every
+    built-in robot).
     """
 
     limits: Limits
