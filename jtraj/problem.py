@@ -33,22 +33,40 @@ class Weights(eqx.Module):
 
     "Energy" in reports is ``sum_k h_k tau_k^T U_1 tau_k`` with ``U_1 = diag(1/tau_max^2)``,
     i.e. the h-weighted (time-integral) form, independent of the weight ``energy``.
+
+    The weights are array leaves: a compiled solver serves any values (a sweep over
+    weights compiles once). Which optional terms exist is static and fixed here: a
+    ``kinetic`` or ``singularity`` weight that is a concrete 0 when the Weights is built
+    drops its term from the compiled cost, derivatives included (the singularity term's
+    second derivatives cost as much as the rest of a Newton iteration); a traced weight
+    keeps it. Build a new Weights (not ``eqx.tree_at``) to switch a term on.
     """
 
-    time: float | Array = 1.0
-    energy: float | Array = 1.0
-    kinetic: float | Array = 0.0
-    singularity: float | Array = 0.0
-    U: Array | None = None
-    Q: Array | None = None
+    time: Array
+    energy: Array
+    kinetic: Array
+    singularity: Array
+    U: Array | None
+    Q: Array | None
+    #: static: whether the kinetic and the singularity terms are part of the cost
+    has_kinetic: bool = eqx.field(static=True)
+    has_singularity: bool = eqx.field(static=True)
 
-    def __check_init__(self):
-        for name in ("time", "energy", "kinetic", "singularity"):
-            value = getattr(self, name)
+    def __init__(self, time=1.0, energy=1.0, kinetic=0.0, singularity=0.0, U=None, Q=None):
+        zero = {}
+        for name, value in (("time", time), ("energy", energy), ("kinetic", kinetic), ("singularity", singularity)):
             if is_concrete(value):
-                v = float(np.asarray(value))
-                if not math.isfinite(v) or v < 0:
+                try:
+                    arr = np.asarray(value, dtype=float)
+                except (TypeError, ValueError):
+                    raise ValueError(f"Weights.{name} must be a number, got {value!r}") from None
+                if not np.all(np.isfinite(arr)) or np.any(arr < 0):
                     raise ValueError(f"Weights.{name} must be a finite number >= 0, got {value!r}")
+                value, zero[name] = arr, not np.any(arr)
+            setattr(self, name, value)
+        self.U, self.Q = U, Q
+        self.has_kinetic = Q is not None or not zero.get("kinetic", False)
+        self.has_singularity = not zero.get("singularity", False)
 
     def matrices(self, robot: Robot) -> tuple[Array, Array]:
         """(U, Q) for ``robot``: U is (m, m) over actuator efforts, Q (n, n)."""

@@ -280,9 +280,9 @@ class Transcription:
         terms = {
             "time": wt.time * h,
             "energy": h * tau @ U @ tau,
-            "kinetic": h * qd @ Q @ qd if wt.Q is not None or _nonzero(wt.kinetic) else jnp.zeros(()),
+            "kinetic": h * qd @ Q @ qd if wt.has_kinetic else jnp.zeros(()),
             "singularity": wt.singularity * h / jnp.maximum(problem.robot.manipulability(q), 1e-9)
-            if _nonzero(wt.singularity) else jnp.zeros(()),
+            if wt.has_singularity else jnp.zeros(()),
         }
         return {k: sd_mask(sd.is_interval, v) for k, v in terms.items()}
 
@@ -372,13 +372,6 @@ class Transcription:
 
 def sd_mask(mask, x):
     return mask * x
-
-
-def _nonzero(x) -> bool:
-    try:
-        return float(x) != 0.0
-    except (TypeError, jax.errors.ConcretizationTypeError):
-        return True  # traced weight: keep the term
 
 
 def recursion_step(q, qd, a, h):

@@ -257,6 +257,44 @@ def test_weights_validation():
         jtraj.Weights.parse("speed=1")
     with pytest.raises(ValueError):
         jtraj.Weights(time=-1.0)
+    with pytest.raises(ValueError, match="singularity"):
+        jtraj.Weights(singularity=float("nan"))
+
+
+def test_weights_are_values_and_their_terms_are_static(robot):
+    """A compiled solver serves any weight values: problems that differ only in their
+    weights share their static part (what ``eqx.filter_jit`` caches on), however the
+    values are given. A concrete zero drops the kinetic or singularity term from the structure (its
+    derivatives are never computed), a traced weight keeps it, and the dropped term
+    really is absent from the cost while a kept one counts."""
+    import equinox as eqx
+
+    def structure(w):  # what eqx.filter_jit keys its cache on: the non-array part
+        static = eqx.partition(jtraj.Problem(robot, Q0, Q1, N=N, weights=w), eqx.is_array)[1]
+        leaves, treedef = jax.tree.flatten(static)
+        return treedef, [repr(x) for x in leaves]
+
+    base = structure(jtraj.Weights(time=1.0, energy=0.1))
+    assert structure(jtraj.Weights(time=2.0, energy=0.3)) == base
+    assert structure(jtraj.Weights(time=np.float32(1.0), energy=jnp.asarray(0.2), kinetic=jnp.asarray(0.0))) == base
+    on = jtraj.Weights(time=1.0, energy=0.1, singularity=0.01)
+    assert on.has_singularity and not on.has_kinetic and structure(on) != base
+    assert jtraj.Weights(kinetic=0.0, Q=np.eye(3)).has_kinetic
+    assert jax.jit(lambda s: jnp.asarray(jtraj.Weights(singularity=s).has_singularity))(0.0)
+    # the terms' values: a kept term counts, a dropped one is zero
+    from jtraj.transcription import Transcription
+
+    tr = Transcription("decoupled")
+
+    def terms(w):
+        p = jtraj.Problem(robot, Q0, Q1, N=N, weights=w)
+        lay = tr.layout(p)
+        u, h = jtraj.solver.initial_guess(p, SolverOptions(), tr)
+        W = tr.stage_vectors(p, lay, lay.pack(u, h))
+        return eqx.filter_jit(jax.vmap(lambda wk, sk: tr.stage_cost_terms(p, wk, sk)))(W, tr.stage_data(p))
+
+    assert float(jnp.sum(terms(on)["singularity"])) > 0
+    assert float(jnp.sum(terms(jtraj.Weights(time=1.0, energy=0.1))["singularity"])) == 0.0
 
 
 def test_inner_tolerance_schedules():
