@@ -42,9 +42,8 @@ def main():
     rows, sols = [], {}
     t_first = None
     for mu in MUS:
-        # weights as arrays: one compilation for the whole sweep
-        w = jtraj.Weights(time=jnp.asarray(mu), energy=jnp.asarray((1 - mu) / 2), kinetic=jnp.asarray(0.0),
-                          singularity=jnp.asarray(0.0))
+        # one compilation for the whole sweep (weights are values, not static)
+        w = jtraj.Weights(time=mu, energy=(1 - mu) / 2)
         pr = jtraj.Problem(robot, jnp.asarray(P_START), jnp.asarray(P_GOAL), N=N, weights=w)
         sol, t0, t1, tries = solve_with_restart(pr)
         t_first = t0 if t_first is None else t_first

@@ -48,8 +48,8 @@ TABLE_42_N20_LONG = (5, 10, 35.54, 7.31, 4910.39, "5e-4", "4e-4")
 
 
 def weights(time_w, energy_w):
-    # arrays, not Python floats, so every weighting shares one compilation
-    return jtraj.Weights(*map(jnp.asarray, (time_w, energy_w, 0.0, 0.0)))
+    # every weighting shares one compilation (weights are values, not static)
+    return jtraj.Weights(time=time_w, energy=energy_w)
 
 
 W_TE = weights(1.0, 1.0)  # time-energy, all weights 1

@@ -29,9 +29,8 @@ from jtraj.transcription import Transcription, integrate  # noqa: E402
 
 N = 20
 T_MAX = 3.0
-# weights as arrays (not Python floats) so that both weightings share one compilation
-WEIGHTS = jtraj.Weights(*map(jnp.asarray, (1.0, 1.0, 1.0, 0.0)))  # "all weights 1" (singularity 0)
-WEIGHTS_TIME = jtraj.Weights(*map(jnp.asarray, (1.0, 0.1, 0.0, 0.0)))  # time-dominant
+WEIGHTS = jtraj.Weights(time=1.0, energy=1.0, kinetic=1.0)  # "all weights 1" (singularity 0)
+WEIGHTS_TIME = jtraj.Weights(time=1.0, energy=0.1)  # time-dominant
 Q_START = np.deg2rad([0.0, 30.0, 30.0])
 P_GOAL = (1.35, 1.30)
 EXTRA = 1.5  # kg on the third link

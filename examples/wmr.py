@@ -34,7 +34,7 @@ N = 50
 # disc then enters it by a few centimetres to about 0.1 m).
 H_MAX = 0.5
 # minimum time (time weight 1, energy 0)
-W_TIME = jtraj.Weights(*map(jnp.asarray, (1.0, 0.0, 0.0, 0.0)))
+W_TIME = jtraj.Weights(time=1.0, energy=0.0)
 
 
 def dense(sol, per_interval=10):
