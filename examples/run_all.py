@@ -6,8 +6,10 @@
 
 Each example script writes its own section of RESULTS.md (between marker comments)
 with :func:`write_section`, so a single script can be re-run alone. Every script runs in
-its own process (fresh JAX compilation caches, bounded memory); the wall time of each
-is printed and recorded in the header of RESULTS.md.
+its own process (fresh in-memory JAX caches, bounded memory; JAX's persistent cache in
+``~/.cache/jtraj/jax`` is shared, so unchanged code loads instead of compiling); the
+wall time of each is printed, and a full run records them in RESULTS.md's last section
+(a partial run leaves that table to the last full run).
 """
 
 from __future__ import annotations
@@ -159,9 +161,12 @@ def main(argv: list[str]) -> int:
             del running[name]
     total = time.perf_counter() - t_all
     rows = [(n, "-" if timings[n][0] is None else f"{timings[n][0]:.0f}", timings[n][1]) for n in names]
-    write_section("run_all", "## Run times of the last `run_all.py`\n\n"
-                  + table(rows, header=("experiment", "wall s", "result"))
-                  + f"\n\nTotal wall time {total:.0f} s with {jobs} scripts at a time on {machine()}.")
+    text = (table(rows, header=("experiment", "wall s", "result"))
+            + f"\n\nTotal wall time {total:.0f} s with {jobs} scripts at a time on {machine()}.")
+    if argv:  # a partial run keeps the table of the last full one
+        print(text, flush=True)
+    else:
+        write_section("run_all", "## Run times of the last `run_all.py`\n\n" + text)
     return 1 if failed else 0
 
 
