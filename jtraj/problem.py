@@ -37,9 +37,10 @@ class Weights(eqx.Module):
     The weights are array leaves: a compiled solver serves any values (a sweep over
     weights compiles once). Which optional terms exist is static and fixed here: a
     ``kinetic`` or ``singularity`` weight that is a concrete 0 when the Weights is built
-    drops its term from the compiled cost, derivatives included (the singularity term's
-    second derivatives cost as much as the rest of a Newton iteration); a traced weight
-    keeps it. Build a new Weights (not ``eqx.tree_at``) to switch a term on.
+    drops its term from the compiled cost, derivatives included (with the singularity
+    term, even at a weight of 1e-12, 128 serial3 benchmark pairs took 1.47x as long: 6.30
+    against 4.29 s on one core); a traced weight keeps it. Build a new Weights (not
+    ``eqx.tree_at``) to switch a term on.
     """
 
     time: Array
