@@ -336,7 +336,7 @@ class _NLP(eqx.Module):
         :func:`_kink_curvature` with that margin. Where the control slot is the
         acceleration (decoupled, spline) by :meth:`_stage_derivatives_split`, elsewhere
         (and with ``generic_hessian``) by one forward-over-reverse pass per stage."""
-        split = self.tr.name in ("decoupled", "spline") and not self.generic_hessian
+        split = self.tr.controls_are_accelerations and not self.generic_hessian
         per_stage = self._stage_derivatives_split if split else self._stage_derivatives_plain
         return jax.vmap(per_stage, in_axes=(0, 0, _stage_axes(mult), None, None))(
             W, self.sd, _stage_mult(mult), mu, kink)
@@ -362,13 +362,12 @@ class _NLP(eqx.Module):
         :class:`jtraj.robots.Robot`), so its acceleration block is zero and its cross
         block is the transpose of rows already computed (serial3, 8 lanes: the stage
         derivatives 83 -> 66 us per problem and iteration against one pass over all of w)."""
-        robot = self.problem.robot
-        n, nw = robot.n, w.shape[0]
+        n, nw = self.problem.robot.n, w.shape[0]
         nx, na = 2 * n, nw - 2 * n - 1  # state (q, qd), acceleration slot
         x, a = w[:nx], w[nx:nx + na]
 
         def tau_of(s, acc):
-            return robot.inverse_dynamics(s[:n], s[n:], acc)
+            return self.tr.accel_and_tau(self.problem, s[:n], s[n:], acc)[1]
 
         tau = tau_of(x, a)
 

@@ -128,6 +128,12 @@ class Transcription:
         return self.name == "collocation"
 
     @property
+    def controls_are_accelerations(self) -> bool:
+        """Whether the control slot of a stage vector is the joint acceleration and the
+        efforts are its inverse dynamics (decoupled, spline; the others take efforts)."""
+        return self.name in ("decoupled", "spline")
+
+    @property
     def linear_in_controls(self) -> bool:
         """Whether W(z) is linear in the controls for fixed periods (the recursion and the
         spline are; forward dynamics are not): the Hessian's co-state term then has no
@@ -187,7 +193,7 @@ class Transcription:
     def accel_and_tau(self, problem: Problem, q, qd, c):
         """(a, tau) at one sample from its control slot c (see the class docstring)."""
         robot = problem.robot
-        if self.name in ("decoupled", "spline"):
+        if self.controls_are_accelerations:
             return c, robot.inverse_dynamics(q, qd, c)
         if self.name == "collocation":
             n = robot.n
@@ -300,7 +306,7 @@ class Transcription:
 
         # the spline's knot accelerations and torques exist at all N+1 knots
         at = jnp.ones_like(sd.is_interval) if self.name == "spline" else sd.is_interval
-        if self.name in ("decoupled", "spline"):
+        if self.controls_are_accelerations:
             if lim.tau_max is not None:  # otherwise tau is a control, boxed exactly
                 ineq["tau"] = box(tau, lim.tau_max, at)
         if self.name == "decoupled" and problem.efforts == "intervals" and lim.tau_max is not None:
@@ -429,6 +435,16 @@ def decoupled_hessian(layout: Layout, W, c, Hk):
     return H[perm][:, perm]
 
 
+def _sample_times(h):
+    """t_k = sum_{i<k} h_i, (N+1,), from the periods h (N,)."""
+    return jnp.concatenate([jnp.zeros(1, h.dtype), jnp.cumsum(h)])
+
+
+def _suffix_sums(X):
+    """sum_{k > j} X_k for j = 0..N-1, from X (N+1, ...) over the samples."""
+    return jnp.cumsum(X[::-1], axis=0)[::-1][1:]
+
+
 def _decoupled_pieces(layout: Layout, W, c):
     """The recursion's derivatives shared by :func:`decoupled_hessian` and
     :func:`decoupled_hessian_bounds`, stage-major (y = (v_0, h_0, v_1, h_1, ...)): the
@@ -438,7 +454,7 @@ def _decoupled_pieces(layout: Layout, W, c):
     N, n = layout.N, layout.m_u
     ns, ny = 2 * n, N * (n + 1)
     qd, u, h = W[:, n:ns], W[:N, ns:ns + n], W[:N, -1]
-    t = jnp.concatenate([jnp.zeros(1, h.dtype), jnp.cumsum(h)])  # (N+1,)
+    t = _sample_times(h)  # (N+1,)
     low = jnp.arange(N + 1)[:, None] > jnp.arange(N)[None, :]  # (N+1, N): j < k
     dt = t[:, None] - t[None, :N]  # t_k - t_j
     eye = jnp.eye(n, dtype=W.dtype)
@@ -453,7 +469,7 @@ def _decoupled_pieces(layout: Layout, W, c):
     A = jnp.concatenate([Aq, Aqd], axis=1).reshape(N + 1, ns, ny) * sy  # state rows of J
     # co-state term: suffix sums of the position co-states carry d2q_k to every k > j
     cq, cqd = c[:, :n], c[:, n:ns]
-    Cq = jnp.cumsum(cq[::-1], axis=0)[::-1][1:]  # (N, n): sum_{k > m} cq_k
+    Cq = _suffix_sums(cq)  # (N, n): sum_{k > m} cq_k
     I, J = jnp.arange(N)[:, None], jnp.arange(N)[None, :]
     M = Cq @ u.T  # [m, l] = Cq_{>m} . v_l
     Chh = jnp.where(I >= J, M, M.T)  # Cq_{>max(i,j)} . v_min(i,j)
@@ -474,13 +490,9 @@ def _state_diagonal(layout: Layout, W, Hss):
     so the sums over k > j need only the suffix sums of Hss_k, t_k Hss_k, t_k^2 Hss_k."""
     N, n = layout.N, layout.m_u
     qd, u, h = W[:N, n:2 * n], W[:N, 2 * n:3 * n], W[:N, -1]
-    t = jnp.concatenate([jnp.zeros(1, h.dtype), jnp.cumsum(h)])  # (N+1,)
-
-    def suffix(X):  # sum over k > j, for j = 0..N-1
-        return jnp.cumsum(X[::-1], axis=0)[::-1][1:]
-
+    t = _sample_times(h)
     tk, tj = t[:, None, None], t[:N, None, None]
-    T0, T1, T2 = suffix(Hss), suffix(tk * Hss), suffix(tk**2 * Hss)
+    T0, T1, T2 = _suffix_sums(Hss), _suffix_sums(tk * Hss), _suffix_sums(tk**2 * Hss)
     S0, S1, S2 = T0, T1 - tj * T0, T2 - 2 * tj * T1 + tj**2 * T0  # sums of dt^0, dt^1, dt^2 times Hss_k
     p = jnp.concatenate([qd, u], axis=1)
     r = jnp.concatenate([u, jnp.zeros_like(u)], axis=1)
