@@ -143,6 +143,27 @@ def test_problem_needing_more_time_than_n_h_max_stops_as_likely_infeasible(robot
     assert int(sol.iterations) < SolverOptions().max_iter
 
 
+def test_stalled_subproblems_end_early_and_infeasibility_is_still_detected(robot):
+    """The infeasible problem above, with the stall exit of ``SolverOptions.stall_window``
+    active from the first iteration (``stall_after=0``) and checked every 5 Newton
+    iterations: its subproblems, whose AL hardly moves while the violation stays frozen,
+    end before ``max_inner`` and the run stops as likely infeasible in fewer iterations
+    than with the exit off; the violation it reports is the same minimum it reaches
+    either way (to 1e-3 relative)."""
+    q0 = np.array([0.0, 0.3, -0.3])
+    problem = jtraj.Problem(robot, q0, q0 + 0.7, N=N, weights=W)
+    off = jtraj.solve(problem, options=SolverOptions(stall_window=0))
+    on = jtraj.solve(problem, options=SolverOptions(stall_window=5, stall_after=0))
+    for sol in (off, on):
+        assert int(sol.status) == Status.LIKELY_INFEASIBLE, sol.status_message
+    assert int(on.iterations) < 0.8 * int(off.iterations), (int(on.iterations), int(off.iterations))
+    np.testing.assert_allclose(float(on.max_violation["overall"]), float(off.max_violation["overall"]), rtol=1e-3)
+    with pytest.raises(ValueError, match="stall_window"):
+        SolverOptions(stall_window=-1)
+    with pytest.raises(ValueError, match="stall_ratio"):
+        SolverOptions(stall_ratio=float("nan"))
+
+
 def test_a_penalty_stuck_at_its_cap_also_stops_as_likely_infeasible(robot):
     """The same infeasible problem with the penalty capped at 4x its start: it can never
     grow 16x, so only the second rule of ``SolverOptions.detect_infeasible`` (violation
