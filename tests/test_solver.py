@@ -602,6 +602,34 @@ def test_stalled_subproblem_pair_reaches_ipopts_cost():
     assert float(plain.cost) > ref["cost"] * 1.003  # the failure this guards against
 
 
+def test_chord_polish_reaches_the_gauss_newton_polish(single):
+    """The finish's feasibility polish takes chord steps (the constraints' Jacobian at its
+    starting point only); the restart's recomputes it at every step (Gauss-Newton). From
+    the converged optimum perturbed by 1e-5 (a violation like the AL's at its end) both
+    must remove the violation to below 1e-12 and land on the same point (1e-9 in the
+    scaled unknowns), each without leaving the simple bounds."""
+    from jtraj import solver as S
+    from jtraj.transcription import Transcription
+    import equinox as eqx
+
+    problem, sol = single
+    assert sol.converged, sol.status_message
+    opts = SolverOptions()
+    nlp, _, _ = S._prepare(problem, opts, Transcription("decoupled"), (sol.v, sol.h))
+    lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
+    z_opt = nlp.layout.pack(sol.v, sol.h)
+    noise = 1e-5 * np.random.default_rng(0).standard_normal(z_opt.shape)
+    z = jnp.clip(z_opt + noise, lo, hi)
+    violation = eqx.filter_jit(lambda n, zz: S._violation(*n.constraints(zz)))
+    assert float(violation(nlp, z)) > 1e-6  # the polish has work to do
+    polish = eqx.filter_jit(lambda n, zz, chord: S._polish(n, zz, chord=chord))
+    z_chord, z_gn = polish(nlp, z, True), polish(nlp, z, False)
+    for zz in (z_chord, z_gn):
+        assert float(violation(nlp, zz)) <= 1e-12
+        assert bool(jnp.all((zz >= lo) & (zz <= hi)))
+    np.testing.assert_allclose(np.asarray(z_chord), np.asarray(z_gn), atol=1e-9)
+
+
 @pytest.mark.slow
 def test_polish_releases_rows_when_holding_them_leaves_a_violation():
     """Benchmark pair 16 of seed 21 (N = 20) with ``kink_margin=1e-4, kink_after=0``: the
