@@ -184,14 +184,21 @@ class SolverOptions(eqx.Module):
             ``stall_after`` iterations, it ends if its AL value fell by less than
             ``stall_ratio mu v^2`` over the last window while the complementarity-aware
             violation v is above ``stall_min_viol``: mu v^2 is the scale by which the next
-            multiplier update moves the AL. ``stall_window=0`` disables it.
+            multiplier update moves the AL. Off by default (``stall_window=0``); 10 turns
+            it on. **It can stop a feasible problem as likely infeasible**: pair 591 of
+            ``jtraj dataset --pairs 10000 --seed 0`` (h_max 0.2 s), whose fifth subproblem
+            makes slow but real progress at penalty 640 with the violation at 1.4e-2, was
+            stopped after 124 iterations with ``stall_window=10`` and ``stall_ratio`` 0.1
+            or 0.01; with the exit off it converges after 190. Use it where infeasible
+            problems are common and a rare false ``LIKELY_INFEASIBLE`` is acceptable.
             Why: on problems IPOPT reports infeasible (the motion cannot be done in
             N h_max under the torque limits) the violation freezes at 3e-2..8e-2 while
-            the penalty grows, and each subproblem ran to ``max_inner`` with its AL
+            the penalty grows, and each subproblem runs to ``max_inner`` with its AL
             hardly moving (benchmark pair 4 of seed 0: three subproblems of 60 iterations
             at penalties 40..640); the infeasibility test (``detect_infeasible``) counts
-            outer iterations and waited for them. Measured (2026-11-29, bench_solver's
-            256 pairs per seed, one core each), off against on: seeds 0 / 1 / 11 Newton
+            outer iterations and waits for them. Measured (2026-11-29, bench_solver's
+            256 pairs per seed, one core each), off against 10 (ratio 0.1; 0.01 saves
+            -6.7 / -3.5 / -3.5 %, 0.003 -2.3 / -1.3 / -2.0 %): seeds 0 / 1 / 11 Newton
             iterations 33,689 / 34,423 / 31,780 against 31,452 / 32,061 / 30,125 (-6.6 /
             -6.9 / -5.2 %; on the converged pairs -0.5..-1.1 %), converged 231 / 226 / 236
             either way, costs within +-0.03 %; on the dataset family (h_max 0.2 s, 256
@@ -247,7 +254,7 @@ class SolverOptions(eqx.Module):
     restart_penalty_max: float = eqx.field(static=True, default=1e4)
     kink_margin: float = eqx.field(static=True, default=1e-3)
     kink_after: int = eqx.field(static=True, default=20)
-    stall_window: int = eqx.field(static=True, default=10)
+    stall_window: int = eqx.field(static=True, default=0)
     stall_ratio: float = eqx.field(static=True, default=0.1)
     stall_min_viol: float = eqx.field(static=True, default=1e-2)
     stall_after: int = eqx.field(static=True, default=100)
