@@ -699,6 +699,10 @@ def _ridge_solve(Jf, b, eps):
     return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(A), True), b)
 
 
+#: the violation below which the feasibility polish stops (the verification asks 1e-6)
+_POLISH_DONE = 1e-12
+
+
 def _polish(nlp: _NLP, z, iterations: int = 4, act_tol: float = 1e-3, release: bool = False, chord: bool = True):
     """Feasibility polish: a few Gauss-Newton projections of z onto the manifold of the
     equalities and nearly-active inequalities (minimum-norm corrections, simple bounds
@@ -740,7 +744,6 @@ def _polish(nlp: _NLP, z, iterations: int = 4, act_tol: float = 1e-3, release: b
         z, v, k, _ = carry
         J = J0 if chord else jac(nlp, z, act_tol)
         fixed = (z <= lo + 1e-12) | (z >= hi - 1e-12)
-        Jr = J
         if release:
             raw = _residual(nlp, z, act_tol)
             is_ineq = jnp.arange(raw.size) >= n_eq
@@ -750,13 +753,13 @@ def _polish(nlp: _NLP, z, iterations: int = 4, act_tol: float = 1e-3, release: b
             for _ in range(4):
                 dz = correction(jnp.where(rows[:, None], J, 0.0), jnp.where(rows, raw, 0.0), fixed)
                 rows = rows | (is_ineq & (raw - J @ dz > 0))
-            Jr, r = jnp.where(rows[:, None], J, 0.0), jnp.where(rows, raw, 0.0)
+            J, r = jnp.where(rows[:, None], J, 0.0), jnp.where(rows, raw, 0.0)
         else:
             r = _residual(nlp, z, act_tol, True)
-            dz = correction(Jr, r, fixed)
+            dz = correction(J, r, fixed)
         # variables the correction would push through a bound are held there and the
         # correction recomputed (clipping it would undo part of it)
-        dz = correction(Jr, r, fixed | (z - dz < lo) | (z - dz > hi))
+        dz = correction(J, r, fixed | (z - dz < lo) | (z - dz > hi))
         z_new = jnp.clip(z - dz, lo, hi)
         v_new = viol(z_new)
         better = jnp.isfinite(v_new) & (v_new < v)
@@ -767,10 +770,6 @@ def _polish(nlp: _NLP, z, iterations: int = 4, act_tol: float = 1e-3, release: b
     # a bounded loop (under vmap it runs while some lane still improves)
     z, *_ = jax.lax.while_loop(lambda c: c[3] & (c[2] < iterations), body, carry)
     return z
-
-
-#: the violation below which the feasibility polish stops (the verification asks 1e-6)
-_POLISH_DONE = 1e-12
 
 
 def _final_polish(nlp: _NLP, z, opts: SolverOptions, chord: bool = True):
