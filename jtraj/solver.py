@@ -258,6 +258,8 @@ class SolverOptions(eqx.Module):
     stall_ratio: float = eqx.field(static=True, default=0.1)
     stall_min_viol: float = eqx.field(static=True, default=1e-2)
     stall_after: int = eqx.field(static=True, default=100)
+    inequality_penalty: str = eqx.field(static=True, default="phr")
+    pbm_init: float = eqx.field(static=True, default=1.0)
 
     def __check_init__(self):
         if self.schedule not in ("default", "thesis"):
@@ -321,6 +323,19 @@ class _NLP(eqx.Module):
     #: Newton directions by the stage-wise Riccati recursion (decoupled only, see
     #: :mod:`jtraj.lq`) instead of dense Cholesky factorisations of the Hessian in z
     stagewise: bool = eqx.field(static=True, default=False)
+    #: the inequalities' AL term: "phr" or "pbm" (see ``SolverOptions.inequality_penalty``)
+    ineq_penalty: str = eqx.field(static=True, default="phr")
+    pbm_init: float = eqx.field(static=True, default=1.0)
+
+    def ineq_term(self, g, rho, mu):
+        return _pbm(g, rho, mu) if self.ineq_penalty == "pbm" else _phr(g, rho, mu)
+
+    def ineq_update(self, g, rho, mu):
+        """The first-order multiplier update of an inequality term (the multiplier the
+        term implies at g)."""
+        if self.ineq_penalty == "pbm":
+            return jnp.clip(rho * _pbm_slope(mu * g), _PBM_FLOOR, 1e10)
+        return jnp.clip(rho + mu * g, 0.0, 1e10)
 
     def W(self, z):
         return self.tr.stage_vectors(self.problem, self.layout, z)
@@ -343,7 +358,7 @@ class _NLP(eqx.Module):
         for key, c in eq.items():
             val = val + jnp.sum(mult_k.eq[key] * c) + 0.5 * mu * jnp.sum(c**2)
         for key, g in ineq.items():
-            val = val + _phr(g, mult_k.ineq[key], mu)
+            val = val + self.ineq_term(g, mult_k.ineq[key], mu)
             if kink is not None:
                 val = val + _kink_curvature(g, mult_k.ineq[key], mu, kink)
         return val, eq, ineq, terms
@@ -432,7 +447,7 @@ class _NLP(eqx.Module):
 
     def time_al(self, T, mult, mu):
         """The global AL term as a function of the total time T (see global_al)."""
-        return _phr(self.tr.time_inequalities(self.problem, T), mult.glob, mu)
+        return self.ineq_term(self.tr.time_inequalities(self.problem, T), mult.glob, mu)
 
     def al_derivatives(self, z, mult, mu, kink=None):
         """Value, gradient and Hessian of the AL in z, from per-stage pieces (exact; with a
@@ -503,6 +518,30 @@ class _NLP(eqx.Module):
 def _phr(g, rho, mu):
     """Rockafellar/PHR term for g <= 0 with multiplier rho >= 0 and penalty mu."""
     return jnp.sum(jnp.maximum(0.0, rho + mu * g) ** 2 - rho**2) / (2 * mu)
+
+
+#: the smallest PBM multiplier: a multiplier that decays to 0 would leave its constraint
+#: unpenalised (the term is rho / mu phi(mu g))
+_PBM_FLOOR = 1e-8
+
+
+def _pbm_phi(t):
+    """Ben-Tal and Zibulevsky's log-quadratic penalty-barrier function: -log(1 - t) for
+    t <= 1/2, continued by the quadratic that matches its value and first two
+    derivatives there; phi(0) = 0, phi'(0) = 1, convex, twice differentiable everywhere."""
+    tl = jnp.minimum(t, 0.5)
+    return jnp.where(t <= 0.5, -jnp.log1p(-tl), 2.0 * (t - 0.5) ** 2 + 2.0 * (t - 0.5) + np.log(2.0))
+
+
+def _pbm_slope(t):
+    tl = jnp.minimum(t, 0.5)
+    return jnp.where(t <= 0.5, 1.0 / (1.0 - tl), 4.0 * (t - 0.5) + 2.0)
+
+
+def _pbm(g, rho, mu):
+    """Penalty-barrier multiplier term for g <= 0 (multiplier rho > 0, penalty mu):
+    ``sum rho / mu phi(mu g)``, twice differentiable (PHR's is once)."""
+    return jnp.sum(rho * _pbm_phi(mu * g)) / mu
 
 
 def _kink_curvature(g, rho, mu, margin):
@@ -803,8 +842,9 @@ def _final_polish(nlp: _NLP, z, opts: SolverOptions, chord: bool = True):
 
 def _init_multipliers(nlp: _NLP, z) -> Multipliers:
     eq, ineq, glob = nlp.constraints(z)
-    return Multipliers(eq=jax.tree.map(jnp.zeros_like, eq), ineq=jax.tree.map(jnp.zeros_like, ineq),
-                       glob=jnp.zeros_like(glob))
+    r0 = nlp.pbm_init if nlp.ineq_penalty == "pbm" else 0.0
+    return Multipliers(eq=jax.tree.map(jnp.zeros_like, eq), ineq=jax.tree.map(lambda g: jnp.full_like(g, r0), ineq),
+                       glob=jnp.full_like(glob, r0))
 
 
 def _ls_multipliers(nlp: _NLP, z, act_tol: float = 1e-3):
@@ -890,8 +930,8 @@ def _al_kkt_error(nlp: _NLP, z, mult: Multipliers, mu):
     at a point the AL certified (34 of 57 such benchmark pairs above ``tol_optimality``)."""
     eq, ineq, glob = nlp.constraints(z)
     implied = Multipliers(eq=jax.tree.map(lambda r, c: r + mu * c, mult.eq, eq),
-                          ineq=jax.tree.map(lambda r, g: jnp.maximum(0.0, r + mu * g), mult.ineq, ineq),
-                          glob=jnp.maximum(0.0, mult.glob + mu * glob))
+                          ineq=jax.tree.map(lambda r, g: nlp.ineq_update(g, r, mu), mult.ineq, ineq),
+                          glob=nlp.ineq_update(glob, mult.glob, mu))
     return jnp.minimum(_multiplier_kkt_error(nlp, z, mult), _multiplier_kkt_error(nlp, z, implied))
 
 
@@ -916,6 +956,9 @@ def _init_state(nlp: _NLP, z0, opts: SolverOptions, warm=False) -> _State:
     # a real branch (warm is one flag for a whole batch): a cold start skips the estimate
     est, kkt0 = jax.lax.cond(warm, estimate, lambda _: (cold, jnp.asarray(jnp.inf, z0.dtype)), None)
     done0 = warm & (kkt0 <= opts.tol_optimality) & (_violation(*nlp.constraints(z0)) <= opts.tol_feasibility)
+    if nlp.ineq_penalty == "pbm":
+        est = est._replace(ineq=jax.tree.map(lambda r: jnp.maximum(r, _PBM_FLOOR), est.ineq),
+                           glob=jnp.maximum(est.glob, _PBM_FLOOR))
     mult0 = jax.tree.map(lambda a, b: jnp.where(warm, a, b), est, cold)
     mu0 = jnp.where(warm, max(opts.penalty_init, opts.penalty_max * 1e-2), opts.penalty_init).astype(z0.dtype)
     return _State(
@@ -1001,7 +1044,7 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
 
     def body(s: _State):
         # the kink curvature's margin, zero until the subproblem has run kink_after iterations
-        kink = (None if opts.kink_margin == 0
+        kink = (None if opts.kink_margin == 0 or nlp.ineq_penalty == "pbm"
                 else jnp.where(s.inner >= opts.kink_after, opts.kink_margin, 0.0).astype(s.z.dtype))
         z, damping, pg, val, moved = _newton_step(nlp, s.z, s.mult, s.mu, s.damping, kink)
         failed = ~jnp.all(jnp.isfinite(z))
@@ -1020,8 +1063,8 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
             subproblem_done = subproblem_done | stalled_sub
             val_ref = jnp.where(checkpoint, val, s.val_ref)
         new_eq = jax.tree.map(lambda l, c: jnp.clip(l + s.mu * c, -1e10, 1e10), s.mult.eq, eq)
-        new_ineq = jax.tree.map(lambda r, g: jnp.clip(r + s.mu * g, 0.0, 1e10), s.mult.ineq, ineq)
-        new_glob = jnp.clip(s.mult.glob + s.mu * glob, 0.0, 1e10)
+        new_ineq = jax.tree.map(lambda r, g: nlp.ineq_update(g, r, s.mu), s.mult.ineq, ineq)
+        new_glob = nlp.ineq_update(glob, s.mult.glob, s.mu)
         updated = Multipliers(new_eq, new_ineq, new_glob)
         if opts.schedule == "default":
             take_mult = jnp.asarray(True)
@@ -1140,7 +1183,8 @@ def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, war
     """(nlp, starting state, valid) for one problem; invalid samples start from a finite
     placeholder and are flagged at the end."""
     layout = tr.layout(problem)
-    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem), stagewise=_stagewise(opts, tr))
+    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem), stagewise=_stagewise(opts, tr),
+               ineq_penalty=opts.inequality_penalty, pbm_init=opts.pbm_init)
     u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
     # what a single Problem rejects up front (a batch builds its problems unvalidated;
