@@ -90,6 +90,12 @@ _MESSAGES = {
 # options
 
 
+#: the fields :meth:`SolverOptions.pbm` sets (tuned on bench_solver's pairs, see
+#: ``SolverOptions.inequality_penalty``); ``jtraj dataset --inequalities pbm`` stores them
+#: as the dataset's option overrides
+PBM_SETTINGS = dict(inequality_penalty="pbm", penalty_init=100.0, inner_tol_ratio=0.1, detect_min_viol=1e-2)
+
+
 class SolverOptions(eqx.Module):
     """Hyperparameters of the AL solver (defaults tuned on the serial3 benchmark).
 
@@ -300,8 +306,7 @@ class SolverOptions(eqx.Module):
     def pbm(cls, **overrides) -> "SolverOptions":
         """The penalty-barrier multiplier variant (``inequality_penalty="pbm"``) with the
         settings tuned for it on the serial3 benchmark; ``overrides`` replace any field."""
-        settings = dict(inequality_penalty="pbm", penalty_init=100.0, inner_tol_ratio=0.1, detect_min_viol=1e-2)
-        return cls(**{**settings, **overrides})
+        return cls(**{**PBM_SETTINGS, **overrides})
 
     def __check_init__(self):
         if self.schedule not in ("default", "thesis"):

@@ -45,6 +45,8 @@ def configure(parser):
     parser.add_argument("--via", action="append", default=[], metavar="X,Y",
                         help="imposed passage point of the tip (repeatable)")
     parser.add_argument("--via-tol", type=float, default=1e-3, help="via-point tolerance [m] (default 1e-3)")
+    parser.add_argument("--inequalities", choices=("phr", "pbm"), default="phr",
+                        help="inequality term of the solver: phr (default) or pbm (SolverOptions.pbm(), opt-in)")
     parser.add_argument("--json", metavar="PATH", help="write the solution as JSON")
     parser.add_argument("--rate", type=float, default=None, metavar="HZ",
                         help="with --json: also write the trajectory resampled at this rate (t, q, qd, qdd, tau "
@@ -180,6 +182,7 @@ def solution_dict(args, problem, sol, solve_s, compile_s) -> dict:
     w = problem.weights
     return {
         "robot": args.robot, "N": problem.N, "transcription": args.transcription, "efforts": problem.efforts,
+        "inequalities": getattr(args, "inequalities", "phr"),
         "weights": {k: float(getattr(w, k)) for k in ("time", "energy", "kinetic", "singularity")},
         "q_start": _tolist(problem.q_start), "q_goal": _tolist(problem.q_goal),
         "qd_start": _tolist(problem.qd_start), "qd_goal": _tolist(problem.qd_goal),
@@ -235,12 +238,13 @@ def run(args) -> int:
     check_output_file(args.json, "--json")
     check_output_file(args.plot, "--plot")
     robot, problem = build_problem(args)
+    options = jtraj.SolverOptions.pbm() if args.inequalities == "pbm" else None
     t0 = time.perf_counter()
-    sol = jtraj.solve(problem, transcription=args.transcription)
+    sol = jtraj.solve(problem, transcription=args.transcription, options=options)
     jax.block_until_ready(sol)
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
-    sol = jtraj.solve(problem, transcription=args.transcription)
+    sol = jtraj.solve(problem, transcription=args.transcription, options=options)
     jax.block_until_ready(sol)
     solve_s = time.perf_counter() - t0
     d = solution_dict(args, problem, sol, solve_s, max(first - solve_s, 0.0))

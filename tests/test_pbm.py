@@ -1,0 +1,111 @@
+"""The penalty-barrier multiplier (PBM) inequality term (``SolverOptions.pbm()``).
+
+* its function phi against the closed form -log(1 - t) and its twice-differentiable
+  quadratic continuation (values, first and second derivatives by autodiff);
+* a batch solved with it: the converged trajectory re-simulated by the independent NumPy +
+  Pinocchio verifier and its cost against CasADi + IPOPT, an infeasible problem stopped
+  as likely infeasible, a non-finite sample flagged, all in one compiled batch;
+* a restart runs with PHR (the phase flag of ``solver._with_phase``).
+
+In its own file so that pytest-xdist compiles it beside test_solver.py.
+"""
+
+import os
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jtraj
+from jtraj import Status
+from jtraj import solver as S
+from jtraj.solver import SolverOptions
+from jtraj.transcription import Transcription
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+
+N = 10
+W = jtraj.Weights(time=1.0, energy=0.1)
+Q0 = np.array([1.077, -0.096, 0.619])
+Q1 = np.array([1.2, -0.049, 0.9])  # feasible with N = 10 (T <= 1 s), as in test_solver.py
+QI = np.array([0.0, 0.3, -0.3])  # + 0.7 rad per joint: not within N h_max = 1 s under the torque limits
+
+
+def test_phi_is_the_log_barrier_continued_twice_differentiably():
+    t = np.linspace(-5.0, 0.5, 23)
+    np.testing.assert_allclose(np.asarray(S._pbm_phi(jnp.asarray(t))), -np.log1p(-t), rtol=1e-14, atol=1e-15)
+    d1, d2 = jax.grad(S._pbm_phi), jax.grad(jax.grad(S._pbm_phi))
+    assert float(S._pbm_phi(0.0)) == 0.0 and float(d1(0.0)) == pytest.approx(1.0, abs=1e-15)
+    # value, slope and curvature continuous across t = 1/2 (left: 1 / (1 - t)^k)
+    for f, left in ((S._pbm_phi, np.log(2.0)), (d1, 2.0), (d2, 4.0)):
+        assert float(f(0.5 - 1e-9)) == pytest.approx(left, rel=1e-7)
+        assert float(f(0.5 + 1e-9)) == pytest.approx(left, rel=1e-7)
+    # the multiplier update's slope is phi' everywhere, and phi stays convex
+    for x in (-3.0, -0.2, 0.3, 0.7, 4.0):
+        assert float(S._pbm_slope(x)) == pytest.approx(float(d1(x)), rel=1e-12)
+        assert float(d2(x)) > 0
+    # the term vanishes with its multipliers and is finite for any violation
+    g = jnp.array([-1.0, 0.0, 0.2, 3.0])
+    assert float(S._pbm(g, jnp.zeros(4), 100.0)) == 0.0
+    assert np.isfinite(float(S._pbm(g, jnp.ones(4), 1e6)))
+
+
+def test_multiplier_update_is_bounded_and_floored():
+    problem = jtraj.Problem(jtraj.robots.get("serial3"), Q0, Q1, N=N, weights=W)
+    tr = Transcription("decoupled")
+    nlp = S._NLP(problem=problem, tr=tr, layout=tr.layout(problem), sd=tr.stage_data(problem),
+                 ineq_penalty="pbm", pbm_ratio=4.0)
+    rho = jnp.full(4, 0.1)
+    new = np.asarray(nlp.ineq_update(jnp.array([-1.0, 0.0, 1e-3, 1.0]), rho, 100.0))
+    # phi'(-100) = 1/101 -> clipped to 1/4; phi'(0) = 1; phi'(0.1) = 1/0.9; phi'(100) -> 4
+    np.testing.assert_allclose(new, [0.025, 0.1, 0.1 / 0.9, 0.4], rtol=1e-12)
+    assert float(nlp.ineq_update(jnp.array(-1.0), jnp.array(1e-9), 100.0)) == S._PBM_FLOOR
+    # after a restart (phase off) the same NLP takes PHR's term and update
+    state = S._init_state(nlp, jnp.zeros(nlp.layout.nz), SolverOptions.pbm())
+    assert S._with_phase(nlp, state).pbm_on
+    nlp = S._with_phase(nlp, state._replace(restarted=jnp.asarray(True)))
+    g, rho, mu = jnp.array([-1.0, 0.01]), jnp.array([0.5, 0.5]), 100.0
+    assert float(nlp.ineq_term(g, rho, mu)) == pytest.approx(float(S._phr(g, rho, mu)), rel=1e-14)
+    np.testing.assert_allclose(np.asarray(nlp.ineq_update(g, rho, mu)), [0.0, 1.5], rtol=1e-14)
+
+
+def test_pbm_preset_and_validation():
+    opts = SolverOptions.pbm(max_iter=300)
+    assert opts.inequality_penalty == "pbm" and opts.max_iter == 300 and opts.penalty_init == 100.0
+    assert SolverOptions().inequality_penalty == "phr"
+    with pytest.raises(ValueError, match="inequality_penalty"):
+        SolverOptions(inequality_penalty="log")
+    with pytest.raises(ValueError, match="pbm_ratio"):
+        SolverOptions(pbm_ratio=1.0)
+    with pytest.raises(ValueError, match="pbm_init"):
+        SolverOptions(pbm_init=0.0)
+
+
+@pytest.fixture(scope="module")
+def batch():
+    robot = jtraj.robots.get("serial3")
+    q0 = np.stack([Q0, QI, Q0])
+    q1 = np.stack([Q1, QI + 0.7, np.full(3, np.nan)])
+    return q0, q1, jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=SolverOptions.pbm())
+
+
+def test_pbm_batch_converges_to_ipopts_optimum_and_flags_the_rest(batch):
+    V = pytest.importorskip("peers.verify")
+    P = pytest.importorskip("peers.ipopt_peer")
+    q0, q1, sol = batch
+    status = np.asarray(sol.status)
+    assert status[0] == Status.CONVERGED
+    chk = V.verify(Q0, Q1, np.asarray(sol.v[0]), np.asarray(sol.h[0]), tol=1e-6)
+    assert chk["ok"] and chk["goal_error"] <= 1e-6, (chk["max_rel_violation"], chk["goal_error"])
+    assert chk["cost"] == pytest.approx(float(sol.cost[0]), rel=1e-9)
+    ref = P.solve_pair(Q0, Q1, N=N)
+    assert ref["success"]
+    assert ref["cost"] * 0.99 <= float(sol.cost[0]) <= ref["cost"] * 1.005
+    assert float(sol.kkt_error[0]) <= SolverOptions().tol_optimality
+    assert status[1] == Status.LIKELY_INFEASIBLE, status
+    assert float(sol.max_violation["overall"][1]) > 1e-3
+    assert int(sol.iterations[1]) < SolverOptions().max_iter
+    assert status[2] == Status.INVALID_INPUT and int(sol.iterations[2]) == 0
+    assert np.all(np.isfinite(np.asarray(sol.q)))
