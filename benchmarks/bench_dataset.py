@@ -4,6 +4,7 @@ IPOPT peer on all cores, measured in the same run.
     python benchmarks/bench_dataset.py --quick            # batch 64, 64 timed pairs, 16 IPOPT pairs
     python benchmarks/bench_dataset.py                    # batch sizes 64, 256, 1024, 4096
     python benchmarks/bench_dataset.py --batches 64 128 --chunks 2 --ipopt-pairs 64
+    python benchmarks/bench_dataset.py --batches 256 --chunks 8 --ipopt-pairs 64 --inequalities pbm
 
 For each batch size B the benchmark builds a serial3, N = 20, weights time=1,energy=0.1
 joint-space dataset through :func:`jtraj.dataset.build` into a temporary directory:
@@ -39,12 +40,12 @@ sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.dirname(HERE))
 
 
-def measure_jtraj(B, chunks, seed, N, solver, workers):
+def measure_jtraj(B, chunks, seed, N, solver, workers, options=None):
     from jtraj import dataset
 
     # the first `workers` chunks warm every worker's compilation cache (timed apart)
     pairs = B * (workers + chunks)
-    spec = dataset.make_spec("serial3", pairs, seed, N=N, batch=B, solver=solver)
+    spec = dataset.make_spec("serial3", pairs, seed, N=N, batch=B, solver=solver, options=options)
     with tempfile.TemporaryDirectory(prefix="bench_dataset_") as tmp:
         out = os.path.join(tmp, "d")
         t0 = time.perf_counter()
@@ -115,6 +116,8 @@ def main(argv=None) -> dict:
                     help="CasADi form of the IPOPT peer (default lifted, the fast one; see peers/ipopt_peer.py)")
     ap.add_argument("--solver", default="jtraj:solve_batch", help=argparse.SUPPRESS)
     ap.add_argument("--out-dir", default=".", help="where bench_dataset.json/.png go")
+    ap.add_argument("--inequalities", choices=("phr", "pbm"), default="phr",
+                    help="jtraj's inequality term (as jtraj dataset --inequalities)")
     args = ap.parse_args(argv)
     batches = args.batches or ([64] if args.quick else [64, 256, 1024, 4096])
     # by default about 2048 timed pairs per batch size: the timed resume starts (and
@@ -134,7 +137,10 @@ def main(argv=None) -> dict:
     results, pairs = [], None
     for B in batches:
         chunks = args.chunks or (1 if args.quick else max(2, 2048 // B))
-        r, qq = measure_jtraj(B, chunks, args.seed, args.N, args.solver, workers)
+        from jtraj.solver import PBM_SETTINGS
+
+        options = dict(PBM_SETTINGS) if args.inequalities == "pbm" else None
+        r, qq = measure_jtraj(B, chunks, args.seed, args.N, args.solver, workers, options)
         r["N"] = args.N
         results.append(r)
         if pairs is None or len(qq[0]) > len(pairs[0]):
@@ -152,7 +158,8 @@ def main(argv=None) -> dict:
               f"({ipopt['pairs']} pairs in {ipopt['seconds']:.1f} s, setup {ipopt['setup_seconds']:.1f} s), "
               f"success {100 * ipopt['success_fraction']:.1f} %")
     best = max(results, key=lambda r: r["pairs_per_s"])
-    summary = {"cores": cores, "jax": jax.__version__, "N": args.N, "results": results, "ipopt": ipopt,
+    summary = {"cores": cores, "jax": jax.__version__, "N": args.N, "inequalities": args.inequalities,
+               "results": results, "ipopt": ipopt,
                "best_batch": best["batch"], "best_pairs_per_s": best["pairs_per_s"],
                "cpu_hours_per_million": 1e6 / best["pairs_per_s"] / 3600 * cores}
     if ipopt:

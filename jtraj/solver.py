@@ -23,7 +23,8 @@ Design (why it is fast under ``vmap`` on a CPU):
   it instead, O(N^3), as the other transcriptions always do).
 * **Bounds kept exactly.** Boxes on the controls and on h are simple bounds on z,
   handled by Bertsekas' projected Newton (no penalty, never violated); all other
-  constraints enter the augmented Lagrangian (PHR for inequalities).
+  constraints enter the augmented Lagrangian (PHR for inequalities; opt-in, the
+  twice-differentiable penalty-barrier multiplier term of ``SolverOptions.pbm()``).
 * **Branch-free globalisation (a parallel trust region).** A geometric ladder of
   Levenberg shifts, up to a Gershgorin bound that is always positive definite, is
   factorised at once; every positive-definite shift gives a direction, tried at a few
@@ -234,20 +235,30 @@ class SolverOptions(eqx.Module):
             ends ``FEASIBLE_NOT_OPTIMAL``), Newton iterations 33,689 / 34,423 / 31,780
             against 18,911 / 21,836 / 19,147 (-44 / -37 / -40 %; median per pair 96-110
             against 54), costs where both converge within -0.06 .. +0.11 % of PHR's
-            (medians within 0.002 %). Opt-in until it keeps every pair IPOPT solves.
+            (medians within 0.002 %); with IPOPT in the same run, seeds 0 / 1 / 11 / 21-24
+            converged 1598 of the 1792 pairs (IPOPT 1598, PHR 1599), 0 false, largest cost
+            gap +0.22 %, batch throughput 3.78-4.76x IPOPT's (PHR 3.25x on seed 0 the same
+            day), single solve 3.2-9.8x (PHR 2.95x). **Not on the dataset family**: with
+            ``jtraj dataset``'s default period bound (h_max 0.2 s) ``jtraj dataset --pairs
+            10000 --seed 0`` converged 9852 pairs (148 ``FEASIBLE_NOT_OPTIMAL`` after 1,100
+            iterations, the PHR restart included) in 202.9 s against PHR's 9982 in 162.0 s;
+            there its subproblems end at ``max_inner`` with the KKT error near 1e-3 (on 160
+            of those pairs: penalty_init 10 / 30 / 100 converged 148 / 154 / 126, PHR 160;
+            inner_tol_ratio 0.01 158). Opt-in until it is as reliable there.
         pbm_init, pbm_ratio: the PBM multipliers' starting value and the bound on the
             factor of each update (see ``inequality_penalty``; on 64 benchmark pairs
             pbm_init 1 / 0.3 / 0.1 / 0.03 took 3,908 / 6,657 / 3,397 / 3,588 Newton
             iterations on the converged pairs with penalty_init 100 and no bound on the
             factor; an unbounded factor (1e3 after a large violation) sent the violation up
             after a penalty increase and stopped feasible pairs as likely infeasible).
-        detect_min_penalty, detect_min_viol: guards of ``detect_infeasible``'s first rule
-            (penalty grown 16x): it also needs the penalty at least ``detect_min_penalty``
-            and the violation above ``detect_min_viol`` at the two previous outer
-            iterations too. 0 (the PHR defaults) leaves the rule as it was; with PBM
+        detect_min_viol: a guard of ``detect_infeasible``'s first rule (penalty grown
+            16x) in the PBM runs: it also needs the violation above ``detect_min_viol`` at
+            the two previous outer iterations. 0 (the default) leaves the rule as it was;
+            PHR runs (restarts included) ignore it. With PBM
             (:meth:`SolverOptions.pbm`) the violation can rise for one outer iteration after
-            a penalty increase and then fall, and without ``detect_min_viol = 1e-2`` 3 of
-            64 feasible pairs of seed 1 stopped as likely infeasible.
+            a penalty increase and then fall, and without ``detect_min_viol = 1e-2`` 2 of
+            64 feasible pairs of seed 1 stopped as likely infeasible (3 without the bound
+            ``pbm_ratio`` on the multiplier update).
         kink_margin, kink_after: from the ``kink_after``-th Newton iteration of an AL
             subproblem on, its Newton model adds the penalty's curvature ``mu grad g grad
             g^T`` of the inequalities just short of their PHR kink
@@ -299,7 +310,6 @@ class SolverOptions(eqx.Module):
     inequality_penalty: str = eqx.field(static=True, default="phr")
     pbm_init: float = eqx.field(static=True, default=0.1)
     pbm_ratio: float = eqx.field(static=True, default=4.0)
-    detect_min_penalty: float = eqx.field(static=True, default=0.0)
     detect_min_viol: float = eqx.field(static=True, default=0.0)
 
     @classmethod
@@ -328,7 +338,7 @@ class SolverOptions(eqx.Module):
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0):
                 raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
-        for name in ("kink_margin", "stall_ratio", "stall_min_viol", "detect_min_penalty", "detect_min_viol"):
+        for name in ("kink_margin", "stall_ratio", "stall_min_viol", "detect_min_viol"):
             value = getattr(self, name)
             try:
                 ok = 0 <= float(value) < float("inf")
@@ -1160,7 +1170,7 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
         back = s.history[jnp.maximum(s.outer - 2, 0)]
         hardly_less = plain_viol > 0.95 * back[1]
         prev = s.history[jnp.maximum(s.outer - 1, 0)]
-        grown = ((plain_viol > 1e-3) & (s.mu >= 16.0 * back[2]) & (s.mu >= opts.detect_min_penalty)
+        grown = ((plain_viol > 1e-3) & (s.mu >= 16.0 * back[2])
                  & ((jnp.minimum(prev[1], back[1]) > opts.detect_min_viol) | ~pbm_on))
         capped = (plain_viol > 1e-4) & (back[2] >= s.mu_max)
         stalled = (subproblem_done & (s.outer >= 2) & hardly_less & (grown | capped)
