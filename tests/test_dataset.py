@@ -212,6 +212,15 @@ def test_bad_input_is_refused_before_compute(tmp_path):
     # refused), and absent where it is the default, as in datasets written before it existed
     assert "efforts" not in dataset.make_spec("serial3", 10, 0).identity()
     assert dataset.make_spec("serial3", 10, 0, efforts="intervals").identity()["efforts"] == "intervals"
+    # so are the solver options added since (the PBM inequality term): a dataset started
+    # before them resumes, one built with them differs
+    from jtraj.solver import PBM_SETTINGS
+
+    plain = dataset.make_spec("serial3", 10, 0).identity()["solver_options"]
+    assert "inequality_penalty" not in plain and "pbm_init" not in plain and "max_iter" in plain
+    pbm = dataset.make_spec("serial3", 10, 0, options=PBM_SETTINGS).identity()["solver_options"]
+    assert pbm["inequality_penalty"] == "pbm" and pbm["detect_min_viol"] == 0.01
+    assert "pbm_init" not in pbm  # at its default
     spec = fake_spec(pairs=8, batch=8)
     f = tmp_path / "file.txt"
     f.write_text("precious")

@@ -143,11 +143,28 @@ class Spec:
             "batch": self.batch,
             "distribution": self.distribution.describe(),
             "solver": self.solver,
-            "solver_options": _plain(self.options_obj()),
+            "solver_options": _option_identity(self.options_obj()),
             # only where it differs from the default, so that datasets started before the
             # option existed keep their identity (and resume)
             **({} if self.efforts == "samples" else {"efforts": self.efforts}),
         }
+
+
+#: SolverOptions fields added after datasets were first made with the current format: they
+#: enter a dataset's identity only where they differ from their default, so that a dataset
+#: started before they existed (same results: at their defaults they change nothing)
+#: still resumes
+_LATE_OPTIONS = ("inequality_penalty", "pbm_init", "pbm_ratio", "detect_min_viol")
+
+
+def _option_identity(opts) -> dict:
+    import jtraj
+
+    plain, default = _plain(opts), jtraj.SolverOptions()
+    for name in _LATE_OPTIONS:
+        if getattr(opts, name) == getattr(default, name):
+            plain.pop(name, None)
+    return plain
 
 
 _CACHE: dict = {}
