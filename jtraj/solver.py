@@ -224,27 +224,40 @@ class SolverOptions(eqx.Module):
             for t <= 1/2 continued by a quadratic (twice differentiable, no kink: every
             inequality keeps a curvature ``rho mu phi''`` in the Newton model), multipliers
             updated multiplicatively ``rho <- rho phi'(mu g)`` (the factor clipped to
-            ``[1 / pbm_ratio, pbm_ratio]``, rho >= 1e-8) from ``pbm_init``. A restart
-            (``restart_iter``) runs with PHR: the runs PBM leaves uncertified are the
-            thin-feasible-set ones PHR's restart rescues. Use :meth:`SolverOptions.pbm` for
+            ``[1 / pbm_ratio, pbm_ratio]``, rho >= 1e-8) from ``pbm_init``. A PBM run
+            still uncertified after ``pbm_fallback_iter`` iterations falls back to PHR's
+            own cold run from the same start (zero multipliers, penalty 10, ``max_iter``
+            more iterations), followed if needed by PHR's warm restart (``restart_iter``):
+            the runs PBM leaves uncertified are mostly thin-feasible-set ones that PHR
+            and its restart solve. Use :meth:`SolverOptions.pbm` for
             the settings tuned with it (penalty_init 100, inner_tol_ratio 0.1,
             detect_min_viol 1e-2). Measured (2026-12-01, bench_solver's 256 pairs per
             seed, one core each), PHR defaults against :meth:`SolverOptions.pbm`: seeds 0 /
-            1 / 11 converged 231 / 226 / 236 against 231 / 225 / 236 (IPOPT 231 / 226 /
-            236; seed 1 loses pair 207, one of the fragile pairs every change flips, which
-            ends ``FEASIBLE_NOT_OPTIMAL``), Newton iterations 33,689 / 34,423 / 31,780
-            against 18,911 / 21,836 / 19,147 (-44 / -37 / -40 %; median per pair 96-110
-            against 54), costs where both converge within -0.06 .. +0.11 % of PHR's
-            (medians within 0.002 %); with IPOPT in the same run, seeds 0 / 1 / 11 / 21-24
-            converged 1598 of the 1792 pairs (IPOPT 1598, PHR 1599), 0 false, largest cost
-            gap +0.22 %, batch throughput 3.78-4.76x IPOPT's (PHR 3.25x on seed 0 the same
-            day), single solve 3.2-9.8x (PHR 2.95x). **Not on the dataset family**: with
-            ``jtraj dataset``'s default period bound (h_max 0.2 s) ``jtraj dataset --pairs
-            10000 --seed 0`` converged 9852 pairs (148 ``FEASIBLE_NOT_OPTIMAL`` after 1,100
-            iterations, the PHR restart included) in 202.9 s against PHR's 9982 in 162.0 s;
-            there its subproblems end at ``max_inner`` with the KKT error near 1e-3 (on 160
-            of those pairs: penalty_init 10 / 30 / 100 converged 148 / 154 / 126, PHR 160;
-            inner_tol_ratio 0.01 158). Opt-in until it is as reliable there.
+            1 / 11 converged 231 / 226 / 236 with both (IPOPT 231 / 226 / 236), Newton
+            iterations 33,689 / 34,423 / 31,780 against 21,971 / 23,537 / 19,708 (-35 / -32 /
+            -38 %; median per pair 96-110 against 54), costs where both converge within
+            -0.06 .. +0.11 % of PHR's (medians within 0.002 %); 256 pairs in one process
+            on one core, seeds 1 / 11: 7.58 / 7.41 s against 10.06 / 8.82 s; with IPOPT
+            in the same run, seeds 0 / 1 / 11 / 21-24 converged 1599 of 1792 pairs (IPOPT
+            1598), 0 false, largest cost gap +0.22 %, batch throughput 3.25-4.29x IPOPT's
+            (PHR 3.25x on seed 0 the same day), single solve 3.4-9.8x. Without the fallback (``pbm_fallback_iter=0``: the PBM
+            run to ``max_iter``, then PHR's warm restart) 18,911 / 21,836 / 19,147
+            iterations and seed 1 lost pair 207 (``FEASIBLE_NOT_OPTIMAL``), one of the
+            fragile pairs every change flips; with IPOPT in the same run, over seeds 0 / 1 /
+            11 / 21-24 that variant converged 1598 of 1792 pairs (IPOPT 1598), 0 false, at
+            3.78-4.76x IPOPT's batch throughput (PHR 3.25x the same day). **Not on the
+            dataset family**: with ``jtraj dataset``'s default period bound (h_max 0.2 s),
+            ``jtraj dataset --pairs 10000 --seed 0`` converged 9942 pairs in 217.5 s with
+            the fallback (9852 in 202.9 s without) against PHR's 9982 in 162.0 s. There the
+            PBM subproblems end at ``max_inner`` with the KKT error near 1e-3: the Newton
+            model is exact but indefinite with flat directions (h is interior in that
+            family), and the shift ladder oscillates. On 160 of those pairs, without the
+            fallback: penalty_init 10 / 30 / 100 converged 148 / 154 / 126 (PHR 160),
+            inner_tol_ratio 0.01 158. Opt-in until it is as good there.
+        pbm_fallback_iter: the Newton iterations of a PBM run before it falls back to PHR
+            (see ``inequality_penalty``); 0: no fallback. 200 is past the 99th percentile
+            of the PBM runs that converge on the benchmark family (seeds 0 / 1 / 11:
+            159 / 229 / 428 iterations; a few converge later).
         pbm_init, pbm_ratio: the PBM multipliers' starting value and the bound on the
             factor of each update (see ``inequality_penalty``; on 64 benchmark pairs
             pbm_init 1 / 0.3 / 0.1 / 0.03 took 3,908 / 6,657 / 3,397 / 3,588 Newton
@@ -310,6 +323,7 @@ class SolverOptions(eqx.Module):
     inequality_penalty: str = eqx.field(static=True, default="phr")
     pbm_init: float = eqx.field(static=True, default=0.1)
     pbm_ratio: float = eqx.field(static=True, default=4.0)
+    pbm_fallback_iter: int = eqx.field(static=True, default=200)
     detect_min_viol: float = eqx.field(static=True, default=0.0)
 
     @classmethod
@@ -334,7 +348,7 @@ class SolverOptions(eqx.Module):
         for name in ("max_iter", "max_outer", "max_inner"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
-        for name in ("restart_iter", "kink_after", "stall_window", "stall_after"):
+        for name in ("restart_iter", "kink_after", "stall_window", "stall_after", "pbm_fallback_iter"):
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0):
                 raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
@@ -669,7 +683,8 @@ class _State(NamedTuple):
     history: Array  # (max_outer, 3): cost, violation, penalty
     it_max: Array  # iteration budget of this run (max_iter; raised by a restart)
     mu_max: Array  # penalty cap of this run (penalty_max; restart_penalty_max after a restart)
-    restarted: Array
+    restarts: Array  # restarts taken so far (see _restart)
+    z_start: Array  # the first run's starting point (a PBM run's PHR fallback starts there)
     val_ref: Array  # the AL's value at the last stall checkpoint of this subproblem
 
 
@@ -1010,7 +1025,7 @@ def _with_phase(nlp: _NLP, s: "_State") -> _NLP:
     PHR after a restart (``SolverOptions.inequality_penalty == "pbm"``; else ``nlp``)."""
     if nlp.ineq_penalty != "pbm":
         return nlp
-    return eqx.tree_at(lambda n: n.pbm_on, nlp, ~s.restarted)
+    return eqx.tree_at(lambda n: n.pbm_on, nlp, s.restarts == 0)
 
 
 def _run(nlp: _NLP, z0, opts: SolverOptions, warm=False):
@@ -1046,18 +1061,35 @@ def _init_state(nlp: _NLP, z0, opts: SolverOptions, warm=False) -> _State:
         it=jnp.asarray(0), done=done0, failed=jnp.asarray(False), stalled=jnp.asarray(False),
         stationarity=jnp.where(done0, kkt0, jnp.inf).astype(z0.dtype),
         history=jnp.full((opts.max_outer, 3), jnp.nan, dtype=z0.dtype),
-        it_max=jnp.asarray(opts.max_iter), mu_max=jnp.asarray(opts.penalty_max, dtype=z0.dtype),
-        restarted=jnp.asarray(False), val_ref=jnp.asarray(jnp.inf, dtype=z0.dtype))
+        it_max=jnp.asarray(_first_run_iter(opts)), mu_max=jnp.asarray(opts.penalty_max, dtype=z0.dtype),
+        restarts=jnp.asarray(0), z_start=z0, val_ref=jnp.asarray(jnp.inf, dtype=z0.dtype))
 
 
 def _finished(s: _State, opts: SolverOptions):
     return s.done | s.stalled | (s.it >= s.it_max) | (s.outer >= opts.max_outer)
 
 
+def _fallback(opts: SolverOptions) -> bool:
+    """Whether an uncertified PBM run falls back to a cold PHR run (``pbm_fallback_iter``)."""
+    return opts.inequality_penalty == "pbm" and opts.pbm_fallback_iter > 0
+
+
+def _first_run_iter(opts: SolverOptions) -> int:
+    return min(opts.max_iter, opts.pbm_fallback_iter) if _fallback(opts) else opts.max_iter
+
+
+def _max_restarts(opts: SolverOptions) -> int:
+    return int(_fallback(opts)) + int(opts.restart_iter > 0)
+
+
 def _needs_restart(s: _State, opts: SolverOptions):
     """A run that ended uncertified (iteration or outer limit), not as likely infeasible
     nor failed, and was not restarted yet (see :func:`_restart`)."""
-    return ~s.done & ~s.failed & ~s.stalled & ~s.restarted & (opts.restart_iter > 0)
+    return ~s.done & ~s.failed & ~s.stalled & (s.restarts < _max_restarts(opts))
+
+
+#: the penalty a PBM run's PHR fallback starts from (SolverOptions' default penalty_init)
+_PHR_PENALTY_INIT = 10.0
 
 
 def _restart(nlp: _NLP, s: _State, opts: SolverOptions) -> _State:
@@ -1075,7 +1107,10 @@ def _restart(nlp: _NLP, s: _State, opts: SolverOptions) -> _State:
     first run left uncertified, about 60 to 590 iterations after the restart, cost within
     0.04 % of IPOPT's). A point the polish
     leaves certified (KKT error and violation within tolerance) is not restarted:
-    :func:`_finish` certifies it."""
+    :func:`_finish` certifies it.
+
+    A PBM run (``SolverOptions.pbm_fallback_iter``) has two restarts: the first is PHR's
+    own cold run from the first run's starting point, the second the warm one above."""
     # a warm start at the polished point: least-squares multipliers, fresh schedules, and
     # finished at once where that point is already certified
     fresh = _init_state(nlp, _final_polish(nlp, s.z, opts, chord=False), opts, warm=True)
@@ -1083,7 +1118,15 @@ def _restart(nlp: _NLP, s: _State, opts: SolverOptions) -> _State:
     dt = s.z.dtype
     new = fresh._replace(mu=jnp.asarray(opts.restart_penalty_max * 1e-2, dt),
                          mu_max=jnp.asarray(opts.restart_penalty_max, dt), it=s.it,
-                         it_max=s.it + opts.restart_iter, restarted=jnp.asarray(True))
+                         it_max=s.it + opts.restart_iter, restarts=s.restarts + 1, z_start=s.z_start)
+    if _fallback(opts):
+        # the first restart of a PBM run is PHR's own cold run from the first run's start
+        # (zero multipliers, PHR's default penalty, max_iter iterations); the warm one
+        # above follows it if that too ends uncertified
+        cold = _init_state(nlp, s.z_start, opts)
+        cold = cold._replace(mult=jax.tree.map(jnp.zeros_like, cold.mult), mu=jnp.asarray(_PHR_PENALTY_INIT, dt),
+                             it=s.it, it_max=s.it + opts.max_iter, restarts=s.restarts + 1)
+        new = jax.tree.map(lambda a, b: jnp.where(s.restarts == 0, a, b), cold, new)
     return jax.tree.map(lambda a, b: jnp.where(need, a, b), new, s)
 
 
@@ -1091,7 +1134,7 @@ def _run_with_restart(nlp: _NLP, state: _State, opts: SolverOptions) -> _State:
     """The loop to its end, then (if needed, see :func:`_restart`) once more. Written as
     a loop over runs so that the Newton loop is compiled once (two copies of it doubled
     the solver's compilation)."""
-    if opts.restart_iter == 0:
+    if _max_restarts(opts) == 0:
         return _loop(nlp, state, opts)
 
     def run(carry):
@@ -1101,8 +1144,7 @@ def _run_with_restart(nlp: _NLP, state: _State, opts: SolverOptions) -> _State:
         s = jax.lax.cond(k > 0, lambda t: _restart(nlp, t, opts), lambda t: t, s)
         return _loop(nlp, s, opts), k + 1
 
-    s, _ = jax.lax.while_loop(lambda c: (c[1] == 0) | ((c[1] == 1) & _needs_restart(c[0], opts)), run,
-                              (state, jnp.asarray(0)))
+    s, _ = jax.lax.while_loop(lambda c: (c[1] == 0) | _needs_restart(c[0], opts), run, (state, jnp.asarray(0)))
     return s
 
 
@@ -1185,7 +1227,7 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
             inner=jnp.where(subproblem_done, 0, inner), outer=s.outer + subproblem_done.astype(int),
             it=s.it + 1, done=(subproblem_done & converged) | failed, failed=failed, stalled=stalled,
             stationarity=stat, history=jnp.where(subproblem_done, hist, s.history),
-            it_max=s.it_max, mu_max=s.mu_max, restarted=s.restarted, val_ref=val_ref)
+            it_max=s.it_max, mu_max=s.mu_max, restarts=s.restarts, z_start=s.z_start, val_ref=val_ref)
 
     return jax.lax.while_loop(cond, body, state)
 
@@ -1519,11 +1561,13 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     to 8 and 2 (17.8 s with segments of 10, the default)."""
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
     states = _run_lanes(nlps, states, np.arange(int(valid.shape[0])), opts, slots, steps)
-    todo = np.flatnonzero(np.asarray(_needs_restart_jit(states, opts)))  # none if restart_iter == 0
-    for start in range(0, todo.size, slots):
-        idx = _padded(todo[start:start + slots], slots)
-        states, _ = _scatter_jit(states, _restart_jit(*_gather_jit(nlps, states, idx), opts), idx, opts)
-    if todo.size:
+    for _ in range(_max_restarts(opts)):  # at most one restart, two for a PBM run (see _restart)
+        todo = np.flatnonzero(np.asarray(_needs_restart_jit(states, opts)))
+        if not todo.size:
+            break
+        for start in range(0, todo.size, slots):
+            idx = _padded(todo[start:start + slots], slots)
+            states, _ = _scatter_jit(states, _restart_jit(*_gather_jit(nlps, states, idx), opts), idx, opts)
         states = _run_lanes(nlps, states, todo, opts, slots, steps)
     # on a CPU the finish, too, runs ``slots`` problems at a time (see _finish_lanes)
     if jax.default_backend() == "cpu":

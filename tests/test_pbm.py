@@ -5,7 +5,8 @@
 * a batch solved with it: the converged trajectory re-simulated by the independent NumPy +
   Pinocchio verifier and its cost against CasADi + IPOPT, an infeasible problem stopped
   as likely infeasible, a non-finite sample flagged, all in one compiled batch;
-* a restart runs with PHR (the phase flag of ``solver._with_phase``).
+* a restart runs with PHR (the phase flag of ``solver._with_phase``), and a PBM run cut
+  short falls back to PHR's cold run and reaches the same optimum.
 
 In its own file so that pytest-xdist compiles it beside test_solver.py.
 """
@@ -65,7 +66,7 @@ def test_multiplier_update_is_bounded_and_floored():
     # after a restart (phase off) the same NLP takes PHR's term and update
     state = S._init_state(nlp, jnp.zeros(nlp.layout.nz), SolverOptions.pbm())
     assert S._with_phase(nlp, state).pbm_on
-    nlp = S._with_phase(nlp, state._replace(restarted=jnp.asarray(True)))
+    nlp = S._with_phase(nlp, state._replace(restarts=jnp.asarray(1)))
     g, rho, mu = jnp.array([-1.0, 0.01]), jnp.array([0.5, 0.5]), 100.0
     assert float(nlp.ineq_term(g, rho, mu)) == pytest.approx(float(S._phr(g, rho, mu)), rel=1e-14)
     np.testing.assert_allclose(np.asarray(nlp.ineq_update(g, rho, mu)), [0.0, 1.5], rtol=1e-14)
@@ -109,3 +110,19 @@ def test_pbm_batch_converges_to_ipopts_optimum_and_flags_the_rest(batch):
     assert int(sol.iterations[1]) < SolverOptions().max_iter
     assert status[2] == Status.INVALID_INPUT and int(sol.iterations[2]) == 0
     assert np.all(np.isfinite(np.asarray(sol.q)))
+    # converged by the PBM run itself, before its fallback to PHR
+    assert int(sol.iterations[0]) < SolverOptions.pbm().pbm_fallback_iter
+
+
+def test_pbm_run_cut_short_falls_back_to_phr_and_reaches_the_same_optimum(batch):
+    """A PBM run still uncertified after pbm_fallback_iter iterations restarts as PHR's
+    own cold run from the same start (solver._restart): cut to 8 iterations, the pair
+    must still converge, to the PBM run's optimum, in more iterations than 8."""
+    q0, q1, ref = batch
+    robot = jtraj.robots.get("serial3")
+    sol = jtraj.solve_batch(robot, q0[:1], q1[:1], N=N, weights=W, options=SolverOptions.pbm(pbm_fallback_iter=8))
+    assert int(sol.status[0]) == Status.CONVERGED, int(sol.status[0])
+    assert int(sol.iterations[0]) > 8
+    assert float(sol.cost[0]) == pytest.approx(float(ref.cost[0]), rel=1e-4)
+    with pytest.raises(ValueError, match="pbm_fallback_iter"):
+        SolverOptions(pbm_fallback_iter=-1)
