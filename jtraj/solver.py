@@ -1084,7 +1084,7 @@ def _max_restarts(opts: SolverOptions) -> int:
 
 def _needs_restart(s: _State, opts: SolverOptions):
     """A run that ended uncertified (iteration or outer limit), not as likely infeasible
-    nor failed, and was not restarted yet (see :func:`_restart`)."""
+    nor failed, with a restart left (one; two for a PBM run, see :func:`_restart`)."""
     return ~s.done & ~s.failed & ~s.stalled & (s.restarts < _max_restarts(opts))
 
 
@@ -1131,7 +1131,8 @@ def _restart(nlp: _NLP, s: _State, opts: SolverOptions) -> _State:
 
 
 def _run_with_restart(nlp: _NLP, state: _State, opts: SolverOptions) -> _State:
-    """The loop to its end, then (if needed, see :func:`_restart`) once more. Written as
+    """The loop to its end, then (if needed, see :func:`_restart`) once more, or twice
+    for a PBM run. Written as
     a loop over runs so that the Newton loop is compiled once (two copies of it doubled
     the solver's compilation)."""
     if _max_restarts(opts) == 0:
