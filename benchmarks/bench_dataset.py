@@ -134,12 +134,12 @@ def main(argv=None) -> dict:
     from jtraj.dataset._local import available_cpus
 
     workers = args.workers or available_cpus()
+    from jtraj.solver import PBM_SETTINGS
+
+    options = dict(PBM_SETTINGS) if args.inequalities == "pbm" else None
     results, pairs = [], None
     for B in batches:
         chunks = args.chunks or (1 if args.quick else max(2, 2048 // B))
-        from jtraj.solver import PBM_SETTINGS
-
-        options = dict(PBM_SETTINGS) if args.inequalities == "pbm" else None
         r, qq = measure_jtraj(B, chunks, args.seed, args.N, args.solver, workers, options)
         r["N"] = args.N
         results.append(r)

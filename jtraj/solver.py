@@ -240,8 +240,9 @@ class SolverOptions(eqx.Module):
             on one core, seeds 1 / 11: 7.58 / 7.41 s against 10.06 / 8.82 s; with IPOPT
             in the same run, seeds 0 / 1 / 11 / 21-24 converged 1599 of 1792 pairs (IPOPT
             1598), 0 false, largest cost gap +0.22 %, batch throughput 3.25-4.29x IPOPT's
-            (PHR 3.25x on seed 0 the same day), single solve 3.4-9.8x. Without the fallback (``pbm_fallback_iter=0``: the PBM
-            run to ``max_iter``, then PHR's warm restart) 18,911 / 21,836 / 19,147
+            (PHR 3.25x on seed 0 the same day), single solve 3.4-9.8x. Without the
+            fallback (``pbm_fallback_iter=0``: the PBM run to ``max_iter``, then PHR's
+            warm restart) 18,911 / 21,836 / 19,147
             iterations and seed 1 lost pair 207 (``FEASIBLE_NOT_OPTIMAL``), one of the
             fragile pairs every change flips; with IPOPT in the same run, over seeds 0 / 1 /
             11 / 21-24 that variant converged 1598 of 1792 pairs (IPOPT 1598), 0 false, at
@@ -399,13 +400,18 @@ class _NLP(eqx.Module):
     #: :mod:`jtraj.lq`) instead of dense Cholesky factorisations of the Hessian in z
     stagewise: bool = eqx.field(static=True, default=False)
     #: the inequalities' AL term: "phr" or "pbm" (see ``SolverOptions.inequality_penalty``)
-    ineq_penalty: str = eqx.field(static=True, default="phr")
-    pbm_init: float = eqx.field(static=True, default=0.1)
-    pbm_ratio: float = eqx.field(static=True, default=4.0)
+    ineq_penalty: str = eqx.field(static=True, default=SolverOptions.inequality_penalty)
+    pbm_init: float = eqx.field(static=True, default=SolverOptions.pbm_init)
+    pbm_ratio: float = eqx.field(static=True, default=SolverOptions.pbm_ratio)
 
     #: with ``ineq_penalty == "pbm"``: whether the PBM term is on (the first run) or PHR
     #: (a restart, see :func:`_with_phase`); a traced flag, so one compiled loop serves both
     pbm_on: Array | bool = True
+
+    @property
+    def pbm_active(self):
+        """Whether the PBM term is in use now (a traced bool; False for a PHR problem)."""
+        return jnp.asarray(self.pbm_on) & (self.ineq_penalty == "pbm")
 
     def ineq_term(self, g, rho, mu):
         if self.ineq_penalty == "pbm":
@@ -1088,10 +1094,6 @@ def _needs_restart(s: _State, opts: SolverOptions):
     return ~s.done & ~s.failed & ~s.stalled & (s.restarts < _max_restarts(opts))
 
 
-#: the penalty a PBM run's PHR fallback starts from (SolverOptions' default penalty_init)
-_PHR_PENALTY_INIT = 10.0
-
-
 def _restart(nlp: _NLP, s: _State, opts: SolverOptions) -> _State:
     """Restart an uncertified run once (where :func:`_needs_restart`; elsewhere ``s``
     unchanged): from its final point after the feasibility polish, with least-squares
@@ -1121,10 +1123,11 @@ def _restart(nlp: _NLP, s: _State, opts: SolverOptions) -> _State:
                          it_max=s.it + opts.restart_iter, restarts=s.restarts + 1, z_start=s.z_start)
     if _fallback(opts):
         # the first restart of a PBM run is PHR's own cold run from the first run's start
-        # (zero multipliers, PHR's default penalty, max_iter iterations); the warm one
+        # (zero multipliers, PHR's default penalty_init, max_iter iterations); the warm one
         # above follows it if that too ends uncertified
         cold = _init_state(nlp, s.z_start, opts)
-        cold = cold._replace(mult=jax.tree.map(jnp.zeros_like, cold.mult), mu=jnp.asarray(_PHR_PENALTY_INIT, dt),
+        cold = cold._replace(mult=jax.tree.map(jnp.zeros_like, cold.mult),
+                             mu=jnp.asarray(SolverOptions.penalty_init, dt),
                              it=s.it, it_max=s.it + opts.max_iter, restarts=s.restarts + 1)
         new = jax.tree.map(lambda a, b: jnp.where(s.restarts == 0, a, b), cold, new)
     return jax.tree.map(lambda a, b: jnp.where(need, a, b), new, s)
@@ -1161,7 +1164,7 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
     resumable, so a batch can be run in segments (see :func:`solve_batch`)."""
 
     nlp = _with_phase(nlp, state)
-    pbm_on = jnp.asarray(nlp.pbm_on) & (nlp.ineq_penalty == "pbm")
+    pbm_on = nlp.pbm_active
 
     def cond(s: _State):
         return ~_finished(s, opts) if limit is None else ~_finished(s, opts) & (s.it < limit)
