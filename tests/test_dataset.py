@@ -218,7 +218,8 @@ def test_bad_input_is_refused_before_compute(tmp_path):
 
     plain = dataset.make_spec("serial3", 10, 0).identity()["solver_options"]
     assert "max_iter" in plain
-    assert not {"inequality_penalty", "pbm_init", "pbm_ratio", "pbm_fallback_iter", "detect_min_viol"} & set(plain)
+    assert not {"inequality_penalty", "pbm_init", "pbm_ratio", "pbm_fallback_iter", "detect_min_viol",
+                 "pbm_inner_tol_ratio"} & set(plain)
     pbm = dataset.make_spec("serial3", 10, 0, options=PBM_SETTINGS).identity()["solver_options"]
     assert pbm["inequality_penalty"] == "pbm" and pbm["detect_min_viol"] == 0.01
     assert "pbm_init" not in pbm  # at its default

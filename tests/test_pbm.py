@@ -126,3 +126,20 @@ def test_pbm_run_cut_short_falls_back_to_phr_and_reaches_the_same_optimum(batch)
     assert float(sol.cost[0]) == pytest.approx(float(ref.cost[0]), rel=1e-4)
     with pytest.raises(ValueError, match="pbm_fallback_iter"):
         SolverOptions(pbm_fallback_iter=-1)
+
+
+def test_fallback_takes_phrs_own_subproblem_tolerance():
+    """The PBM phase takes pbm_inner_tol_ratio, the PHR fallback and restart the plain
+    inner_tol_ratio, so the fallback is PHR's own run (until 2026-12-01 one ratio, 0.1,
+    served both, and the fallback failed 3 of 256 dataset-family pairs that PHR solves)."""
+    pbm, phr = SolverOptions.pbm(), SolverOptions()
+    assert pbm.inner_tol_ratio == phr.inner_tol_ratio == 0.01 and pbm.pbm_inner_tol_ratio == 0.1
+    viol = 5e-2
+    assert float(S._next_inner_tol(pbm, 1e-3, viol, jnp.asarray(True))) == pytest.approx(5e-3, rel=1e-12)
+    for flag in (jnp.asarray(False), False):
+        assert float(S._next_inner_tol(pbm, 1e-3, viol, flag)) == pytest.approx(
+            float(S._next_inner_tol(phr, 1e-3, viol)), rel=1e-12)
+    # a PHR run ignores the flag and pbm_inner_tol_ratio
+    assert float(S._next_inner_tol(SolverOptions(pbm_inner_tol_ratio=0.5), 1e-3, viol, True)) == pytest.approx(5e-4)
+    with pytest.raises(ValueError, match="pbm_inner_tol_ratio"):
+        SolverOptions.pbm(pbm_inner_tol_ratio=-0.1)

@@ -154,7 +154,8 @@ class Spec:
 #: enter a dataset's identity only where they differ from their default, so that a dataset
 #: started before they existed (same results: at their defaults they change nothing)
 #: still resumes
-_LATE_OPTIONS = ("inequality_penalty", "pbm_init", "pbm_ratio", "pbm_fallback_iter", "detect_min_viol")
+_LATE_OPTIONS = ("inequality_penalty", "pbm_init", "pbm_ratio", "pbm_fallback_iter", "detect_min_viol",
+                 "pbm_inner_tol_ratio")
 
 
 def _option_identity(opts) -> dict:
