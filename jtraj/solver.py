@@ -268,8 +268,8 @@ class SolverOptions(eqx.Module):
             of the PBM runs that converge on the benchmark family (seeds 0 / 1 / 11:
             159 / 229 / 428 iterations; a few converge later).
         pbm_inner_tol_ratio: ``inner_tol_ratio`` for the PBM phase of a PBM run; its PHR
-            fallback and restart take ``inner_tol_ratio``, so that the fallback is PHR's own
-            run (the same iterates). Until 2026-12-01 one ``inner_tol_ratio`` (0.1 in
+            fallback and restart take ``inner_tol_ratio``, so that the fallback runs with
+            PHR's own settings. Until 2026-12-01 one ``inner_tol_ratio`` (0.1 in
             :meth:`SolverOptions.pbm`) served both phases, and the fallback then failed
             where PHR alone succeeds: on the dataset family (h_max 0.2 s), 3 of the 256
             pairs of ``benchmark_pairs(256, 1)`` ran all 1300 iterations uncertified that
