@@ -93,7 +93,9 @@ class Limits(eqx.Module):
             qddd_max=vec(qddd_max, "qddd_max", positive=True),
             tau_max=None if tau_max is None else as_vector(tau_max, "tau_max", m, positive=True,
                                                            allow_inf=True),
-            h_min=float(h_min), h_max=float(h_max), workspace=workspace,
+            # 0-d (weakly typed) arrays, not Python floats: traced under jit, so robots that
+            # differ only in their period bounds share one compiled solver
+            h_min=jnp.asarray(float(h_min)), h_max=jnp.asarray(float(h_max)), workspace=workspace,
         )
 
 
