@@ -39,7 +39,9 @@ Shapes follow :mod:`jtraj.transcription`.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
+import functools
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -99,6 +101,13 @@ PBM_SETTINGS = dict(inequality_penalty="pbm", penalty_init=100.0, detect_min_vio
 
 class SolverOptions(eqx.Module):
     """Hyperparameters of the AL solver (defaults tuned on the serial3 benchmark).
+
+    Options that differ only in numbers (tolerances, penalties, iteration limits, the
+    stall and kink settings: ``_TRACED_OPTIONS``) share one compiled solver: those fields
+    are traced. The others (``max_outer``, ``schedule``, ``guess``, ``linear_solver``,
+    ``inequality_penalty``, ``pbm_init``, ``pbm_ratio``), and whether ``pbm_fallback_iter``,
+    ``kink_margin``, ``inner_tol_ratio`` or ``pbm_inner_tol_ratio`` is 0, shape the
+    program: changing them compiles another.
 
     Attributes:
         max_iter: total Newton iterations (inner iterations over all outer ones).
@@ -392,6 +401,85 @@ class SolverOptions(eqx.Module):
             raise ValueError(f"penalty_growth must be > 1, got {self.penalty_growth!r}")
         if not 0 < self.feasibility_ratio < 1:
             raise ValueError(f"feasibility_ratio must be in (0, 1), got {self.feasibility_ratio!r}")
+
+
+#: SolverOptions fields that enter the compiled programs only as numbers: they cross the
+#: jit boundary as traced scalars (:func:`_options_jit`), so that options differing only
+#: in them share one compilation (a sweep over tolerances or penalties compiles once).
+#: The other fields shape the programs and stay static. Of the ones here, a value of 0
+#: also switches a part of the loop off (``_SWITCHES``): the static copy keeps 0 or 1.
+_TRACED_OPTIONS = ("max_iter", "max_inner", "tol_feasibility", "tol_optimality", "inner_tol_ratio",
+                   "pbm_inner_tol_ratio", "penalty_init", "penalty_growth", "penalty_max", "feasibility_ratio",
+                   "damping_init", "verify_tol", "detect_infeasible", "restart_iter", "restart_penalty_max",
+                   "kink_margin", "kink_after", "stall_window", "stall_ratio", "stall_min_viol", "stall_after",
+                   "pbm_fallback_iter", "detect_min_viol")
+_SWITCHES = ("inner_tol_ratio", "pbm_inner_tol_ratio", "kink_margin", "pbm_fallback_iter")
+
+
+class _SplitOptions(eqx.Module):
+    """A :class:`SolverOptions` crossing a jit boundary: ``static`` (the fields of
+    ``_TRACED_OPTIONS`` at their defaults, the switches at 0 or 1) and ``values`` (those
+    fields' own values, 0-d arrays)."""
+
+    static: SolverOptions = eqx.field(static=True)
+    values: dict
+
+
+class _TracedOptions:
+    """The options inside a compiled program: the fields of ``_TRACED_OPTIONS`` read from
+    the traced ``values``, the others from the static copy (:func:`_static` gives it)."""
+
+    def __init__(self, split: _SplitOptions):
+        self._static, self._values = split.static, split.values
+
+    def __getattr__(self, name):
+        values = self.__dict__["_values"]
+        return values[name] if name in values else getattr(self.__dict__["_static"], name)
+
+
+def _static(opts):
+    """The options' static copy (a :class:`SolverOptions`): where the program's structure
+    is decided (which parts of the loop exist), never for a traced field's value."""
+    return opts._static if isinstance(opts, _TracedOptions) else opts
+
+
+def _split_options(opts: SolverOptions) -> _SplitOptions:
+    # cached per options and float width (jax_enable_x64 may change between calls)
+    return _split_cached(opts, jax.dtypes.canonicalize_dtype(np.float64))
+
+
+@functools.lru_cache(maxsize=64)
+def _split_cached(opts: SolverOptions, _width) -> _SplitOptions:
+    defaults = SolverOptions.__dataclass_fields__
+    static, values = {}, {}
+    for name in _TRACED_OPTIONS:
+        value = getattr(opts, name)
+        static[name] = type(value)(value != 0) if name in _SWITCHES else defaults[name].default
+        kind = (np.bool_ if isinstance(value, (bool, np.bool_))
+                else np.int64 if isinstance(value, (int, np.integer)) else np.float64)
+        values[name] = np.asarray(value, dtype=jax.dtypes.canonicalize_dtype(kind))
+    return _SplitOptions(static=dataclasses.replace(opts, **static), values=values)
+
+
+def _options_jit(jit=None):
+    """Like the solver's jit decorator (``jit``; default :func:`jtraj._compile.solver_jit`),
+    but every :class:`SolverOptions` argument crosses the boundary split by
+    :func:`_split_options` and is read inside as :class:`_TracedOptions`."""
+    jit = _jit if jit is None else jit
+
+    def decorate(fn):
+        @jit
+        @functools.wraps(fn)
+        def inner(*args):
+            return fn(*(_TracedOptions(a) if isinstance(a, _SplitOptions) else a for a in args))
+
+        @functools.wraps(fn)
+        def call(*args):
+            return inner(*(_split_options(a) if isinstance(a, SolverOptions) else a for a in args))
+
+        return call
+
+    return decorate
 
 
 # ----------------------------------------------------------------------------------------
@@ -1077,7 +1165,7 @@ def _init_state(nlp: _NLP, z0, opts: SolverOptions, warm=False) -> _State:
         est = est._replace(ineq=jax.tree.map(lambda r: jnp.maximum(r, _PBM_FLOOR), est.ineq),
                            glob=jnp.maximum(est.glob, _PBM_FLOOR))
     mult0 = jax.tree.map(lambda a, b: jnp.where(warm, a, b), est, cold)
-    mu0 = jnp.where(warm, max(opts.penalty_init, opts.penalty_max * 1e-2), opts.penalty_init).astype(z0.dtype)
+    mu0 = jnp.where(warm, jnp.maximum(opts.penalty_init, opts.penalty_max * 1e-2), opts.penalty_init).astype(z0.dtype)
     return _State(
         z=z0, mult=mult0, mu=mu0, damping=jnp.asarray(opts.damping_init, dtype=z0.dtype),
         omega=jnp.asarray(1e-2, dtype=z0.dtype), eta=jnp.asarray(1e-2, dtype=z0.dtype),
@@ -1095,15 +1183,17 @@ def _finished(s: _State, opts: SolverOptions):
 
 def _fallback(opts: SolverOptions) -> bool:
     """Whether an uncertified PBM run falls back to a cold PHR run (``pbm_fallback_iter``)."""
-    return opts.inequality_penalty == "pbm" and opts.pbm_fallback_iter > 0
+    return _static(opts).inequality_penalty == "pbm" and _static(opts).pbm_fallback_iter > 0
 
 
-def _first_run_iter(opts: SolverOptions) -> int:
-    return min(opts.max_iter, opts.pbm_fallback_iter) if _fallback(opts) else opts.max_iter
+def _first_run_iter(opts: SolverOptions):
+    return jnp.minimum(opts.max_iter, opts.pbm_fallback_iter) if _fallback(opts) else opts.max_iter
 
 
-def _max_restarts(opts: SolverOptions) -> int:
-    return int(_fallback(opts)) + int(opts.restart_iter > 0)
+def _max_restarts(opts: SolverOptions):
+    """1 or 2 restarts (see :func:`_restart`), or none with ``restart_iter = 0`` and no PBM
+    fallback; a traced count inside a compiled program."""
+    return int(_fallback(opts)) + (opts.restart_iter > 0)
 
 
 def _needs_restart(s: _State, opts: SolverOptions):
@@ -1156,7 +1246,7 @@ def _run_with_restart(nlp: _NLP, state: _State, opts: SolverOptions) -> _State:
     for a PBM run. Written as
     a loop over runs so that the Newton loop is compiled once (two copies of it doubled
     the solver's compilation)."""
-    if _max_restarts(opts) == 0:
+    if not isinstance(opts, _TracedOptions) and _max_restarts(opts) == 0:
         return _loop(nlp, state, opts)
 
     def run(carry):
@@ -1174,14 +1264,14 @@ def _next_inner_tol(opts: SolverOptions, omega, viol, pbm_on=False):
     """The next AL subproblem's stationarity tolerance (see ``SolverOptions.inner_tol_ratio``;
     ``pbm_on``: a traced flag, the PBM phase of a PBM run, which takes ``pbm_inner_tol_ratio``)."""
 
-    def tol(ratio):
-        if ratio > 0:
-            return jnp.maximum(jnp.minimum(1e-2, ratio * viol), opts.tol_optimality)
+    def tol(name):
+        if getattr(_static(opts), name) > 0:
+            return jnp.maximum(jnp.minimum(1e-2, getattr(opts, name) * viol), opts.tol_optimality)
         return jnp.maximum(omega * 0.1, opts.tol_optimality)
 
     if opts.inequality_penalty == "pbm":
-        return jnp.where(pbm_on, tol(opts.pbm_inner_tol_ratio), tol(opts.inner_tol_ratio))
-    return tol(opts.inner_tol_ratio)
+        return jnp.where(pbm_on, tol("pbm_inner_tol_ratio"), tol("inner_tol_ratio"))
+    return tol("inner_tol_ratio")
 
 
 def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
@@ -1196,7 +1286,7 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
 
     def body(s: _State):
         # the kink curvature's margin, zero until the subproblem has run kink_after iterations
-        kink = (None if opts.kink_margin == 0
+        kink = (None if _static(opts).kink_margin == 0
                 else jnp.where((s.inner >= opts.kink_after) & ~pbm_on, opts.kink_margin, 0.0).astype(s.z.dtype))
         z, damping, pg, val, moved = _newton_step(nlp, s.z, s.mult, s.mu, s.damping, kink)
         failed = ~jnp.all(jnp.isfinite(z))
@@ -1206,14 +1296,15 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
         subproblem_done = (stat <= s.omega) | (inner >= opts.max_inner) | (~moved & (damping >= 1e9))
         # ---- outer update (computed always, applied where subproblem_done) ----
         viol = _violation(eq, ineq, glob, s.mult, s.mu)
-        val_ref = s.val_ref
-        if opts.stall_window > 0:
-            checkpoint = s.inner % opts.stall_window == 0
-            stalled_sub = (checkpoint & (s.inner >= 2 * opts.stall_window) & (s.it >= opts.stall_after)
-                           & (viol > opts.stall_min_viol)
-                           & (s.val_ref - val < opts.stall_ratio * s.mu * viol**2))
-            subproblem_done = subproblem_done | stalled_sub
-            val_ref = jnp.where(checkpoint, val, s.val_ref)
+        # the stall exit (off with stall_window = 0, a traced value like the others)
+        stall_on = opts.stall_window > 0
+        window = jnp.maximum(opts.stall_window, 1)
+        checkpoint = stall_on & (s.inner % window == 0)
+        stalled_sub = (checkpoint & (s.inner >= 2 * window) & (s.it >= opts.stall_after)
+                       & (viol > opts.stall_min_viol)
+                       & (s.val_ref - val < opts.stall_ratio * s.mu * viol**2))
+        subproblem_done = subproblem_done | stalled_sub
+        val_ref = jnp.where(checkpoint, val, s.val_ref)
         new_eq = jax.tree.map(lambda l, c: jnp.clip(l + s.mu * c, -1e10, 1e10), s.mult.eq, eq)
         new_ineq = jax.tree.map(lambda r, g: nlp.ineq_update(g, r, s.mu), s.mult.ineq, ineq)
         new_glob = nlp.ineq_update(glob, s.mult.glob, s.mu)
@@ -1244,8 +1335,8 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
         grown = ((plain_viol > 1e-3) & (s.mu >= 16.0 * back[2])
                  & ((jnp.minimum(prev[1], back[1]) > opts.detect_min_viol) | ~pbm_on))
         capped = (plain_viol > 1e-4) & (back[2] >= s.mu_max)
-        stalled = (subproblem_done & (s.outer >= 2) & hardly_less & (grown | capped)
-                   & (opts.detect_infeasible and nlp.tr.name == "decoupled"))
+        stalled = (subproblem_done & (s.outer >= 2) & hardly_less & (grown | capped) & opts.detect_infeasible
+                   & (nlp.tr.name == "decoupled"))
 
         def pick(new, old):
             return jax.tree.map(lambda a, b: jnp.where(subproblem_done, a, b), new, old)
@@ -1409,12 +1500,12 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
                     iterations=s.it, outer_iterations=s.outer, history=s.history, kkt_error=kkt)
 
 
-@_jit  # jtraj._compile.solver_jit: the solver's XLA CPU options
+@_options_jit()  # jtraj._compile.solver_jit (the solver's XLA CPU options), options split
 def _guess_jit(problem, opts, transcription):
     return initial_guess(problem, opts, Transcription(transcription))
 
 
-@_jit
+@_options_jit()
 def _solve_jit(problem, opts, transcription, init, warm):
     # init is always arrays (the default guess is computed by _guess_jit) and warm a
     # traced bool, so a warm start does not trigger a second compilation
@@ -1423,7 +1514,8 @@ def _solve_jit(problem, opts, transcription, init, warm):
 
 def solve(problem: Problem, *, options: SolverOptions | None = None, transcription: str = "decoupled",
           init: tuple[Any, Any] | None = None, warm: str = "full") -> Solution:
-    """Solve one trajectory problem; compiled once per robot type, shape and options.
+    """Solve one trajectory problem; compiled once per robot type, shape and the options'
+    structure (see :class:`SolverOptions`).
 
     On a CPU one problem runs about 1.6x faster in a process pinned to one core
     (:func:`jtraj.pin_to_one_cpu` before JAX's first computation; the CLI does it).
@@ -1475,19 +1567,19 @@ def _check_init(problem, init, transcription):
     return u, h
 
 
-@_jit
+@_options_jit()
 def _solve_batch_jit(problems, opts, transcription, init, warm):
     tr = Transcription(transcription)
     return eqx.filter_vmap(lambda p, i: _solve_core(p, opts, tr, i, warm))(problems, init)
 
 
-@_jit
+@_options_jit()
 def _prepare_batch_jit(problems, opts, transcription, init, warm):
     tr = Transcription(transcription)
     return eqx.filter_vmap(lambda p, i: _prepare(p, opts, tr, i, warm))(problems, init)
 
 
-@_jit
+@_options_jit()
 def _segment_jit(nlps, states, opts, steps):
     return eqx.filter_vmap(lambda n, s: _loop(n, s, opts, s.it + steps))(nlps, states)
 
@@ -1501,24 +1593,26 @@ def _gather_jit(nlps, states, idx):
 # copying the whole batch's state at every segment (O(B) per segment, O(B^2) per batch):
 # one core, N = 20, B = 1024: 46.3 -> 43.9 ms per problem; a gather and a scatter now
 # take 0.3 ms at B = 256 as at B = 4096.
+# (``opts``: the static copy of :func:`_split_options`; _finished reads max_outer only,
+# and the traced values would be donated with the states)
 @cpu_jit(SOLVER_XLA_OPTIONS, donate="all")
 def _scatter_jit(states, sub, idx, opts):
     return jax.tree.map(lambda a, b: a.at[idx].set(b), states, sub), _finished(sub, opts)
 
 
-@_jit
+@_options_jit()
 def _needs_restart_jit(states, opts):
     return _needs_restart(states, opts)
 
 
 # on the gathered lanes, not the whole batch: its compilation (a few seconds: the polish,
 # the least-squares multipliers) then does not depend on B and is done once per lane count
-@_jit
+@_options_jit()
 def _restart_jit(nlps, states, opts):
     return eqx.filter_vmap(lambda n, s: _restart(n, s, opts))(nlps, states)
 
 
-@_jit
+@_options_jit()
 def _finish_batch_jit(nlps, states, opts, valid):
     """:func:`_finish` over a batch, vmapped (see :func:`_finish_lanes` on a CPU)."""
     return eqx.filter_vmap(lambda n, s, v: _finish(n, s, opts, v))(nlps, states, valid)
@@ -1623,7 +1717,7 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
     while True:
         lanes = jnp.asarray(todo[idx])
         sub = _segment_jit(*_gather_jit(nlps, states, lanes), opts, steps)
-        states, fin = _scatter_jit(states, sub, lanes, opts)
+        states, fin = _scatter_jit(states, sub, lanes, _split_options(opts).static)
         fin = np.asarray(fin)
         done[idx[fin]] = True
         for j in np.flatnonzero(fin):
@@ -1640,7 +1734,7 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
             idx = np.concatenate([open_, np.repeat(pad, counts[0] - len(open_))])
 
 
-@_jit
+@_options_jit()
 def _guess_batch_jit(problems, opts, transcription):
     tr = Transcription(transcription)
     return eqx.filter_vmap(lambda p: initial_guess(p, opts, tr))(problems)

@@ -1,9 +1,30 @@
-"""Solver correctness tests run in float64."""
+"""Solver correctness tests run in float64.
+
+One run's processes (the xdist workers and the CLI subprocesses) share a persistent
+compilation cache in a fresh folder, removed at the end: a program that two test files
+compile is compiled once. Since the numeric solver options and the period bounds are
+traced (see :class:`jtraj.SolverOptions`), most files' serial3 solvers are the same
+programs."""
 
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+if "JTRAJ_TEST_CACHE" not in os.environ:  # the controlling process; its workers inherit it
+    os.environ["JTRAJ_TEST_CACHE"] = tempfile.mkdtemp(prefix="jtraj-test-cache-")
+    _OWN_CACHE = True
+else:
+    _OWN_CACHE = False
+os.environ.setdefault("JTRAJ_CACHE_DIR", os.environ["JTRAJ_TEST_CACHE"])  # CLI subprocesses
 
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_compilation_cache_dir", os.environ["JTRAJ_TEST_CACHE"])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def pytest_unconfigure(config):
+    if _OWN_CACHE and not hasattr(config, "workerinput"):
+        shutil.rmtree(os.environ["JTRAJ_TEST_CACHE"], ignore_errors=True)

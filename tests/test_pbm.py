@@ -117,10 +117,11 @@ def test_pbm_batch_converges_to_ipopts_optimum_and_flags_the_rest(batch):
 def test_pbm_run_cut_short_falls_back_to_phr_and_reaches_the_same_optimum(batch):
     """A PBM run still uncertified after pbm_fallback_iter iterations restarts as PHR's
     own cold run from the same start (solver._restart): cut to 8 iterations, the pair
-    must still converge, to the PBM run's optimum, in more iterations than 8."""
+    must still converge, to the PBM run's optimum, in more iterations than 8. (The whole
+    batch again: pbm_fallback_iter is traced, so the fixture's compiled solver serves.)"""
     q0, q1, ref = batch
     robot = jtraj.robots.get("serial3")
-    sol = jtraj.solve_batch(robot, q0[:1], q1[:1], N=N, weights=W, options=SolverOptions.pbm(pbm_fallback_iter=8))
+    sol = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=SolverOptions.pbm(pbm_fallback_iter=8))
     assert int(sol.status[0]) == Status.CONVERGED, int(sol.status[0])
     assert int(sol.iterations[0]) > 8
     assert float(sol.cost[0]) == pytest.approx(float(ref.cost[0]), rel=1e-4)

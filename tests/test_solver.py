@@ -19,6 +19,7 @@ import pytest
 
 import jtraj
 from jtraj import Status
+from jtraj import solver as S
 from jtraj.solver import SolverOptions
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
@@ -366,93 +367,6 @@ def test_inner_tolerance_schedules_reach_the_same_optimum(robot, single):
     np.testing.assert_allclose(np.asarray(other.q), np.asarray(sol.q), atol=1e-3)
 
 
-@pytest.mark.parametrize("name, transcription", [
-    ("serial3_vertical", "decoupled"),
-    pytest.param("serial3", "coupled", marks=pytest.mark.slow),  # ~36 s: forward dynamics in the loop
-    pytest.param("serial3", "spline", marks=pytest.mark.slow),
-    pytest.param("serial3", "collocation", marks=pytest.mark.slow),
-])
-def test_structured_hessian_matches_differences_of_the_gradient(name, transcription):
-    """The solver's stage-structured Hessian (stage Hessians + co-state term of the
-    recursion) against central differences of the autodiff gradient of the AL value
-    (a full jax.hessian would take minutes to compile here)."""
-    import jax
-
-    from jtraj.solver import _NLP, _init_multipliers
-    from jtraj.transcription import Transcription
-
-    robot = jtraj.robots.get(name)
-    p = jtraj.Problem(robot, Q0, Q1, N=8, weights=jtraj.Weights(time=1, energy=0.1, kinetic=0.2))
-    tr = Transcription(transcription)
-    lay = tr.layout(p)
-    nlp = _NLP(problem=p, tr=tr, layout=lay, sd=tr.stage_data(p))
-    # a random point around the default guess (unbounded variables, like the spline's
-    # knots, get a spread of 1 in their scaled units)
-    from jtraj.solver import SolverOptions, initial_guess
-
-    z0 = lay.pack(*initial_guess(p, SolverOptions(), tr))
-    spread = jnp.minimum(lay.z_hi - lay.z_lo, 2.0)
-    z = jnp.clip(z0 + spread * (jax.random.uniform(jax.random.PRNGKey(0), z0.shape) - 0.5), lay.z_lo, lay.z_hi)
-    mult = jax.tree.map(lambda x: x + 0.3, _init_multipliers(nlp, z))
-    import equinox as eqx
-
-    val, g, H = eqx.filter_jit(lambda n, zz, m: n.al_derivatives(zz, m, 7.0))(nlp, z, mult)
-    grad_jit = eqx.filter_jit(lambda n, zz, m: jax.grad(n.al_value)(zz, m, 7.0))
-
-    def grad(zz, m, mu):
-        return np.asarray(grad_jit(nlp, zz, m))
-
-    assert float(val) == pytest.approx(float(nlp.al_value(z, mult, 7.0)), rel=1e-12)
-    np.testing.assert_allclose(g, grad(z, mult, 7.0), rtol=1e-11, atol=1e-11)
-    eps = 1e-5
-    E = np.eye(z.shape[0]) * eps
-    H_fd = np.stack([(grad(z + e, mult, 7.0) - grad(z - e, mult, 7.0)) / (2 * eps) for e in E], axis=1)
-    # central differences: O(eps^2) truncation, O(1e-16/eps) rounding; the PHR kinks are
-    # avoided by the random point (no constraint within eps of its switch)
-    assert np.max(np.abs(H - H_fd)) / np.max(np.abs(H_fd)) < 1e-7
-    np.testing.assert_allclose(H, H.T, atol=1e-12 * float(np.max(np.abs(H))))
-    if transcription == "decoupled":
-        # the closed-form assembly of the decoupled recursion against jacfwd through it
-        generic = _NLP(problem=p, tr=tr, layout=lay, sd=nlp.sd, generic_hessian=True)
-        _, g2, H2 = eqx.filter_jit(lambda n, zz, m: n.al_derivatives(zz, m, 7.0))(generic, z, mult)
-        np.testing.assert_allclose(g, g2, rtol=0, atol=1e-12 * float(np.max(np.abs(g2))))
-        np.testing.assert_allclose(H, H2, rtol=0, atol=1e-12 * float(np.max(np.abs(H2))))
-
-
-@pytest.mark.parametrize("name, transcription", [
-    ("ibm7535", "decoupled"), ("pkm2", "decoupled"), ("serial3_vertical", "decoupled"), ("wmr", "decoupled"),
-    pytest.param("serial3", "decoupled", marks=pytest.mark.slow),
-    pytest.param("parallel3", "decoupled", marks=pytest.mark.slow),  # ~45 s to compile
-    pytest.param("serial3", "spline", marks=pytest.mark.slow),
-])
-def test_split_stage_derivatives_match_one_pass(name, transcription):
-    """The stage derivatives by the chain rule through the efforts (what the solver uses
-    where the control slot is the acceleration; it relies on the inverse dynamics being
-    affine in the acceleration) against one forward-over-reverse pass over the whole
-    stage (``generic_hessian``), at a random point with every cost term, a via point, an
-    active T_max, random multipliers and the kink curvature on rows within 0.5 of their
-    PHR switch: agreement to rounding (1e-11 relative). Robots with actuators (ibm7535),
-    a closed chain (pkm2), gravity and a mobile base in the default suite."""
-    import equinox as eqx
-
-    from jtraj.gradcheck import default_weights, random_point
-    from jtraj.solver import _NLP, _init_multipliers
-    from jtraj.transcription import Transcription
-
-    rng = np.random.default_rng(3)
-    tr = Transcription(transcription)
-    problem, v, h, _, mu, _ = random_point(jtraj.robots.get(name), rng, N=4, weights=default_weights())
-    lay = tr.layout(problem)
-    split = _NLP(problem=problem, tr=tr, layout=lay, sd=tr.stage_data(problem))
-    plain = _NLP(problem=problem, tr=tr, layout=lay, sd=split.sd, generic_hessian=True)
-    z = lay.pack(tr.initial_controls(problem, v, h), h)
-    mult = jax.tree.map(lambda x: x + jnp.asarray(rng.uniform(0, 2, x.shape)), _init_multipliers(split, z))
-    derivs = eqx.filter_jit(lambda n, zz, m: n.stage_derivatives(n.W(zz), m, mu, jnp.asarray(0.5)))
-    for got, want, what in zip(derivs(split, z, mult), derivs(plain, z, mult), ("value", "gradient", "Hessian")):
-        assert np.all(np.isfinite(np.asarray(got))), what
-        np.testing.assert_allclose(got, want, rtol=0, atol=1e-11 * float(np.max(np.abs(want))), err_msg=what)
-
-
 @pytest.mark.parametrize("slots", [2, "auto"])
 def test_compacted_batch_equals_one_shot_batch(robot, batch, slots):
     """Lanes refilled as problems finish (slots=2 < B) or, on a CPU, a batch smaller than
@@ -537,6 +451,39 @@ def test_restart_resumes_a_run_cut_short(single):
         SolverOptions(restart_iter=-1)
 
 
+def test_options_differing_in_numbers_share_one_compilation(single):
+    """Numeric options are traced (solver._TRACED_OPTIONS): solves with other limits,
+    tolerances and penalties reuse the compiled solver of ``single``, and act."""
+    problem, sol = single
+    compiles = []
+
+    def timed(event, secs, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(event)
+
+    def counted(event, **kwargs):  # a compilation served by the run's persistent cache too
+        if event == "/jax/compilation_cache/compile_requests_use_cache":
+            compiles.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(timed)
+    jax.monitoring.register_event_listener(counted)
+    try:
+        cut = jtraj.solve(problem, options=SolverOptions(max_iter=5, restart_iter=1))
+        tight = jtraj.solve(problem, options=SolverOptions(tol_optimality=3e-5, penalty_init=20.0))
+        # the exits that 0 switches off: no restart, no stall test (both traced too)
+        plain = jtraj.solve(problem, options=SolverOptions(restart_iter=0, stall_window=0, max_iter=5))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(timed)
+        jax.monitoring.unregister_event_listener(counted)
+    assert compiles == []
+    assert 5 <= int(cut.iterations) <= 6 and not bool(cut.converged)  # 5, then at most 1 after a restart
+    assert int(plain.iterations) == 5 and int(plain.status) == Status.MAX_ITERATIONS
+    assert bool(tight.converged) and int(tight.iterations) > int(sol.iterations)  # a tighter tolerance
+    assert float(tight.cost) == pytest.approx(float(sol.cost), rel=1e-4)
+    # structure (a switch at 0) does compile another program
+    assert S._split_options(SolverOptions(kink_margin=0.0)).static != S._split_options(SolverOptions()).static
+
+
 @pytest.mark.slow
 def test_compacted_batch_restarts_like_single_solves(robot, batch):
     """The compacted batch gathers its restarts and runs them through the lanes again:
@@ -608,7 +555,6 @@ def test_chord_polish_reaches_the_gauss_newton_polish(single):
     the converged optimum perturbed by 1e-5 (a violation like the AL's at its end) both
     must remove the violation to below 1e-12 and land on the same point (1e-9 in the
     scaled unknowns), each without leaving the simple bounds."""
-    from jtraj import solver as S
     from jtraj.transcription import Transcription
     import equinox as eqx
 
@@ -636,7 +582,6 @@ def test_polish_releases_rows_when_holding_them_leaves_a_violation():
     loop certifies a point 6e-6 off the goal, and the holding polish cannot remove it (its
     Gauss-Newton correction crosses a torque bound outside its active window, so no step
     is kept). The releasing polish over all rows must, and the result converge."""
-    from jtraj import solver as S
     from jtraj.transcription import Transcription
     import equinox as eqx
 
