@@ -1129,7 +1129,9 @@ def _al_kkt_error(nlp: _NLP, z, mult: Multipliers, mu):
     implied = Multipliers(eq=jax.tree.map(lambda r, c: r + mu * c, mult.eq, eq),
                           ineq=jax.tree.map(lambda r, g: nlp.ineq_update(g, r, mu), mult.ineq, ineq),
                           glob=nlp.ineq_update(glob, mult.glob, mu))
-    return jnp.minimum(_multiplier_kkt_error(nlp, z, mult), _multiplier_kkt_error(nlp, z, implied))
+    # both by one vmapped pass (one copy of the Lagrangian's gradient in the program)
+    both = jax.tree.map(lambda a, b: jnp.stack([a, b]), mult, implied)
+    return jnp.min(jax.vmap(lambda m: _multiplier_kkt_error(nlp, z, m))(both))
 
 
 def _with_phase(nlp: _NLP, s: "_State") -> _NLP:

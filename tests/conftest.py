@@ -16,7 +16,8 @@ if "JTRAJ_TEST_CACHE" not in os.environ:  # the controlling process; its workers
     _OWN_CACHE = True
 else:
     _OWN_CACHE = False
-os.environ.setdefault("JTRAJ_CACHE_DIR", os.environ["JTRAJ_TEST_CACHE"])  # CLI subprocesses
+# the CLI's cache too (in-process and in subprocesses): never the user's ~/.cache/jtraj
+os.environ["JTRAJ_CACHE_DIR"] = os.environ["JTRAJ_TEST_CACHE"]
 
 import jax  # noqa: E402
 

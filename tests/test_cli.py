@@ -16,11 +16,6 @@ from jtraj import cli
 START, GOAL = "0,30,30", "30,10,20"
 
 
-@pytest.fixture(autouse=True)
-def _cache(tmp_path_factory, monkeypatch):
-    monkeypatch.setenv("JTRAJ_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "jax-cache"))
-
-
 def test_help_lists_commands(capsys):
     with pytest.raises(SystemExit) as exc:
         cli.main(["--help"])

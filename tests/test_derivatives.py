@@ -67,7 +67,12 @@ def test_structured_hessian_matches_differences_of_the_gradient(name, transcript
 
 
 @pytest.mark.parametrize("name, transcription", [
-    ("ibm7535", "decoupled"), ("pkm2", "decoupled"), ("serial3_vertical", "decoupled"), ("wmr", "decoupled"),
+    ("serial3_vertical", "decoupled"),
+    # a minute or more each to compile on a slow 2-core machine (2026-12-02: 35 / 92 / 41 s
+    # beside another test worker)
+    pytest.param("ibm7535", "decoupled", marks=pytest.mark.slow),
+    pytest.param("pkm2", "decoupled", marks=pytest.mark.slow),
+    pytest.param("wmr", "decoupled", marks=pytest.mark.slow),
     pytest.param("serial3", "decoupled", marks=pytest.mark.slow),
     pytest.param("parallel3", "decoupled", marks=pytest.mark.slow),  # ~45 s to compile
     pytest.param("serial3", "spline", marks=pytest.mark.slow),
@@ -78,8 +83,9 @@ def test_split_stage_derivatives_match_one_pass(name, transcription):
     affine in the acceleration) against one forward-over-reverse pass over the whole
     stage (``generic_hessian``), at a random point with every cost term, a via point, an
     active T_max, random multipliers and the kink curvature on rows within 0.5 of their
-    PHR switch: agreement to rounding (1e-11 relative). Robots with actuators (ibm7535),
-    a closed chain (pkm2), gravity and a mobile base in the default suite."""
+    PHR switch: agreement to rounding (1e-11 relative). Gravity in the default suite;
+    actuators (ibm7535), closed chains (pkm2, parallel3) and a mobile base (wmr) with
+    ``-m slow``."""
     import equinox as eqx
 
     from jtraj.gradcheck import default_weights, random_point
