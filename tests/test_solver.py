@@ -50,8 +50,9 @@ def batch(robot):
     q1[3] = np.nan  # one bad sample must not poison the others
     # and one that jtraj.Problem refuses (the move needs 2 s, N h_max = 1 s)
     q0, q1 = np.vstack([q0, q0[2]]), np.vstack([q1, q0[2] + 3.0])
-    # solved at once (slots=None): the reference of the compacted batches below
-    return q0, q1, jtraj.solve_batch(robot, q0, q1, N=N, weights=W, slots=None)
+    # 2 lanes refilled as problems finish (the default path on a CPU, which single solves
+    # and the one-shot batch check below)
+    return q0, q1, jtraj.solve_batch(robot, q0, q1, N=N, weights=W, slots=2)
 
 
 def test_single_solve_converges_and_verifies_independently(single):
@@ -367,29 +368,43 @@ def test_inner_tolerance_schedules_reach_the_same_optimum(robot, single):
     np.testing.assert_allclose(np.asarray(other.q), np.asarray(sol.q), atol=1e-3)
 
 
-# "auto" (a batch smaller than its 8 lanes stepping down to 2) compiles the 8-lane
-# programs too; the refill (2 lanes) stays in the default suite, and test_dataset's real
-# solver runs the default lanes
-@pytest.mark.parametrize("slots", [2, pytest.param("auto", marks=pytest.mark.slow)])
-def test_compacted_batch_equals_one_shot_batch(robot, batch, slots):
-    """Lanes refilled as problems finish (slots=2 < B) or, on a CPU, a batch smaller than
-    ``slots`` stepping down to fewer lanes ("auto"): every problem must take the same
-    iterations and reach the same point as in the one-shot vmapped batch."""
-    q0, q1, sol = batch
-    lanes = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, slots=slots, segment=7)
-    np.testing.assert_array_equal(np.asarray(lanes.status), np.asarray(sol.status))
-    np.testing.assert_array_equal(np.asarray(lanes.iterations), np.asarray(sol.iterations))
-    # same iterations; XLA may round differently at another batch width (seen: 5e-12)
-    np.testing.assert_allclose(np.asarray(lanes.h), np.asarray(sol.h), rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(lanes.cost), np.asarray(sol.cost), rtol=1e-9)
+def test_compacted_batch_equals_single_solves(robot, batch):
+    """Lanes refilled as problems finish (slots=2 < B): every problem must take the
+    iterations of its single solve and reach the same point (the options and the lanes'
+    programs are those of ``single`` and ``batch``: no compilation of its own)."""
+    q0, q1, lanes = batch
+    for i in range(3):
+        one = jtraj.solve(jtraj.Problem(robot, q0[i], q1[i], N=N, weights=W))
+        assert int(lanes.status[i]) == int(one.status)
+        assert int(lanes.iterations[i]) == int(one.iterations)
+        np.testing.assert_allclose(np.asarray(lanes.h[i]), np.asarray(one.h), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(float(lanes.cost[i]), float(one.cost), rtol=1e-9)
     with pytest.raises(ValueError, match="slots"):
         jtraj.solve_batch(robot, q0, q1, N=N, slots=0)
+
+
+# a program of its own each (a minute or more of compilation on a slow 2-core machine)
+@pytest.mark.slow
+@pytest.mark.parametrize("slots", [None, "auto"])
+def test_one_shot_and_auto_lane_batches_equal_the_compacted_batch(robot, batch, slots):
+    """All problems solved at once (slots=None), or, on a CPU, a batch smaller than its
+    8 lanes stepping down to 2 ("auto"): every problem must take the same iterations and
+    reach the same point as in the 2-lane compacted batch."""
+    q0, q1, sol = batch
+    other = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, slots=slots, segment=7)
+    np.testing.assert_array_equal(np.asarray(other.status), np.asarray(sol.status))
+    np.testing.assert_array_equal(np.asarray(other.iterations), np.asarray(sol.iterations))
+    # same iterations; XLA may round differently at another batch width (seen: 5e-12)
+    np.testing.assert_allclose(np.asarray(other.h), np.asarray(sol.h), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(other.cost), np.asarray(sol.cost), rtol=1e-9)
 
 
 def test_kkt_error_tells_an_optimum_from_a_feasible_point(robot, single):
     """The end-of-run certificate (:func:`jtraj.solver._kkt_error`, least-squares
     multipliers of the original problem): small at the optimum, large at a trajectory that
-    meets the same constraints but optimises another cost (a kinetic-energy term)."""
+    meets the same constraints but optimises another cost (a kinetic-energy term: this
+    pair's periods sit at h_max, and other time and energy weights hardly move its
+    optimum)."""
     import equinox as eqx
 
     from jtraj.solver import _NLP, SolverOptions, _kkt_error
@@ -487,12 +502,12 @@ def test_options_differing_in_numbers_share_one_compilation(single):
     assert S._split_options(SolverOptions(kink_margin=0.0)).static != S._split_options(SolverOptions()).static
 
 
-@pytest.mark.slow
 def test_compacted_batch_restarts_like_single_solves(robot, batch):
     """The compacted batch gathers its restarts and runs them through the lanes again:
-    every problem must take exactly the iterations of its single solve."""
+    every problem must take exactly the iterations of its single solve (RESTART's
+    numbers are traced: the programs of ``single`` and ``batch`` serve)."""
     q0, q1, _ = batch
-    lanes = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=RESTART, slots=2, segment=5)
+    lanes = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=RESTART, slots=2)
     for i in range(3):
         one = jtraj.solve(jtraj.Problem(robot, q0[i], q1[i], N=N, weights=W), options=RESTART)
         assert int(lanes.status[i]) == int(one.status)
