@@ -30,16 +30,3 @@ def pytest_unconfigure(config):
     if _OWN_CACHE and not hasattr(config, "workerinput"):
         shutil.rmtree(os.environ["JTRAJ_TEST_CACHE"], ignore_errors=True)
 
-
-#: test files by the compilation they need, most first (seconds beside another worker on a
-#: slow 2-core machine, 2026-12-02: 273, 179, 173, 119, 109, 107, 99, 83, 70, 65, 58, 28):
-#: pytest-xdist hands whole files (--dist loadfile) to the workers in collection order, so
-#: the long ones start first and the two workers finish close together
-_HEAVY_FIRST = ["test_solver.py", "test_transcriptions.py", "test_resample.py", "test_dataset.py",
-                "test_sensitivity.py", "test_online.py", "test_pbm.py", "test_robots.py", "test_gradcheck.py",
-                "test_derivatives.py", "test_lq.py", "test_cli.py"]
-
-
-def pytest_collection_modifyitems(session, config, items):
-    rank = {name: i for i, name in enumerate(_HEAVY_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: order within a file kept
