@@ -913,17 +913,15 @@ def _stationarity(nlp: _NLP, z, g):
     return jnp.max(jnp.abs(z - jnp.clip(z - g, nlp.layout.z_lo, nlp.layout.z_hi)))
 
 
-def _residual(nlp: _NLP, z, act_tol, violated_only: bool = False):
+def _residual(nlp: _NLP, z, act_tol):
     """Stacked equalities and nearly-active inequalities (g > -act_tol); inactive rows are
-    zero. With ``violated_only`` the nearly-active rows hold max(g, 0): the polish then
-    removes violations while keeping satisfied nearly-active rows where they are to first
-    order (their Jacobian rows stay), instead of pulling them onto their boundary."""
+    zero. (The polish's holding phase takes the nearly-active rows' max(g, 0): it removes
+    violations while keeping satisfied nearly-active rows where they are to first order,
+    their Jacobian rows kept, instead of pulling them onto their boundary.)"""
     eq, ineq, glob = nlp.constraints(z)
     rows = [c.ravel() for c in jax.tree.leaves(eq)]
     for g in jax.tree.leaves(ineq) + [glob]:
-        g = g.ravel()
-        near = jnp.where(g > -act_tol, g, 0.0)
-        rows.append(jnp.maximum(near, 0.0) if violated_only else near)
+        rows.append(jnp.where(g.ravel() > -act_tol, g.ravel(), 0.0))
     return jnp.concatenate(rows)
 
 
@@ -939,7 +937,7 @@ def _ridge_solve(Jf, b, eps):
 _POLISH_DONE = 1e-12
 
 
-def _polish(nlp: _NLP, z, iterations: int = 4, act_tol: float = 1e-3, release: bool = False, chord: bool = True):
+def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above=None):
     """Feasibility polish: a few Gauss-Newton projections of z onto the manifold of the
     equalities and nearly-active inequalities (minimum-norm corrections, simple bounds
     held). The AL leaves O((lambda* - lambda)/mu) violations; this removes them without
@@ -956,16 +954,33 @@ def _polish(nlp: _NLP, z, iterations: int = 4, act_tol: float = 1e-3, release: b
     and the chord's slightly different point sent benchmark pair 243 of seed 11 (806
     iterations, converged) to 1,024 iterations and ``FEASIBLE_NOT_OPTIMAL``.
 
-    By default a satisfied nearly-active inequality is held where it is to first order.
-    With ``release`` it is left free unless the correction would take it across its
-    boundary (then it is moved onto it): holding it fails where it is nearly parallel to
-    a violated one (``Problem(efforts="intervals")``: the effort at an interval's end and
-    at the next sample), whose correction it then cancels (see :func:`_finish`)."""
+    A satisfied nearly-active inequality is held where it is to first order. With
+    ``release_above``, a point that this holding phase leaves violated by more than
+    ``release_above`` (and that started within its window, violation <= 1e-3, its act_tol)
+    goes on to a releasing phase over all inequality rows (``act_tol = inf``, ``iterations``
+    more projections; a chord's Jacobian is still the one at z, of all rows): a
+    satisfied inequality is left free
+    unless the correction would take it across its boundary (then it is moved onto it).
+    Holding it fails where it is nearly parallel to a violated one
+    (``Problem(efforts="intervals")``: the effort at an interval's end and at the next
+    sample), whose correction it then cancels (see :func:`_final_polish`).
+
+    Both phases are one bounded loop, their bodies one piece of code (the releasing
+    phase's row selection an inner loop that under vmap runs only while some lane
+    releases): two copies of the polish, holding then releasing, were about half of the
+    finish's and the restart's compilation (serial3, N = 10, 2 lanes, one core: the
+    finish 12.9 -> 7.6 s, the restart 12.1 -> 6.2 s; warm, 8 lanes at N = 20, the final
+    polish takes 14.8 instead of 13.4 ms per call, best of five). With the chord, the releasing
+    phase's Jacobian was the one where that phase starts until 2026-12-02; as an inner
+    loop of zero passes it cost 10 ms per call, and a point the holding phase moved by
+    the AL's violations (1e-5 and less) gives a chord as good."""
     lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
-    n_eq = sum(x.size for x in jax.tree.leaves(nlp.constraints(z)[0]))
+    n_eq = sum(x.size for x in jax.tree.leaves(jax.eval_shape(lambda zz: nlp.constraints(zz)[0], z)))
+    n_rows = jax.eval_shape(lambda zz: _residual(nlp, zz, 1e-3), z).shape[0]
+    is_ineq = jnp.arange(n_rows) >= n_eq
     jac = jax.jacfwd(_residual, argnums=1)
-    J0 = jac(nlp, z, act_tol) if chord else None
     done = _POLISH_DONE if chord else 0.0
+    releasing = release_above is not None
 
     def viol(zz):
         return _violation(*nlp.constraints(zz))
@@ -977,43 +992,60 @@ def _polish(nlp: _NLP, z, iterations: int = 4, act_tol: float = 1e-3, release: b
         return _ridge_solve(Jf, Jf.T @ r, 1e-10 * (1.0 + jnp.max(jnp.sum(Jf**2, axis=0))))
 
     def body(carry):
-        z, v, k, _ = carry
-        J = J0 if chord else jac(nlp, z, act_tol)
-        fixed = (z <= lo + 1e-12) | (z >= hi - 1e-12)
-        if release:
-            raw = _residual(nlp, z, act_tol)
-            is_ineq = jnp.arange(raw.size) >= n_eq
-            rows = ~is_ineq | (raw > 0)  # equalities and violated inequalities
-            # satisfied rows the correction would take across their boundary join it (a
-            # few rounds: each correction can cross others)
-            for _ in range(4):
-                dz = correction(jnp.where(rows[:, None], J, 0.0), jnp.where(rows, raw, 0.0), fixed)
-                rows = rows | (is_ineq & (raw - J @ dz > 0))
-            J, r = jnp.where(rows[:, None], J, 0.0), jnp.where(rows, raw, 0.0)
+        z, v, k, _, rel, v_start = carry
+        act_tol = jnp.where(rel, jnp.inf, 1e-3)
+        if chord:  # the Jacobian at the entry point, of the phase's rows
+            J = jnp.where(rel, J_all, J_near) if releasing else J_near
         else:
-            r = _residual(nlp, z, act_tol, True)
-            dz = correction(J, r, fixed)
+            J = jac(nlp, z, act_tol)
+        fixed = (z <= lo + 1e-12) | (z >= hi - 1e-12)
+        raw = _residual(nlp, z, act_tol)
+        Jr, r = J, jnp.where(is_ineq, jnp.maximum(raw, 0.0), raw)  # holding: violated part only
+        dz = correction(Jr, r, fixed)
+        if releasing:
+            # releasing: equalities and violated inequalities; satisfied rows the
+            # correction would take across their boundary join them (four rounds: each
+            # correction can cross others)
+            def select(c):
+                rows, _, i = c
+                dz = correction(jnp.where(rows[:, None], J, 0.0), jnp.where(rows, raw, 0.0), fixed)
+                return rows | (is_ineq & (raw - J @ dz > 0)), dz, i + 1
+
+            rows, dz, _ = jax.lax.while_loop(lambda c: rel & (c[2] < 4), select,
+                                             (~is_ineq | (raw > 0), dz, jnp.asarray(0)))
+            Jr = jnp.where(rel, jnp.where(rows[:, None], J, 0.0), J)
+            r = jnp.where(rel, jnp.where(rows, raw, 0.0), r)
         # variables the correction would push through a bound are held there and the
         # correction recomputed (clipping it would undo part of it)
-        dz = correction(J, r, fixed | (z - dz < lo) | (z - dz > hi))
+        dz = correction(Jr, r, fixed | (z - dz < lo) | (z - dz > hi))
         z_new = jnp.clip(z - dz, lo, hi)
         v_new = viol(z_new)
         better = jnp.isfinite(v_new) & (v_new < v)
-        return jnp.where(better, z_new, z), jnp.where(better, v_new, v), k + 1, better & (v_new > done)
+        z, v, k = jnp.where(better, z_new, z), jnp.where(better, v_new, v), k + 1
+        going = better & (v_new > done)
+        if releasing:  # the holding phase over: the releasing one starts where needed
+            switch = ~rel & ~(going & (k < iterations)) & (v > release_above) & (v_start <= 1e-3)
+            rel, k, going = rel | switch, jnp.where(switch, 0, k), going | switch
+        return z, v, k, going, rel, v_start
 
     v0 = viol(z)
-    carry = (z, v0, jnp.asarray(0), v0 > done)
+    if chord:
+        # every row's Jacobian at z; the holding phase's rows are those nearly active there
+        # (the rows of jac(nlp, z, 1e-3)), the releasing phase's all rows (a chord from z,
+        # not from where the releasing phase starts: a point the holding phase moved by
+        # the size of the AL's violations)
+        J_all = jac(nlp, z, jnp.inf)
+        J_near = jnp.where((_residual(nlp, z, jnp.inf) > -1e-3)[:, None] | ~is_ineq[:, None], J_all, 0.0)
+    carry = (z, v0, jnp.asarray(0), v0 > done, jnp.asarray(False), v0)
     # a bounded loop (under vmap it runs while some lane still improves)
     z, *_ = jax.lax.while_loop(lambda c: c[3] & (c[2] < iterations), body, carry)
     return z
 
 
 def _final_polish(nlp: _NLP, z, opts: SolverOptions, chord: bool = True):
-    """:func:`_polish`, followed where it leaves more than ``verify_tol`` by the releasing
-    variant over all inequality rows (``act_tol = inf``: a correction can cross a bound
-    outside the holding polish's window). Where the holding polish succeeds its result is
-    kept unchanged.
-    ``chord``: chord or Gauss-Newton projections (see :func:`_polish`).
+    """:func:`_polish` with its releasing phase for a point the holding one leaves violated
+    by more than ``verify_tol``. Where the holding polish succeeds its result is kept
+    unchanged. ``chord``: chord or Gauss-Newton projections (see :func:`_polish`).
 
     Measured: on 96 dataset pairs (seed 5, h_max 0.2 s) with ``Problem(efforts="intervals")``
     the holding polish left 4 certified optima violated by 2e-6 to 1.7e-5: nearly parallel
@@ -1021,20 +1053,13 @@ def _final_polish(nlp: _NLP, z, opts: SolverOptions, chord: bool = True):
     (costs within 2.5e-5). On benchmark pair 16 of seed 21 (``kink_margin=1e-4,
     kink_after=0``) the loop certified a point 6e-6 off the goal whose Gauss-Newton
     correction crossed a torque bound 1e-3 away from its limit, so no step was kept
-    (``VERIFICATION_FAILED``); the releasing polish over all rows removed it (cost +5e-5)."""
-    z1 = _polish(nlp, z, chord=chord)
-
-    def release(carry):
-        return _polish(nlp, carry[0], release=True, act_tol=jnp.inf, chord=chord), jnp.asarray(False)
-
-    # Only for a point the AL brought within the polish's window (violation <= 1e-3, its
-    # act_tol): a far-off point (an infeasible problem's) is beyond its reach. Written as
-    # a loop of at most one pass, not lax.cond: under vmap a cond whose predicate differs
-    # between lanes runs both branches on every lane, and the releasing polish was then
-    # 45 % of a batch's finish (5.7 of 12.6 ms per problem) where hardly any lane needed
-    # it; the loop's body runs only when some lane does.
-    need = (_violation(*nlp.constraints(z1)) > opts.verify_tol) & (_violation(*nlp.constraints(z)) <= 1e-3)
-    return jax.lax.while_loop(lambda carry: carry[1], release, (z1, need))[0]
+    (``VERIFICATION_FAILED``); the releasing polish over all rows removed it (cost +5e-5).
+    Only for a point the AL brought within the polish's window: a far-off point (an
+    infeasible problem's) is beyond its reach. Under vmap the releasing phase runs only
+    while some lane needs it (as a ``lax.cond`` whose predicate differs between lanes it
+    ran on every lane, and was then 45 % of a batch's finish, 5.7 of 12.6 ms per problem,
+    where hardly any lane needed it)."""
+    return _polish(nlp, z, chord=chord, release_above=opts.verify_tol)
 
 
 def _init_multipliers(nlp: _NLP, z) -> Multipliers:

@@ -89,7 +89,8 @@ def batch():
     robot = jtraj.robots.get("serial3")
     q0 = np.stack([Q0, QI, Q0])
     q1 = np.stack([Q1, QI + 0.7, np.full(3, np.nan)])
-    return q0, q1, jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=SolverOptions.pbm())
+    # 2 lanes throughout: one segment program (the default 8 would step down to 2: two)
+    return q0, q1, jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=SolverOptions.pbm(), slots=2)
 
 
 def test_pbm_batch_converges_to_ipopts_optimum_and_flags_the_rest(batch):
@@ -121,7 +122,8 @@ def test_pbm_run_cut_short_falls_back_to_phr_and_reaches_the_same_optimum(batch)
     batch again: pbm_fallback_iter is traced, so the fixture's compiled solver serves.)"""
     q0, q1, ref = batch
     robot = jtraj.robots.get("serial3")
-    sol = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=SolverOptions.pbm(pbm_fallback_iter=8))
+    sol = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=SolverOptions.pbm(pbm_fallback_iter=8),
+                            slots=2)
     assert int(sol.status[0]) == Status.CONVERGED, int(sol.status[0])
     assert int(sol.iterations[0]) > 8
     assert float(sol.cost[0]) == pytest.approx(float(ref.cost[0]), rel=1e-4)

@@ -99,6 +99,8 @@ def test_collocation_satisfies_midpoint_rule_with_pinocchio(problem, decoupled):
     assert float(sol.T) == pytest.approx(float(decoupled.T), rel=0.05)
 
 
+@pytest.mark.slow  # a solver of its own (about a minute of compilation on 2 cores); the
+# spline itself is checked against SciPy above, and the collocation solve stays in the default suite
 def test_spline_is_the_clamped_spline_with_rnea_torques(problem, decoupled):
     V, pin, model, data = _pin()
     sol = jtraj.solve(problem, transcription="spline")
@@ -132,13 +134,13 @@ def test_shooting_replayed_by_an_adaptive_integrator(problem, decoupled):
     assert float(sol.T) == pytest.approx(float(decoupled.T), rel=0.05)
 
 
-def test_warm_start_through_controls_of(problem):
+@pytest.mark.parametrize("name", ["collocation", pytest.param("spline", marks=pytest.mark.slow)])
+def test_warm_start_through_controls_of(problem, name):
     """Transcription.controls_of turns a Solution back into its controls: a warm start
     from the optimum of each transcription stays there."""
-    for name in ("collocation", "spline"):
-        tr = Transcription(name)
-        sol = jtraj.solve(problem, transcription=name)
-        again = jtraj.solve(problem, transcription=name, init=(tr.controls_of(sol), sol.h))
-        assert again.converged
-        assert int(again.iterations) < int(sol.iterations) / 3
-        assert float(again.cost) == pytest.approx(float(sol.cost), rel=1e-4)
+    tr = Transcription(name)
+    sol = jtraj.solve(problem, transcription=name)
+    again = jtraj.solve(problem, transcription=name, init=(tr.controls_of(sol), sol.h))
+    assert again.converged
+    assert int(again.iterations) < int(sol.iterations) / 3
+    assert float(again.cost) == pytest.approx(float(sol.cost), rel=1e-4)
