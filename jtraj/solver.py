@@ -959,21 +959,20 @@ def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above
     ``release_above`` (and that started within its window, violation <= 1e-3, its act_tol)
     goes on to a releasing phase over all inequality rows (``act_tol = inf``, ``iterations``
     more projections; a chord's Jacobian is still the one at z, of all rows): a
-    satisfied inequality is left free
-    unless the correction would take it across its boundary (then it is moved onto it).
-    Holding it fails where it is nearly parallel to a violated one
-    (``Problem(efforts="intervals")``: the effort at an interval's end and at the next
-    sample), whose correction it then cancels (see :func:`_final_polish`).
+    satisfied inequality is left free unless the correction would take it across its
+    boundary (then it is moved onto it). Holding it fails where it is nearly parallel to
+    a violated one (``Problem(efforts="intervals")``: the effort at an interval's end and
+    at the next sample), whose correction it then cancels (see :func:`_final_polish`).
 
     Both phases are one bounded loop, their bodies one piece of code (the releasing
     phase's row selection an inner loop that under vmap runs only while some lane
     releases): two copies of the polish, holding then releasing, were about half of the
     finish's and the restart's compilation (serial3, N = 10, 2 lanes, one core: the
     finish 12.9 -> 7.6 s, the restart 12.1 -> 6.2 s; warm, 8 lanes at N = 20, the final
-    polish takes 14.8 instead of 13.4 ms per call, best of five). With the chord, the releasing
-    phase's Jacobian was the one where that phase starts until 2026-12-02; as an inner
-    loop of zero passes it cost 10 ms per call, and a point the holding phase moved by
-    the AL's violations (1e-5 and less) gives a chord as good."""
+    polish takes 14.8 instead of 13.4 ms per call, best of five). With the chord, the
+    releasing phase's Jacobian was the one where that phase starts until 2026-12-02; as
+    an inner loop of zero passes it cost 10 ms per call, and a point the holding phase
+    moved by the AL's violations (1e-5 and less) gives a chord as good."""
     lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
     n_eq = sum(x.size for x in jax.tree.leaves(jax.eval_shape(lambda zz: nlp.constraints(zz)[0], z)))
     n_rows = jax.eval_shape(lambda zz: _residual(nlp, zz, 1e-3), z).shape[0]
