@@ -379,9 +379,9 @@ def test_inner_tolerance_schedules_reach_the_same_optimum(robot, single):
 
 
 def test_compacted_batch_equals_single_solves(robot, batch):
-    """Lanes refilled as problems finish, the last ones on fewer lanes: every problem must take the
-    iterations of its single solve and reach the same point (the options and the lanes'
-    programs are those of ``single`` and ``batch``: no compilation of its own)."""
+    """Lanes refilled as problems finish, the last ones on fewer lanes: every problem must
+    take the iterations of its single solve and reach the same point (the options and the
+    lanes' programs are those of ``single`` and ``batch``: no compilation of its own)."""
     q0, q1, lanes = batch
     for i in range(3):
         one = jtraj.solve(jtraj.Problem(robot, q0[i], q1[i], N=N, weights=W))
@@ -412,7 +412,7 @@ def test_one_shot_and_two_lane_batches_equal_the_compacted_batch(robot, batch, s
 def test_kkt_error_tells_an_optimum_from_a_feasible_point(single, via):
     """The end-of-run certificate (:func:`jtraj.solver._kkt_error`, least-squares
     multipliers of the original problem): small at the optimum, large at a trajectory that
-    meets the same constraints but optimises with one more (the via point of ``via``,
+    meets the same constraints but optimises under one more (the via point of ``via``,
     whose own certificate is small)."""
     import equinox as eqx
 
