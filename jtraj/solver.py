@@ -974,8 +974,9 @@ def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above
     an inner loop of zero passes it cost 10 ms per call, and a point the holding phase
     moved by the AL's violations (1e-5 and less) gives a chord as good."""
     lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
+    window = 1e-3  # the holding phase's act_tol: the rows nearly active within it
     n_eq = sum(x.size for x in jax.tree.leaves(jax.eval_shape(lambda zz: nlp.constraints(zz)[0], z)))
-    n_rows = jax.eval_shape(lambda zz: _residual(nlp, zz, 1e-3), z).shape[0]
+    n_rows = jax.eval_shape(lambda zz: _residual(nlp, zz, window), z).shape[0]
     is_ineq = jnp.arange(n_rows) >= n_eq
     jac = jax.jacfwd(_residual, argnums=1)
     done = _POLISH_DONE if chord else 0.0
@@ -992,7 +993,7 @@ def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above
 
     def body(carry):
         z, v, k, _, rel, v_start = carry
-        act_tol = jnp.where(rel, jnp.inf, 1e-3)
+        act_tol = jnp.where(rel, jnp.inf, window)
         if chord:  # the Jacobian at the entry point, of the phase's rows
             J = jnp.where(rel, J_all, J_near) if releasing else J_near
         else:
@@ -1023,18 +1024,18 @@ def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above
         z, v, k = jnp.where(better, z_new, z), jnp.where(better, v_new, v), k + 1
         going = better & (v_new > done)
         if releasing:  # the holding phase over: the releasing one starts where needed
-            switch = ~rel & ~(going & (k < iterations)) & (v > release_above) & (v_start <= 1e-3)
+            switch = ~rel & ~(going & (k < iterations)) & (v > release_above) & (v_start <= window)
             rel, k, going = rel | switch, jnp.where(switch, 0, k), going | switch
         return z, v, k, going, rel, v_start
 
     v0 = viol(z)
     if chord:
         # every row's Jacobian at z; the holding phase's rows are those nearly active there
-        # (the rows of jac(nlp, z, 1e-3)), the releasing phase's all rows (a chord from z,
+        # (the rows of jac(nlp, z, window)), the releasing phase's all rows (a chord from z,
         # not from where the releasing phase starts: a point the holding phase moved by
         # the size of the AL's violations)
         J_all = jac(nlp, z, jnp.inf)
-        J_near = jnp.where((_residual(nlp, z, jnp.inf) > -1e-3)[:, None] | ~is_ineq[:, None], J_all, 0.0)
+        J_near = jnp.where((_residual(nlp, z, jnp.inf) > -window)[:, None] | ~is_ineq[:, None], J_all, 0.0)
     carry = (z, v0, jnp.asarray(0), v0 > done, jnp.asarray(False), v0)
     # a bounded loop (under vmap it runs while some lane still improves)
     z, *_ = jax.lax.while_loop(lambda c: c[3] & (c[2] < iterations), body, carry)

@@ -29,4 +29,3 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 def pytest_unconfigure(config):
     if _OWN_CACHE and not hasattr(config, "workerinput"):
         shutil.rmtree(os.environ["JTRAJ_TEST_CACHE"], ignore_errors=True)
-
