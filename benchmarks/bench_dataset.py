@@ -58,7 +58,7 @@ def measure_jtraj(B, chunks, seed, N, solver, workers, options=None):
         size = sum(os.path.getsize(os.path.join(out, "chunks", f)) for f in os.listdir(os.path.join(out, "chunks")))
     return {"batch": B, "pairs": pairs, "timed_pairs": s["new_pairs"], "seconds": s["seconds"],
             "pairs_per_s": s["pairs_per_s"], "first_chunk_s": first, "converged_fraction": conv,
-            "bytes_per_pair": size / pairs, "h_max": spec.robot_model().limits.h_max, "workers": workers}, (q0, q1)
+            "bytes_per_pair": size / pairs, "h_max": float(spec.robot_model().limits.h_max), "workers": workers}, (q0, q1)
 
 
 def measure_ipopt(q0, q1, processes, N, h_max, formulation="lifted"):
