@@ -8,7 +8,7 @@ from typing import Any, Callable
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
+import numpy as np
 
 
 @functools.lru_cache(maxsize=None)
@@ -18,7 +18,7 @@ def _accepted(name: str, value: Any) -> bool:
     between jaxlib releases, and an unknown one fails every compilation that names it.
     Checked once per process by compiling a scalar addition (a few milliseconds)."""
     try:
-        jax.jit(lambda x: x + 1).lower(jnp.zeros((), jnp.float32)).compile({name: value})
+        jax.jit(lambda x: x + 1).lower(np.zeros((), np.float32)).compile({name: value})
     except Exception:  # noqa: BLE001 - any refusal means: do not pass this option
         return False
     return True
