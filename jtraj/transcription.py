@@ -437,17 +437,42 @@ def decoupled_hessian(layout: Layout, W, c, Hk):
 
 def _sample_times(h):
     """t_k = sum_{i<k} h_i, (N+1,), from the periods h (N,)."""
-    return jnp.concatenate([jnp.zeros(1, h.dtype), jnp.cumsum(h)])
+    return _prefix_sums(h)
+
+
+# Prefix and suffix sums over the samples are products with a triangular matrix of ones,
+# not ``cumsum``: XLA's CPU lowering of a cumsum is a blocked reduce-window (pads,
+# transposes and copies, several kernels each), and these arrays are short (N + 1 rows).
+def _prefix_sums(X):
+    """sum_{j < k} X_j for k = 0..N, from X (N, ...) over the stages."""
+    N = X.shape[0]
+    return jnp.tensordot(jnp.asarray(np.tri(N + 1, N, -1), X.dtype), X, axes=1)
 
 
 def _suffix_sums(X):
     """sum_{k > j} X_k for j = 0..N-1, from X (N+1, ...) over the samples."""
-    return jnp.cumsum(X[::-1], axis=0)[::-1][1:]
+    N = X.shape[0] - 1
+    return jnp.tensordot(jnp.asarray(np.triu(np.ones((N, N + 1)), 1), X.dtype), X, axes=1)
+
+
+def _costate_terms(c, u, dt):
+    """The co-state term ``sum_k c_k . d2W_k`` of :func:`decoupled_hessian` by its
+    pieces, unscaled, from the co-states c (N+1, nw), the accelerations u (N, n) and
+    ``dt`` (N+1, N), t_k - t_j where k > j and 0 elsewhere: Cq (N, n), the suffix sums
+    ``sum_{k > i} cq_k`` of the position co-states (which carry d2q_k to every k > j), so
+    that [h_i, v_j] = Cq_i h_j for j < i; cv_diag (N, n), the [h_j, v_j] entries; Chh
+    (N, N), the [h_i, h_j] block ``Cq_{max(i,j)} . v_min(i,j)``."""
+    N, n = u.shape
+    cq, cqd = c[:, :n], c[:, n:2 * n]
+    Cq = _suffix_sums(cq)
+    cv_diag = _suffix_sums(cqd) + jnp.sum(dt[..., None] * cq[:, None, :], axis=0)
+    M = Cq @ u.T  # [i, j] = Cq_i . v_j
+    I, J = jnp.arange(N)[:, None], jnp.arange(N)[None, :]
+    return Cq, cv_diag, jnp.where(I >= J, M, M.T)
 
 
 def _decoupled_pieces(layout: Layout, W, c):
-    """The recursion's derivatives shared by :func:`decoupled_hessian` and
-    :func:`decoupled_hessian_bounds`, stage-major (y = (v_0, h_0, v_1, h_1, ...)): the
+    """The recursion's derivatives for :func:`decoupled_hessian`, stage-major (y = (v_0, h_0, v_1, h_1, ...)): the
     state rows A (N+1, 2n, ny) of J (scaled to z), dy/dz sy (ny,), the co-state terms
     Chv (N, N, n) [h_i, v_j] and Chh (N, N) [h_i, h_j] (unscaled), and the permutation
     from y to z's order."""
@@ -467,14 +492,9 @@ def _decoupled_pieces(layout: Layout, W, c):
     Aqd = rows(jnp.where(low, h, 0.0), jnp.where(low[..., None], u[None], 0.0))
     sy = jnp.tile(jnp.concatenate([layout.u_scale, layout.h_scale[None]]), N)  # dy/dz
     A = jnp.concatenate([Aq, Aqd], axis=1).reshape(N + 1, ns, ny) * sy  # state rows of J
-    # co-state term: suffix sums of the position co-states carry d2q_k to every k > j
-    cq, cqd = c[:, :n], c[:, n:ns]
-    Cq = _suffix_sums(cq)  # (N, n): sum_{k > m} cq_k
+    Cq, cv_diag, Chh = _costate_terms(c, u, jnp.where(low, dt, 0.0))
     I, J = jnp.arange(N)[:, None], jnp.arange(N)[None, :]
-    M = Cq @ u.T  # [m, l] = Cq_{>m} . v_l
-    Chh = jnp.where(I >= J, M, M.T)  # Cq_{>max(i,j)} . v_min(i,j)
-    diag = jnp.einsum("kj,ka->ja", low.astype(W.dtype), cqd) + jnp.einsum("kj,ka->ja", jnp.where(low, dt, 0.0), cq)
-    Chv = jnp.where((J < I)[..., None], Cq[:, None, :] * h[None, :, None], 0.0) + jnp.eye(N)[..., None] * diag
+    Chv = jnp.where((J < I)[..., None], Cq[:, None, :] * h[None, :, None], 0.0) + jnp.eye(N)[..., None] * cv_diag
     perm = np.concatenate([(np.arange(N)[:, None] * (n + 1) + np.arange(n)).ravel(), np.arange(N) * (n + 1) + n])
     return A, sy, Chv, Chh, perm
 
@@ -515,44 +535,64 @@ def _state_diagonal(layout: Layout, W, Hss):
 def decoupled_hessian_bounds(layout: Layout, W, c, Hk):
     """The diagonal of :func:`decoupled_hessian`'s H and a function ``free -> bound``
     giving upper bounds on the row sums of |H| over the free columns
-    (``sum_{j free} |H_ij| <= bound_i``), both in z's order, without forming H: the
-    diagonal in O(N n^2) (:func:`_state_diagonal`), the bound in O(N^2 n^3), instead of
-    O(N^3 n^2). The bound takes absolute values stage by stage
-    (|H| <= sum_k |J_k|^T |Hk| |J_k| + |C|); it feeds the Gershgorin shift of the
+    (``sum_{j free} |H_ij| <= bound_i``), both in z's order, without forming H or the
+    recursion's Jacobian: the diagonal in O(N n^2) (:func:`_state_diagonal`), the bound
+    in O(N^2 n) (instead of O(N^3 n^2) for H). The bound takes absolute values stage by
+    stage (|H| <= sum_k |J_k|^T |Hk| |J_k| + |C|); it feeds the Gershgorin shift of the
     stage-wise Newton solve (:mod:`jtraj.lq`). The diagonal comes first because the
-    solver's choice of free variables depends on it."""
+    solver's choice of free variables depends on it.
+
+    With the derivatives of :func:`decoupled_hessian`, |J_k| 1_free and |J_k|^T u need
+    no (N+1, 2n, N (n+1)) Jacobian: the v-columns' coefficients ``h_j`` and
+    ``h_j (t_k - t_j - h_j / 2)`` are positive polynomials in t_k, so their sums over
+    j < k (or k > j) are prefix (suffix) sums; only the h-columns' ``|qd_j + (t_k - t_j)
+    v_j|`` need an (N+1, N, n) array. The co-state term's |C| has the same structure
+    (``Chv[i, j] = Cq_{>i} h_j`` for j < i). Measured (serial3, N = 20, 8 lanes, one
+    core): the bounds 81-121 -> ?? us per problem."""
     N, n = layout.N, layout.m_u
-    ns, m = 2 * n, n + 1
-    A, sy, Chv, Chh, perm = _decoupled_pieces(layout, W, c)
-    inv = np.argsort(perm)
+    ns = 2 * n
+    qd, u, h = W[:N, n:ns], W[:N, ns:ns + n], W[:N, -1]
+    sv, sh = layout.u_scale, layout.h_scale
+    t = _sample_times(h)  # (N+1,)
     Hss, Hcc = Hk[:, :ns, :ns], Hk[:N, ns:, ns:]
-    sk = sy.reshape(N, m)
-    # diagonal: state part, the control block, and the co-state term (on the h diagonal
-    # only); the state-control cross terms have none (x_k does not depend on u_k).
-    # Written as broadcasts and sums, not einsums: under vmap XLA's CPU dot_generals of
-    # these small shapes cost up to ~4x more (measured at a batch of 128)
-    d = _state_diagonal(layout, W, Hss).ravel() * sy**2
-    d = d + (jnp.diagonal(Hcc, axis1=1, axis2=2) * sk**2).ravel()
-    d = d + jnp.zeros((N, m), W.dtype).at[:, n].set(jnp.diagonal(Chh) * sk[:, n] ** 2).ravel()
-    aA = jnp.abs(A)
-    hs, vs = sk[:, n], sk[:, :n]  # (N,), (N, n)
-    aChv = jnp.abs(Chv) * hs[:, None, None] * vs[None]  # (N_i, N_j, n)
+    low = jnp.arange(N + 1)[:, None] > jnp.arange(N)[None, :]  # (N+1, N): k > j
+    dt = jnp.where(low, t[:, None] - t[None, :N], 0.0)  # t_k - t_j where k > j
+    Cq, cv_diag, Chh = _costate_terms(c, u, dt)
+    # diagonal: state part, the control block, the co-state term (on the h diagonal only)
+    sd = _state_diagonal(layout, W, Hss)  # (N, n + 1), unscaled
+    hcc = jnp.diagonal(Hcc, axis1=1, axis2=2)  # (N, n + 1)
+    d_v = (sd[:, :n] + hcc[:, :n]) * sv**2
+    d_h = (sd[:, n] + hcc[:, n] + jnp.diagonal(Chh)) * sh**2
+    diag = jnp.concatenate([d_v.ravel(), d_h])
+    # |qd_j + (t_k - t_j) v_j| (k > j), the h-columns of the position rows
+    E = jnp.where(low[..., None], jnp.abs(qd[None] + dt[..., None] * u[None]), 0.0)  # (N+1, N, n)
+    aV = jnp.abs(u)
+    aCq, aCv, aChh = jnp.abs(Cq), jnp.abs(cv_diag), jnp.abs(Chh)
+    tj = t[:N, None]
+    hj = h[:, None]
+    zero = jnp.zeros((1, n), W.dtype)
 
     def rows(free):
-        # row sums: |J_k| 1_free per stage row, through |Hk|, back through |J_k|^T
-        fy = free[inv].astype(W.dtype)  # free in y's order
-        fk = fy.reshape(N, m)
-        w = jnp.concatenate([jnp.sum(aA * fy, axis=-1), jnp.concatenate([sk * fk, jnp.zeros((1, m), W.dtype)])],
-                            axis=1)  # (N+1, nw)
-        u = jnp.sum(jnp.abs(Hk) * w[:, None, :], axis=-1)
-        r = jnp.sum(aA * u[:, :ns, None], axis=(0, 1)) + (u[:N, ns:] * sk).ravel()
-        # |C| (scaled): [h_i, v_ja] = Chv[i, j, a] hs vs_a and its transpose, [h_i, h_j] = Chh hs^2
-        r_h = jnp.sum(aChv * fk[None, :, :n], axis=(1, 2)) + jnp.sum(jnp.abs(Chh) * (hs * fk[:, n]), axis=1) * hs
-        r_v = jnp.sum(aChv * fk[:, n, None, None], axis=0)
-        r = r + jnp.concatenate([r_v, r_h[:, None]], axis=1).ravel()
-        return r[perm]
+        fv = free[:N * n].reshape(N, n).astype(W.dtype)
+        fh = free[N * n:].astype(W.dtype)
+        # w = |J_k| 1_free: state rows, then the stage's own controls
+        hf = hj * fv * sv
+        w_q = t[:, None] * _prefix_sums(hf) - _prefix_sums((tj + hj / 2) * hf) + sh * jnp.sum(E * fh[None, :, None], axis=1)
+        w_qd = _prefix_sums(hf) + sh * _prefix_sums(aV * fh[:, None])
+        w_u = jnp.concatenate([jnp.concatenate([fv * sv, fh[:, None] * sh], axis=1), jnp.zeros((1, n + 1), W.dtype)])
+        w = jnp.concatenate([w_q, w_qd, w_u], axis=1)  # (N+1, 2n + n + 1)
+        U = jnp.sum(jnp.abs(Hk) * w[:, None, :], axis=-1)  # |Hk| w
+        uq, uqd = U[:, :n], U[:, n:ns]
+        # |J_k|^T U summed over k
+        Sq, Stq, Sqd = _suffix_sums(uq), _suffix_sums(t[:, None] * uq), _suffix_sums(uqd)
+        r_v = sv * hj * (Stq - (tj + hj / 2) * Sq + Sqd) + U[:N, ns:ns + n] * sv
+        r_h = sh * (jnp.sum(E * uq[:, None, :], axis=(0, 2)) + jnp.sum(aV * Sqd, axis=1)) + U[:N, -1] * sh
+        # |C| (scaled): [h_i, v_ja] = Cq_{>i,a} h_j (j < i) + cv_diag_ia (j == i), [h_i, h_j] = Chh
+        r_h = r_h + sh * jnp.sum(aCq * _prefix_sums(hf)[:N] + sv * aCv * fv, axis=1) + sh**2 * (aChh @ fh)
+        r_v = r_v + sh * sv * (hj * _suffix_sums(jnp.concatenate([aCq * fh[:, None], zero])) + aCv * fh[:, None])
+        return jnp.concatenate([r_v.ravel(), r_h])
 
-    return d[perm], rows
+    return diag, rows
 
 
 def clamped_spline(q0, qd0, qdN, knots, h):

@@ -9,7 +9,7 @@ import pytest
 import jtraj
 from jtraj import lq
 from jtraj.solver import _NLP, SolverOptions, _init_multipliers, initial_guess
-from jtraj.transcription import Transcription, decoupled_hessian, decoupled_hessian_bounds
+from jtraj.transcription import Transcription, _decoupled_pieces, decoupled_hessian, decoupled_hessian_bounds
 
 Q0 = jnp.array([0.0, 0.5, 0.5])
 Q1 = jnp.array([1.2, -0.4, 0.9])
@@ -91,6 +91,36 @@ def test_hessian_bounds_diag_exact_rows_bound(point):
     W, c, Hk, _ = pieces
     d2, _ = decoupled_hessian_bounds(nlp.layout, W, c, Hk)
     np.testing.assert_allclose(jnp.diag(decoupled_hessian(nlp.layout, W, c, Hk)), d2, rtol=1e-12, atol=1e-12)
+
+
+def _dense_row_bounds(layout, W, c, Hk, free):
+    """The bound of :func:`decoupled_hessian_bounds` the direct way: the recursion's
+    Jacobian J (state rows, dense) and the co-state term C formed, then
+    ``(sum_k |J_k|^T |Hk| |J_k| + |C|) 1_free`` (the solver's form until 2026-12-02)."""
+    N, n = layout.N, layout.m_u
+    ns, m = 2 * n, n + 1
+    A, sy, Chv, Chh, perm = _decoupled_pieces(layout, W, c)
+    fy = free[np.argsort(perm)].astype(W.dtype)  # y's order: (v_0, h_0, v_1, ...)
+    k, a = np.arange(N)[:, None], np.arange(m)[None, :]
+    ctrl = jnp.zeros((N + 1, m, N * m), W.dtype).at[k, a, k * m + a].set(sy[k * m + a])  # selectors of u_k
+    J = jnp.concatenate([A, ctrl], axis=1)  # (N+1, nw, ny): |J_k| with the stage's own controls
+    r = jnp.einsum("kai,kab,kbj,j->i", jnp.abs(J), jnp.abs(Hk), jnp.abs(J), fy)
+    C = jnp.zeros((N, m, N, m), W.dtype).at[:, n, :, :n].set(Chv).reshape(N * m, N * m)
+    C = C + C.T + jnp.zeros((N, m, N, m), W.dtype).at[:, n, :, n].set(Chh).reshape(N * m, N * m)
+    r = r + jnp.abs(C * jnp.outer(sy, sy)) @ fy
+    return r[perm]
+
+
+def test_hessian_row_bounds_equal_the_dense_form(point):
+    """The O(N^2 n) row bounds (prefix and suffix sums over the samples) equal the
+    direct product with the dense recursion Jacobian, for several sets of free columns."""
+    nlp, z, mult, free, g, H, model, pieces = point
+    W, c, Hk, _ = pieces
+    _, rows = decoupled_hessian_bounds(nlp.layout, W, c, Hk)
+    rng = np.random.default_rng(3)
+    for f in [free, ~free, jnp.ones_like(free), jnp.asarray(rng.random(free.shape[0]) > 0.5)]:
+        ref = _dense_row_bounds(nlp.layout, W, c, Hk, f)
+        np.testing.assert_allclose(jax.jit(rows)(f), ref, rtol=1e-12, atol=1e-14 * float(jnp.max(ref)))
 
 
 def test_small_cho_solve_against_numpy():
