@@ -577,8 +577,9 @@ def decoupled_hessian_bounds(layout: Layout, W, c, Hk):
         fh = free[N * n:].astype(W.dtype)
         # w = |J_k| 1_free: state rows, then the stage's own controls
         hf = hj * fv * sv
-        w_q = t[:, None] * _prefix_sums(hf) - _prefix_sums((tj + hj / 2) * hf) + sh * jnp.sum(E * fh[None, :, None], axis=1)
-        w_qd = _prefix_sums(hf) + sh * _prefix_sums(aV * fh[:, None])
+        Ph = _prefix_sums(hf)  # (N+1, n)
+        w_q = t[:, None] * Ph - _prefix_sums((tj + hj / 2) * hf) + sh * jnp.sum(E * fh[None, :, None], axis=1)
+        w_qd = Ph + sh * _prefix_sums(aV * fh[:, None])
         w_u = jnp.concatenate([jnp.concatenate([fv * sv, fh[:, None] * sh], axis=1), jnp.zeros((1, n + 1), W.dtype)])
         w = jnp.concatenate([w_q, w_qd, w_u], axis=1)  # (N+1, 2n + n + 1)
         U = jnp.sum(jnp.abs(Hk) * w[:, None, :], axis=-1)  # |Hk| w
@@ -588,7 +589,7 @@ def decoupled_hessian_bounds(layout: Layout, W, c, Hk):
         r_v = sv * hj * (Stq - (tj + hj / 2) * Sq + Sqd) + U[:N, ns:ns + n] * sv
         r_h = sh * (jnp.sum(E * uq[:, None, :], axis=(0, 2)) + jnp.sum(aV * Sqd, axis=1)) + U[:N, -1] * sh
         # |C| (scaled): [h_i, v_ja] = Cq_{>i,a} h_j (j < i) + cv_diag_ia (j == i), [h_i, h_j] = Chh
-        r_h = r_h + sh * jnp.sum(aCq * _prefix_sums(hf)[:N] + sv * aCv * fv, axis=1) + sh**2 * (aChh @ fh)
+        r_h = r_h + sh * jnp.sum(aCq * Ph[:N] + sv * aCv * fv, axis=1) + sh**2 * (aChh @ fh)
         r_v = r_v + sh * sv * (hj * _suffix_sums(jnp.concatenate([aCq * fh[:, None], zero])) + aCv * fh[:, None])
         return jnp.concatenate([r_v.ravel(), r_h])
 
