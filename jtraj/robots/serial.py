@@ -15,6 +15,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from .._checks import as_vector
+from .._math import sincos
 from ._base import Actuator, Friction, Limits, Robot, Vec
 
 
@@ -51,8 +52,9 @@ class SerialPlanar(Robot):
         # the barrier materialises cos and sin once: without it XLA fuses them into each
         # consumer (e and e_perp of the RNEA), and the solver's trial points then evaluate
         # every sine and cosine twice (one Newton iteration, serial3 N = 20, 8 lanes, one
-        # core, interleaved A/B: 290 -> 276 us per problem)
-        e = jax.lax.optimization_barrier(jnp.stack([jnp.cos(phi), jnp.sin(phi)], axis=-1))  # (n, 2) link directions
+        # core, interleaved A/B: 290 -> 276 us per problem); sincos: see jtraj._math
+        sin, cos = sincos(phi)
+        e = jax.lax.optimization_barrier(jnp.stack([cos, sin], axis=-1))  # (n, 2) link directions
         joints = jnp.concatenate([jnp.zeros((1, 2)), jnp.cumsum(self.lengths[:, None] * e, axis=0)])
         return phi, e, joints  # joints: (n+1, 2), joint i at row i, tip at row n
 
