@@ -472,10 +472,10 @@ def _costate_terms(c, u, dt):
 
 
 def _decoupled_pieces(layout: Layout, W, c):
-    """The recursion's derivatives for :func:`decoupled_hessian`, stage-major (y = (v_0, h_0, v_1, h_1, ...)): the
-    state rows A (N+1, 2n, ny) of J (scaled to z), dy/dz sy (ny,), the co-state terms
-    Chv (N, N, n) [h_i, v_j] and Chh (N, N) [h_i, h_j] (unscaled), and the permutation
-    from y to z's order."""
+    """The recursion's derivatives for :func:`decoupled_hessian`, stage-major
+    (y = (v_0, h_0, v_1, h_1, ...)): the state rows A (N+1, 2n, ny) of J (scaled to z),
+    dy/dz sy (ny,), the co-state terms Chv (N, N, n) [h_i, v_j] and Chh (N, N) [h_i, h_j]
+    (unscaled), and the permutation from y to z's order."""
     N, n = layout.N, layout.m_u
     ns, ny = 2 * n, N * (n + 1)
     qd, u, h = W[:, n:ns], W[:N, ns:ns + n], W[:N, -1]
