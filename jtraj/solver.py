@@ -620,12 +620,7 @@ class _NLP(eqx.Module):
             return self.tr.accel_and_tau(self.problem, s[:n], s[n:], acc)[1]
 
         tau = tau_of(x, a)
-
-        def phi_grad(y):
-            v, gy = jax.value_and_grad(lambda yy: self._stage_al_parts(yy[:nw], sdk, mk, mu, kink, yy[nw:])[0])(y)
-            return gy, (v, gy)
-
-        Hy, (val, gy) = jax.jacfwd(phi_grad, has_aux=True)(jnp.concatenate([w, tau]))
+        Hy, val, gy = self._phi_hessian(w, tau, sdk, mk, mu, kink)
         lam = gy[nw:]
 
         def weighted(s):  # (gradient of lam . tau in (q, qd, a), tau) at state s
@@ -640,6 +635,33 @@ class _NLP(eqx.Module):
         A = Hy[:nw, nw:] @ J
         H = Hy[:nw, :nw] + A + A.T + J.T @ Hy[nw:, nw:] @ J + Hs
         return val, gy[:nw] + J.T @ lam, H
+
+    def _phi_hessian(self, w, tau, sdk, mk, mu, kink):
+        """(Hessian (nw + m, nw + m), value, gradient) of phi(w, tau), one sample's AL with
+        its efforts as an input (see :meth:`_stage_derivatives_split`), by forward mode over
+        the gradient one block of (q, qd, acceleration slot, h, tau) at a time. Each block's
+        tangents flow only through the operations that depend on that block (JAX's
+        symbolic zeros): the torque box and the energy see tau's, the velocity box qd's,
+        nothing in the decoupled AL sees the acceleration's. Exact, equal to one jacfwd over
+        the whole of (w, tau) up to rounding, for about a third of its instructions
+        (serial3, N = 20, 8 lanes, callgrind: the stage derivatives 766 k -> see the
+        README's "Hot-loop kernels" per problem and Newton iteration)."""
+        n, nw = self.problem.robot.n, w.shape[0]
+        blocks = (w[:n], w[n:2 * n], w[2 * n:nw - 1], w[nw - 1], tau)
+        argnums = tuple(range(len(blocks)))
+
+        def phi(q, qd, a, h, t):
+            return self._stage_al_parts(jnp.concatenate([q, qd, a, h[None]]), sdk, mk, mu, kink, t)[0]
+
+        def flat_grad(*b):
+            g = jax.grad(phi, argnums=argnums)(*b)
+            return jnp.concatenate([g[0], g[1], g[2], g[3][None], g[4]])
+
+        val = phi(*blocks)
+        gy = flat_grad(*blocks)
+        cols = [jax.jacfwd(flat_grad, argnums=i)(*blocks) for i in argnums]
+        cols[3] = cols[3][:, None]  # the period is a scalar
+        return jnp.concatenate(cols, axis=1), val, gy
 
     def time_al(self, T, mult, mu):
         """The global AL term as a function of the total time T (see global_al)."""

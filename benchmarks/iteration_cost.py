@@ -1,0 +1,213 @@
+"""What one Newton iteration of the batched solver costs, piece by piece.
+
+The canonical benchmark problem (serial3, N = 20, weights time = 1, energy = 0.1): a
+batch of ``--pairs`` problems (8, the default lane count on a CPU) is run for ``--warm``
+iterations to a mid-run state, then each piece of an iteration is called on that state
+as its own compiled, vmapped program:
+
+* ``model``: the AL's value and the stage-wise Newton model (stage derivatives, the
+  recursion's Jacobians, co-states and curvature; ``_NLP.stage_newton_model``);
+* ``stage_derivs``: the per-stage values, gradients and Hessians alone (part of ``model``);
+* ``bounds``: diag(H) and the Gershgorin row bounds of the free rows;
+* ``dirs``: the Riccati directions for the four shifts of the ladder;
+* ``trials``: the AL at the 13 trial points;
+* ``grad``: the gradient and constraints after the step (the loop's test);
+* ``iter``: one whole loop iteration (``solver._segment_jit`` with one step).
+
+Each piece includes one program call's overhead (about 15-20 us here), so the pieces add
+up to more than ``iter``.
+
+Two measures:
+
+* wall clock (default): the median over ``--rounds`` of ``--calls`` calls, in us per
+  problem;
+* ``--instructions``: the instructions executed, counted by valgrind's callgrind (the
+  script re-runs itself under valgrind with instrumentation off, switches it on only
+  around the timed calls and dumps the counts after each piece; Debian's ``valgrind``
+  package). Instruction counts repeat to the unit for the same program and inputs, so
+  they compare two versions of the code on a machine whose timings swing by 20 %
+  (2026-12-02: one iteration 470-780 us per problem in repeated wall-clock runs, the
+  same 184.0-184.2 M instructions for 10 iterations of 8 lanes in every run). They
+  do not see cache misses or vectorisation width: confirm a gain in time too.
+
+    python benchmarks/iteration_cost.py                  # wall clock
+    python benchmarks/iteration_cost.py --instructions   # callgrind counts (~6 min)
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+PIECES = ("model", "stage_derivs", "bounds", "dirs", "trials", "grad", "iter")
+
+
+def _programs(pairs: int, seed: int, warm: int):
+    """The pieces as (name, thunk) pairs, compiled and run once, and the lane count."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    import jtraj
+    from jtraj import lq
+    from jtraj import solver as S
+    from jtraj._compile import SOLVER_XLA_OPTIONS, cpu_jit
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from peers.pairs import benchmark_pairs
+
+    robot = jtraj.robots.get("serial3")
+    q0, q1 = benchmark_pairs(pairs, seed)
+    opts = S.SolverOptions()
+    weights = jtraj.Weights(time=1.0, energy=0.1)
+    problems = eqx.filter_vmap(lambda a, b: jtraj.Problem(robot, a, b, N=20, weights=weights, validate=False))(
+        jnp.asarray(q0), jnp.asarray(q1))
+    init = S._guess_batch_jit(problems, opts, "decoupled")
+    nlps, states, _ = S._prepare_batch_jit(problems, opts, "decoupled", init, jnp.asarray(False))
+    mid = jax.block_until_ready(S._segment_jit(nlps, states, opts, warm))
+    jit, vmap = cpu_jit(SOLVER_XLA_OPTIONS), eqx.filter_vmap
+    kink = jnp.zeros(pairs)  # the kink margin as traced, at zero (its value does not change the cost)
+
+    model_f = jit(lambda n, s, k: vmap(lambda n, s, k: n.stage_newton_model(s.z, s.mult, s.mu, k))(n, s, k))
+    _, model, pieces = model_f(nlps, mid, kink)
+
+    def stage_derivs(n, s, k):
+        return n.stage_derivatives(n.W(s.z), s.mult, s.mu, k)
+
+    def bounds(n, p):
+        hdiag, rows = n.hessian_bounds(p)
+        return hdiag, rows(jnp.ones(hdiag.shape, bool))
+
+    shifts = jnp.asarray([1e-3, 1e-2, 1e-1, 1.0])
+
+    def dirs(m):
+        return lq.newton_directions(m, jnp.ones(m.g.shape, bool), shifts)
+
+    def trials(n, s, d):
+        steps = jnp.asarray(S._TRIAL_STEP)[:, None]
+        cand = jnp.clip(s.z[None] + steps * d[S._TRIAL_SHIFT], n.layout.z_lo, n.layout.z_hi)
+        return jax.vmap(n.al_value, in_axes=(0, None, None))(cand, s.mult, s.mu)
+
+    stage_f = jit(lambda n, s, k: vmap(stage_derivs)(n, s, k))
+    bounds_f = jit(lambda n, p: vmap(bounds)(n, p))
+    dirs_f = jit(lambda m: vmap(dirs)(m))
+    d, _ = dirs_f(model)
+    trials_f = jit(lambda n, s, d: vmap(trials)(n, s, d))
+    grad_f = jit(lambda n, s: vmap(lambda n, s: n.al_grad_and_parts(s.z, s.mult, s.mu))(n, s))
+    calls = {
+        "model": lambda: model_f(nlps, mid, kink),
+        "stage_derivs": lambda: stage_f(nlps, mid, kink),
+        "bounds": lambda: bounds_f(nlps, pieces),
+        "dirs": lambda: dirs_f(model),
+        "trials": lambda: trials_f(nlps, mid, d),
+        "grad": lambda: grad_f(nlps, mid),
+        "iter": lambda: S._segment_jit(nlps, mid, opts, 1),
+    }
+    for f in calls.values():  # compile every piece before anything is measured
+        jax.block_until_ready(f())
+    return calls
+
+
+def _wall(args) -> None:
+    import jax
+    import numpy as np
+
+    calls = _programs(args.pairs, args.seed, args.warm)
+    print(f"serial3, N = 20, {args.pairs} lanes, {args.warm} iterations in; us per problem "
+          f"(median / min of {args.rounds} x {args.calls} calls)")
+    for name in PIECES:
+        f = calls[name]
+        per = []
+        for _ in range(args.rounds):
+            t = time.perf_counter()
+            for _ in range(args.calls):
+                out = f()
+            jax.block_until_ready(out)
+            per.append((time.perf_counter() - t) / args.calls / args.pairs * 1e6)
+        print(f"  {name:13s} {np.median(per):8.1f} / {min(per):8.1f}")
+
+
+def _counted_child(args) -> None:
+    """Runs under valgrind: asks callgrind_control (a native child process, polled so
+    that valgrind's scheduler keeps running) to switch the counting on, then dumps the
+    counts after each piece."""
+    import jax
+
+    calls = _programs(args.pairs, args.seed, args.warm)
+    pid = str(os.getpid())
+
+    def control(*flags):
+        proc = subprocess.Popen(["callgrind_control", *flags, pid], stdout=subprocess.DEVNULL)
+        while proc.poll() is None:
+            time.sleep(0.02)
+
+    control("-z")
+    control("-i", "on")
+    for name in PIECES:
+        f = calls[name]
+        for _ in range(args.calls):
+            out = f()
+        jax.block_until_ready(out)
+        control("-d", name)
+    control("-i", "off")
+
+
+def _instructions(args) -> None:
+    if shutil.which("valgrind") is None or shutil.which("callgrind_control") is None:
+        sys.exit("--instructions needs valgrind (Debian: apt install valgrind)")
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "callgrind.out"
+        cmd = ["valgrind", "--tool=callgrind", "--instr-atstart=no", f"--callgrind-out-file={out}",
+               sys.executable, __file__, "--counted-child", "--pairs", str(args.pairs), "--seed", str(args.seed),
+               "--warm", str(args.warm), "--calls", str(args.calls)]
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        counts = {}
+        for f in Path(tmp).glob("callgrind.out.*"):
+            text = f.read_text(errors="replace")
+            trigger = next((ln.split("dump ", 1)[1].strip() for ln in text.splitlines()
+                            if ln.startswith("desc: Trigger:") and "dump " in ln), None)
+            total = next((int(ln.split()[1]) for ln in text.splitlines()
+                          if ln.startswith(("summary:", "totals:"))), None)
+            if trigger in PIECES and total is not None:
+                counts[trigger] = total
+    print(f"serial3, N = 20, {args.pairs} lanes, {args.warm} iterations in; instructions per problem "
+          f"and call (callgrind, {args.calls} calls)")
+    for name in PIECES:
+        if name in counts:
+            print(f"  {name:13s} {counts[name] / args.calls / args.pairs:12,.0f}")
+        else:
+            print(f"  {name:13s} (no dump)")
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--pairs", type=int, default=8, help="lanes (benchmark pairs); default 8")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--warm", type=int, default=30, help="iterations run before measuring (a mid-run state)")
+    ap.add_argument("--calls", type=int, default=10, help="calls of each piece per round")
+    ap.add_argument("--rounds", type=int, default=9, help="wall clock: rounds per piece")
+    ap.add_argument("--instructions", action="store_true", help="count instructions with callgrind instead")
+    ap.add_argument("--counted-child", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    for name in ("pairs", "warm", "calls", "rounds"):
+        if getattr(args, name) < 1:
+            ap.error(f"--{name} must be at least 1")
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    if args.counted_child:
+        _counted_child(args)
+    elif args.instructions:
+        _instructions(args)
+    else:
+        _wall(args)
+
+
+if __name__ == "__main__":
+    main()
