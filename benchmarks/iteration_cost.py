@@ -49,7 +49,7 @@ PIECES = ("model", "stage_derivs", "bounds", "dirs", "trials", "grad", "iter")
 
 
 def _programs(pairs: int, seed: int, warm: int):
-    """The pieces as (name, thunk) pairs, compiled and run once, and the lane count."""
+    """{piece name: a thunk calling it on the mid-run state}, each compiled and run once."""
     import equinox as eqx
     import jax
     import jax.numpy as jnp

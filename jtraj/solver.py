@@ -657,12 +657,14 @@ class _NLP(eqx.Module):
         def phi(q, qd, a, h, t):
             return self._stage_al_parts(jnp.concatenate([q, qd, a, h[None]]), sdk, mk, mu, kink, t)[0]
 
-        def flat_grad(*b):
-            g = jax.grad(phi, argnums=argnums)(*b)
+        def flat(g):  # the blocks' gradients as one vector in (w, tau)'s layout
             return jnp.concatenate([g[0], g[1], g[2], g[3][None], g[4]])
 
-        val = phi(*blocks)
-        gy = flat_grad(*blocks)
+        def flat_grad(*b):
+            return flat(jax.grad(phi, argnums=argnums)(*b))
+
+        val, g = jax.value_and_grad(phi, argnums=argnums)(*blocks)
+        gy = flat(g)
         cols = [jax.jacfwd(flat_grad, argnums=i)(*blocks) for i in argnums]
         cols[3] = cols[3][:, None]  # the period is a scalar
         return jnp.concatenate(cols, axis=1), val, gy
