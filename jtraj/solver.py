@@ -52,6 +52,7 @@ from jaxtyping import Array
 
 from . import lq
 from ._compile import SOLVER_XLA_OPTIONS, cpu_jit
+from ._math import log1p
 from ._compile import solver_jit as _jit
 from .problem import Problem, Weights
 from .transcription import Layout, StageData, Transcription, decoupled_hessian, decoupled_hessian_bounds
@@ -754,7 +755,7 @@ def _pbm_phi(t):
     t <= 1/2, continued by the quadratic that matches its value and first two
     derivatives there; phi(0) = 0, phi'(0) = 1, convex, twice differentiable everywhere."""
     tl = jnp.minimum(t, 0.5)
-    return jnp.where(t <= 0.5, -jnp.log1p(-tl), 2.0 * (t - 0.5) ** 2 + 2.0 * (t - 0.5) + np.log(2.0))
+    return jnp.where(t <= 0.5, -log1p(-tl), 2.0 * (t - 0.5) ** 2 + 2.0 * (t - 0.5) + np.log(2.0))
 
 
 def _pbm_slope(t):
