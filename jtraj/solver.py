@@ -1779,7 +1779,7 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
     progs = _lane_programs(_packing.packing(nlps), _packing.packing(states), steps, jax.default_backend())
     split = _split_options(opts)
     all_nlps, all_states = progs.pack(_packing.arrays(nlps), _packing.arrays(states))
-    lanes = jnp.asarray(todo[idx])
+    lanes = todo[idx]  # NumPy index arrays: the compiled calls take them without jnp's dispatch
     sub_nlps, sub_states = progs.take(all_nlps, all_states, lanes)
     while True:
         sub_states, fin = progs.segment(sub_nlps, sub_states, split)
@@ -1797,7 +1797,7 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
             # the unfinished problems, padded with a finished one (a lane that idles)
             pad = np.flatnonzero(done)[:1]
             idx = np.concatenate([open_, np.repeat(pad, counts[0] - len(open_))])
-        new_lanes = jnp.asarray(todo[idx])
+        new_lanes = todo[idx]
         all_states, sub_nlps, sub_states = progs.exchange(all_nlps, all_states, sub_states, lanes, new_lanes)
         lanes = new_lanes
 
