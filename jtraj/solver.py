@@ -52,8 +52,8 @@ from jaxtyping import Array
 
 from . import _packing, lq
 from ._compile import SOLVER_XLA_OPTIONS, cpu_jit, supported_options
-from ._math import log1p
 from ._compile import solver_jit as _jit
+from ._math import log1p
 from .problem import Problem, Weights
 from .transcription import Layout, StageData, Transcription, decoupled_hessian, decoupled_hessian_bounds
 
@@ -1635,9 +1635,14 @@ def _prepare_batch_jit(problems, opts, transcription, init, warm):
     return eqx.filter_vmap(lambda p, i: _prepare(p, opts, tr, i, warm))(problems, init)
 
 
-@_options_jit()
-def _segment_jit(nlps, states, opts, steps):
+def _segment(nlps, states, opts, steps: int):
+    """``steps`` more iterations of each lane's loop (vmapped; a finished lane idles)."""
     return eqx.filter_vmap(lambda n, s: _loop(n, s, opts, s.it + steps))(nlps, states)
+
+
+#: :func:`_segment` on pytrees (``benchmarks/iteration_cost.py``; the batch driver runs it on
+#: packed arrays, see :func:`_lane_programs`)
+_segment_jit = _options_jit()(_segment)
 
 
 @_jit
@@ -1831,8 +1836,7 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
 
     def segment(nlps, states, split):
         opts = _TracedOptions(split)
-        out = eqx.filter_vmap(lambda n, s: _loop(n, s, opts, s.it + steps))(
-            _packing.unpack(nlps, pn), _packing.unpack(states, ps))
+        out = _segment(_packing.unpack(nlps, pn), _packing.unpack(states, ps), opts, steps)
         return _packing.pack(_packing.arrays(out), ps), _finished(out, opts)
 
     def exchange(nlps, states, sub, lanes, new_lanes):
