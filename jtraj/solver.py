@@ -1795,7 +1795,7 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
                 idx[j] = nxt
                 nxt += 1
         if done.all():
-            return _packing.from_arrays(progs.unpack(progs.put(all_states, sub_states, lanes)), progs.states)
+            return _packing.from_arrays(progs.result(all_states, sub_states, lanes), progs.states)
         open_ = np.flatnonzero(~done)  # running or pending
         if nxt >= B and len(counts) > 1 and len(open_) <= counts[1]:
             counts = counts[1:]
@@ -1812,11 +1812,10 @@ class _LanePrograms(NamedTuple):
     ``(B, width)`` arrays, see :mod:`jtraj._packing`)."""
 
     pack: Any  # (nlps' arrays, states' arrays) -> packed nlps, packed states
-    unpack: Any  # packed states -> the states' arrays (see _packing.from_arrays)
     take: Any  # (nlps, states, lanes) -> the lanes' nlps and states
     segment: Any  # (lane nlps, lane states, split options) -> (lane states, finished)
-    put: Any  # (states, lane states, lanes) -> states with the lanes written back (donated)
-    exchange: Any  # (nlps, states, lane states, lanes, next lanes) -> put, then take
+    exchange: Any  # (nlps, states, lane states, lanes, next lanes) -> lanes written back, next taken
+    result: Any  # (states, lane states, lanes) -> the states' arrays, lanes written back (_packing.from_arrays)
     states: _packing.Packing  # how the states are packed
 
 
@@ -1845,9 +1844,10 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
 
     return _LanePrograms(
         pack=jit(lambda nlps, states: (_packing.pack(nlps, pn), _packing.pack(states, ps))),
-        unpack=jit(lambda states: _packing.arrays(_packing.unpack(states, ps))),
-        take=jit(take), segment=jit(segment),
-        put=jit(put, donate_argnums=0), exchange=jit(exchange, donate_argnums=1), states=ps)
+        take=jit(take), segment=jit(segment), exchange=jit(exchange, donate_argnums=1),
+        # (no donation: the unpacked arrays cannot reuse the packed buffers; called once)
+        result=jit(lambda states, sub, lanes: _packing.arrays(_packing.unpack(put(states, sub, lanes), ps))),
+        states=ps)
 
 
 @_options_jit()
