@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _packing, lq
+from . import _packing, _tracecache, lq
 from ._compile import SOLVER_XLA_OPTIONS, cpu_jit, supported_options
 from ._compile import solver_jit as _jit
 from ._math import log1p
@@ -1833,10 +1833,20 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
     def take(nlps, states, lanes):
         return tuple(a[lanes] for a in nlps), tuple(a[lanes] for a in states)
 
+    by_static = {}  # the segment program per static part of the options
+
     def segment(nlps, states, split):
-        opts = _TracedOptions(split)
-        out = _segment(_packing.unpack(nlps, pn), _packing.unpack(states, ps), opts, steps)
-        return _packing.pack(_packing.arrays(out), ps), _finished(out, opts)
+        seg = by_static.get(split.static)
+        if seg is None:
+            def run(nlps, states, values, static=split.static):
+                opts = _TracedOptions(_SplitOptions(static=static, values=values))
+                out = _segment(_packing.unpack(nlps, pn), _packing.unpack(states, ps), opts, steps)
+                return _packing.pack(_packing.arrays(out), ps), _finished(out, opts)
+
+            # kept across processes where the compilation cache is on (jtraj._tracecache)
+            seg = by_static[split.static] = _tracecache.cached(
+                "segment", run, repr((pn, ps, steps, split.static)), options)
+        return seg(nlps, states, split.values)
 
     def exchange(nlps, states, sub, lanes, new_lanes):
         states = put(states, sub, lanes)
@@ -1844,7 +1854,7 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
 
     return _LanePrograms(
         pack=jit(lambda nlps, states: (_packing.pack(nlps, pn), _packing.pack(states, ps))),
-        take=jit(take), segment=jit(segment), exchange=jit(exchange, donate_argnums=1),
+        take=jit(take), segment=segment, exchange=jit(exchange, donate_argnums=1),
         # (no donation: the unpacked arrays cannot reuse the packed buffers; called once)
         result=jit(lambda states, sub, lanes: _packing.arrays(_packing.unpack(put(states, sub, lanes), ps))),
         states=ps)

@@ -1,0 +1,153 @@
+"""Traced programs kept across processes (:mod:`jax.export`).
+
+JAX's persistent compilation cache keeps XLA's work between processes, but not JAX's own:
+every new process traces and lowers the solver again before the cache can even be
+looked up. For a batch that was about 12 s on a 2-core machine (each dataset worker and
+each ``jtraj solve`` pays it), against a few seconds of actual solving.
+
+Where the persistent compilation cache is on (``jax_compilation_cache_dir`` set: the CLI,
+``jtraj dataset``'s workers, the tests), :func:`program` keeps a program's traced and
+lowered form (a serialised :class:`jax.export.Exported`) next to it, keyed by everything
+its trace depends on: jtraj's source (a hash of its ``.py`` files), the JAX and jaxlib
+versions, the backend, the JAX settings that change a trace (x64, precision, promotion), the caller's static key and the
+arguments' shapes and dtypes. A later process deserialises it instead of tracing (a
+fraction of a second). The program is always run from its deserialised form, also right
+after it was exported, so a result does not depend on whether the file existed; the
+tests check that it equals the traced program's bit for bit.
+
+The caller's static key must name everything else the traced function closes over.
+It refuses (returns None, the caller then traces as usual) when that key shows a value
+that has no stable text (``<... at 0x...>``, e.g. a function) or a pytree node class
+defined outside jtraj (a user's robot: its code is not in the source hash).
+``JTRAJ_TRACE_CACHE=0`` turns the cache off.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import re
+import tempfile
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+#: the folder, inside the compilation cache directory, holding the exported programs
+FOLDER = "jtraj-traces"
+
+
+def source_hash() -> str:
+    """sha256 of jtraj's Python sources (16 hex digits; a solver edited between two runs
+    changes it)."""
+    root = os.path.dirname(os.path.abspath(__file__))
+    h = hashlib.sha256()
+    for dirpath, dirnames, files in os.walk(root):
+        dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
+        for f in sorted(files):
+            if f.endswith(".py"):
+                full = os.path.join(dirpath, f)
+                h.update(os.path.relpath(full, root).encode())
+                with open(full, "rb") as fh:
+                    h.update(fh.read())
+    return h.hexdigest()[:16]
+
+
+_source_hash_once = functools.lru_cache(maxsize=1)(source_hash)
+
+
+def directory() -> str | None:
+    """Where exported programs are kept, or None when the cache is off."""
+    if os.environ.get("JTRAJ_TRACE_CACHE", "1") == "0":
+        return None
+    base = jax.config.jax_compilation_cache_dir
+    return os.path.join(base, FOLDER) if base else None
+
+
+def _foreign_node(tree) -> bool:
+    """Whether a pytree node of ``tree``'s structure is a class defined outside jtraj
+    (JAX's and Python's own containers aside)."""
+    def walk(treedef):
+        data = treedef.node_data()
+        if data is not None:
+            kind = data[0]
+            module = getattr(kind, "__module__", "") or ""
+            if kind not in (tuple, list, dict) and not module.startswith(("jtraj", "builtins", "collections")):
+                return True
+        return any(walk(c) for c in treedef.children())
+    return walk(jax.tree.structure(tree))
+
+
+#: JAX settings that change what a trace produces
+_FLAGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion",
+          "jax_numpy_rank_promotion", "jax_default_prng_impl", "jax_enable_checks", "jax_debug_nans")
+
+
+def _aval_text(x) -> str:
+    return f"{np.dtype(x.dtype).name}{tuple(np.shape(x))}"
+
+
+def key(name: str, static: str, args: tuple, compiler_options: dict | None) -> str | None:
+    """The cache key of program ``name`` for these arguments, or None where no stable key
+    exists (see the module's docstring)."""
+    if re.search(r" at 0x[0-9a-fA-F]+", static) or _foreign_node(args):
+        return None
+    import jaxlib
+
+    leaves = jax.tree.leaves(args)
+    text = "\n".join([
+        name, static, repr(jax.tree.structure(args)), ",".join(map(_aval_text, leaves)),
+        repr(sorted((compiler_options or {}).items())), _source_hash_once(), jax.__version__,
+        jaxlib.__version__, jax.default_backend(), repr([getattr(jax.config, f) for f in _FLAGS]),
+    ])
+    return f"{name}-{hashlib.sha256(text.encode()).hexdigest()[:32]}"
+
+
+def program(name: str, fn: Callable, args: tuple, static: str,
+            compiler_options: dict | None = None) -> Callable | None:
+    """``fn`` compiled for arguments shaped like ``args`` (a tuple of pytrees of arrays),
+    from the exported program kept on disk, exported now if missing; None when the cache
+    is off or no stable key exists (then trace ``fn`` as usual). ``static`` names what
+    ``fn`` closes over (see the module's docstring)."""
+    folder = directory()
+    k = None if folder is None else key(name, static, args, compiler_options)
+    if k is None:
+        return None
+    path = os.path.join(folder, k + ".jaxexport")
+    try:
+        with open(path, "rb") as fh:
+            blob = bytearray(fh.read())
+        exported = jax.export.deserialize(blob)
+    except (OSError, ValueError):
+        # missing (or unreadable: written by another version): export it now
+        blob = jax.export.export(jax.jit(fn))(*args).serialize()
+        try:
+            os.makedirs(folder, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=folder, suffix=".tmp")
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(blob)
+            os.chmod(tmp, 0o644)
+            os.replace(tmp, path)  # atomic: a concurrent reader sees the old or the whole file
+        except OSError:
+            pass  # an unwritable cache: run it from memory
+        exported = jax.export.deserialize(blob)
+    return jax.jit(exported.call, compiler_options=compiler_options)
+
+
+def cached(name: str, fn: Callable, static: str, compiler_options: dict | None = None) -> Callable:
+    """``fn`` (a function of pytrees of arrays) as a callable that takes each argument
+    shape's program from :func:`program` (one dictionary lookup per call once loaded),
+    or from ``jax.jit(fn)`` where the cache is off."""
+    traced = jax.jit(fn, compiler_options=compiler_options)
+    loaded: dict[Any, Callable] = {}
+
+    def call(*args):
+        leaves, tree = jax.tree.flatten(args)
+        sig = (tree, tuple((np.shape(x), np.dtype(x.dtype)) for x in leaves))
+        f = loaded.get(sig)
+        if f is None:
+            f = loaded[sig] = program(name, fn, args, static, compiler_options) or traced
+        return f(*args)
+
+    return call

@@ -1,0 +1,119 @@
+"""The cross-process trace cache (jtraj._tracecache): a program exported once, later
+deserialised instead of traced, must compute exactly what the traced program computes."""
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jtraj
+from jtraj import _tracecache
+
+
+def _newton_sqrt(x, iters):
+    # a bounded while loop, autodiff inside and a vmap: the constructs the solver uses
+    def body(c):
+        y, k = c
+        f = lambda t: t * t - x  # noqa: E731
+        return y - f(y) / jax.grad(f)(y), k + 1
+
+    y, _ = jax.lax.while_loop(lambda c: c[1] < iters, body, (x, 0))
+    return jax.vmap(lambda a: jnp.sin(a) * y)(jnp.arange(3.0)), {"k": iters}
+
+
+@pytest.fixture
+def cache_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("JTRAJ_TRACE_CACHE", "1")
+    old = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path))
+    yield tmp_path
+    jax.config.update("jax_compilation_cache_dir", old)
+
+
+def test_a_kept_program_is_loaded_without_tracing_and_computes_what_the_traced_one_does(cache_dir):
+    traces = []
+
+    def fn(x, iters):
+        traces.append(1)
+        return _newton_sqrt(x, iters)
+
+    args = (jnp.asarray(2.0), jnp.asarray(7))
+    first = _tracecache.cached("sqrt", fn, "test")(*args)
+    assert len(traces) == 1
+    files = os.listdir(cache_dir / _tracecache.FOLDER)
+    assert len(files) == 1 and files[0].startswith("sqrt-") and files[0].endswith(".jaxexport")
+    # a new wrapper (as in a new process) reads the file: no trace
+    again = _tracecache.cached("sqrt", fn, "test")(*args)
+    assert len(traces) == 1
+    reference = jax.jit(_newton_sqrt)(*args)
+    for a, b, c in zip(jax.tree.leaves(first), jax.tree.leaves(again), jax.tree.leaves(reference)):
+        np.testing.assert_array_equal(a, c)
+        np.testing.assert_array_equal(b, c)
+    # another shape is another program; another static key too
+    _tracecache.cached("sqrt", fn, "test")(jnp.ones(()), jnp.asarray(3))
+    assert len(traces) == 1  # same shapes and dtypes: the same program
+    _tracecache.cached("sqrt", fn, "test")(jnp.ones((), jnp.float32), jnp.asarray(3))
+    assert len(traces) == 2
+    _tracecache.cached("sqrt", fn, "other")(*args)  # (JAX's in-process cache has its trace)
+    assert len(os.listdir(cache_dir / _tracecache.FOLDER)) == 3
+
+
+def test_no_key_without_a_stable_text_or_for_foreign_pytree_nodes(cache_dir):
+    args = (jnp.ones(3),)
+    assert _tracecache.key("f", "static", args, None) is not None
+    assert _tracecache.key("f", repr(lambda x: x), args, None) is None  # "<function ... at 0x...>"
+
+    @jax.tree_util.register_pytree_node_class
+    class Foreign:  # a user's pytree node: its code is not in jtraj's source hash
+        def __init__(self, a):
+            self.a = a
+
+        def tree_flatten(self):
+            return (self.a,), None
+
+        @classmethod
+        def tree_unflatten(cls, aux, children):
+            return cls(*children)
+
+    Foreign.__module__ = "users_module"
+    assert _tracecache.key("f", "static", (Foreign(jnp.ones(3)),), None) is None
+    # the key follows the source, the shapes and the compiler options
+    k = _tracecache.key("f", "static", args, None)
+    assert k != _tracecache.key("f", "static", (jnp.ones(4),), None)
+    assert k != _tracecache.key("f", "static", args, {"xla_cpu_use_fusion_emitters": False})
+
+
+def test_off_without_a_compilation_cache_or_when_asked(tmp_path, monkeypatch):
+    old = jax.config.jax_compilation_cache_dir
+    try:
+        jax.config.update("jax_compilation_cache_dir", None)
+        assert _tracecache.directory() is None
+        assert _tracecache.program("f", lambda x: x, (jnp.ones(2),), "s") is None
+        jax.config.update("jax_compilation_cache_dir", str(tmp_path))
+        monkeypatch.setenv("JTRAJ_TRACE_CACHE", "0")
+        assert _tracecache.directory() is None
+    finally:
+        jax.config.update("jax_compilation_cache_dir", old)
+
+
+def test_solve_batch_is_the_same_with_and_without_kept_programs(monkeypatch):
+    """Datasets must not depend on whether a worker traced or loaded its programs."""
+    from jtraj import solver
+
+    robot = jtraj.robots.get("serial3")
+    q0 = np.array([[0.2, -0.3, 0.4], [-0.5, 0.6, 0.1]])
+    q1 = q0 + np.array([[0.4, 0.1, -0.5], [-0.3, -0.6, 0.5]])
+    w = jtraj.Weights(time=1.0, energy=0.1)
+    assert _tracecache.directory() is not None  # the tests run with a compilation cache
+    kept = jtraj.solve_batch(robot, q0, q1, N=20, weights=w)
+    monkeypatch.setenv("JTRAJ_TRACE_CACHE", "0")
+    solver._lane_programs.cache_clear()
+    try:
+        traced = jtraj.solve_batch(robot, q0, q1, N=20, weights=w)
+    finally:
+        solver._lane_programs.cache_clear()
+    assert np.all(np.asarray(kept.converged))
+    for name in ("v", "h", "cost", "iterations", "status"):
+        np.testing.assert_array_equal(np.asarray(getattr(kept, name)), np.asarray(getattr(traced, name)), err_msg=name)
