@@ -27,10 +27,12 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+import pickle
 import re
 import tempfile
 from typing import Any, Callable
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -65,6 +67,10 @@ def directory() -> str | None:
     return os.path.join(base, FOLDER) if base else None
 
 
+#: the modules whose pytree node classes the source hash covers
+_OWN_MODULES = ("jtraj",)
+
+
 def _foreign_node(tree) -> bool:
     """Whether a pytree node of ``tree``'s structure is a class defined outside jtraj
     (JAX's and Python's own containers aside)."""
@@ -73,7 +79,7 @@ def _foreign_node(tree) -> bool:
         if data is not None:
             kind = data[0]
             module = getattr(kind, "__module__", "") or ""
-            if kind not in (tuple, list, dict) and not module.startswith(("jtraj", "builtins", "collections")):
+            if kind not in (tuple, list, dict) and not module.startswith(_OWN_MODULES + ("builtins", "collections")):
                 return True
         return any(walk(c) for c in treedef.children())
     return walk(jax.tree.structure(tree))
@@ -84,70 +90,116 @@ _FLAGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_pro
           "jax_numpy_rank_promotion", "jax_default_prng_impl", "jax_enable_checks", "jax_debug_nans")
 
 
-def _aval_text(x) -> str:
-    return f"{np.dtype(x.dtype).name}{tuple(np.shape(x))}"
+def _sig(x):
+    """What a trace depends on in one leaf: an array's shape, dtype and weak type, or a
+    plain value itself."""
+    if eqx.is_array(x):  # (the leaves program() passes as arrays)
+        return (np.shape(x), np.dtype(x.dtype), bool(getattr(x, "weak_type", False)))
+    return ("value", x)
+
+
+class _Slot:
+    """Marks an array's place in a kept program's output skeleton."""
+
+    def __reduce__(self):
+        return (_Slot, ())
 
 
 def key(name: str, static: str, args: tuple, compiler_options: dict | None) -> str | None:
     """The cache key of program ``name`` for these arguments, or None where no stable key
     exists (see the module's docstring)."""
-    if re.search(r" at 0x[0-9a-fA-F]+", static) or _foreign_node(args):
+    if _foreign_node(args):
         return None
     import jaxlib
 
-    leaves = jax.tree.leaves(args)
+    leaves, tree = jax.tree.flatten(args)
     text = "\n".join([
-        name, static, repr(jax.tree.structure(args)), ",".join(map(_aval_text, leaves)),
+        name, static, repr(tree), repr(tuple(map(_sig, leaves))),
         repr(sorted((compiler_options or {}).items())), _source_hash_once(), jax.__version__,
         jaxlib.__version__, jax.default_backend(), repr([getattr(jax.config, f) for f in _FLAGS]),
     ])
+    if re.search(r" at 0x[0-9a-fA-F]+", text):
+        return None
     return f"{name}-{hashlib.sha256(text.encode()).hexdigest()[:32]}"
 
 
 def program(name: str, fn: Callable, args: tuple, static: str,
             compiler_options: dict | None = None) -> Callable | None:
-    """``fn`` compiled for arguments shaped like ``args`` (a tuple of pytrees of arrays),
-    from the exported program kept on disk, exported now if missing; None when the cache
-    is off or no stable key exists (then trace ``fn`` as usual). ``static`` names what
-    ``fn`` closes over (see the module's docstring)."""
+    """``fn(*args)`` as a callable of the arguments' array leaves (in
+    ``jax.tree.leaves(args)`` order) returning ``fn``'s output, compiled from the program
+    kept on disk, exported now if missing; None when the cache is off or no stable key
+    exists (then trace ``fn`` as usual). ``static`` names what ``fn`` closes over (see
+    the module's docstring); the arguments' non-array leaves are part of the key."""
     folder = directory()
-    k = None if folder is None else key(name, static, args, compiler_options)
+    leaves, tree = jax.tree.flatten(args)
+    is_array = [eqx.is_array(x) for x in leaves]
+    fixed = [None if a else x for x, a in zip(leaves, is_array)]
+    k = None if folder is None else key(name, f"{static}\n{fixed!r}", args, compiler_options)
     if k is None:
         return None
     path = os.path.join(folder, k + ".jaxexport")
     try:
         with open(path, "rb") as fh:
-            blob = bytearray(fh.read())
-        exported = jax.export.deserialize(blob)
-    except (OSError, ValueError):
+            skeleton, blob = pickle.load(fh)
+        exported = jax.export.deserialize(bytearray(blob))
+    except (OSError, ValueError, EOFError, ImportError, pickle.UnpicklingError, TypeError, AttributeError):
         # missing (or unreadable: written by another version): export it now
-        blob = jax.export.export(jax.jit(fn))(*args).serialize()
+        kept = {}
+
+        def flat(*arrays):
+            it = iter(arrays)
+            out = fn(*jax.tree.unflatten(tree, [next(it) if a else x for a, x in zip(is_array, fixed)]))
+            out_leaves, out_tree = jax.tree.flatten(out)
+            kept["skeleton"] = jax.tree.unflatten(out_tree, [_Slot() if eqx.is_array(x) else x for x in out_leaves])
+            return [x for x in out_leaves if eqx.is_array(x)]
+
+        blob = jax.export.export(jax.jit(flat))(*[x for x, a in zip(leaves, is_array) if a]).serialize()
+        skeleton = kept["skeleton"]
+        try:
+            payload = pickle.dumps((skeleton, bytes(blob)))
+        except (pickle.PicklingError, TypeError, AttributeError):
+            return None  # an output that cannot be kept: trace as usual
         try:
             os.makedirs(folder, exist_ok=True)
             fd, tmp = tempfile.mkstemp(dir=folder, suffix=".tmp")
             with os.fdopen(fd, "wb") as fh:
-                fh.write(blob)
+                fh.write(payload)
             os.chmod(tmp, 0o644)
-            os.replace(tmp, path)  # atomic: a concurrent reader sees the old or the whole file
+            os.replace(tmp, path)  # atomic: a concurrent reader sees no file or the whole file
         except OSError:
             pass  # an unwritable cache: run it from memory
         exported = jax.export.deserialize(blob)
-    return jax.jit(exported.call, compiler_options=compiler_options)
+    compiled = jax.jit(exported.call, compiler_options=compiler_options)
+    out_leaves, out_tree = jax.tree.flatten(skeleton)
+    slots = [isinstance(x, _Slot) for x in out_leaves]
+
+    def run(arrays):
+        it = iter(compiled(*arrays))
+        return jax.tree.unflatten(out_tree, [next(it) if s else x for s, x in zip(slots, out_leaves)])
+
+    return run
 
 
-def cached(name: str, fn: Callable, static: str, compiler_options: dict | None = None) -> Callable:
-    """``fn`` (a function of pytrees of arrays) as a callable that takes each argument
-    shape's program from :func:`program` (one dictionary lookup per call once loaded),
-    or from ``jax.jit(fn)`` where the cache is off."""
-    traced = jax.jit(fn, compiler_options=compiler_options)
-    loaded: dict[Any, Callable] = {}
+def cached(name: str, fn: Callable, static: str, compiler_options: dict | None = None,
+           fallback: Callable | None = None) -> Callable:
+    """``fn`` as a callable that takes each argument signature's program from
+    :func:`program` (after the first call: one flattening and one dictionary lookup), or
+    calls ``fallback`` (default ``eqx.filter_jit(fn)``: the same treatment of non-array
+    leaves, as static values) where the cache is off or has no key."""
+    if fallback is None:
+        fallback = eqx.filter_jit(fn, compiler_options=compiler_options)
+    loaded: dict[Any, Callable | None] = {}
 
     def call(*args):
         leaves, tree = jax.tree.flatten(args)
-        sig = (tree, tuple((np.shape(x), np.dtype(x.dtype)) for x in leaves))
-        f = loaded.get(sig)
-        if f is None:
-            f = loaded[sig] = program(name, fn, args, static, compiler_options) or traced
-        return f(*args)
+        # (called inside another trace: that trace's own jit, not a kept program)
+        traced = any(isinstance(x, jax.core.Tracer) for x in leaves)
+        sig = (tree, tuple(map(_sig, leaves)), traced)
+        if sig not in loaded:
+            loaded[sig] = None if traced else program(name, fn, args, static, compiler_options)
+        run = loaded[sig]
+        if run is None:
+            return fallback(*args)
+        return run([x for x in leaves if eqx.is_array(x)])
 
     return call

@@ -465,18 +465,31 @@ def _split_cached(opts: SolverOptions, _width) -> _SplitOptions:
 def _options_jit(jit=None):
     """Like the solver's jit decorator (``jit``; default :func:`jtraj._compile.solver_jit`),
     but every :class:`SolverOptions` argument crosses the boundary split by
-    :func:`_split_options` and is read inside as :class:`_TracedOptions`."""
+    :func:`_split_options` and is read inside as :class:`_TracedOptions`. With the
+    default decorator on a CPU, the traced program is kept across processes where the
+    compilation cache is on (:mod:`jtraj._tracecache`)."""
+
+    default = jit is None
     jit = _jit if jit is None else jit
 
     def decorate(fn):
-        @jit
-        @functools.wraps(fn)
-        def inner(*args):
+        def unsplit(*args):
             return fn(*(_TracedOptions(a) if isinstance(a, _SplitOptions) else a for a in args))
+
+        inner = jit(functools.wraps(fn)(unsplit))
+
+        @functools.lru_cache(maxsize=1)
+        def kept():
+            # the solver's programs kept across processes (jtraj._tracecache), on a CPU
+            return _tracecache.cached(fn.__qualname__, unsplit, f"{fn.__module__}.{fn.__qualname__}",
+                                      supported_options(SOLVER_XLA_OPTIONS), fallback=inner)
 
         @functools.wraps(fn)
         def call(*args):
-            return inner(*(_split_options(a) if isinstance(a, SolverOptions) else a for a in args))
+            args = tuple(_split_options(a) if isinstance(a, SolverOptions) else a for a in args)
+            if default and jax.default_backend() == "cpu":
+                return kept()(*args)
+            return inner(*args)
 
         return call
 
@@ -1844,8 +1857,9 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
                 return _packing.pack(_packing.arrays(out), ps), _finished(out, opts)
 
             # kept across processes where the compilation cache is on (jtraj._tracecache)
+            # (plain jit where it is off: eqx.filter_jit's per-call work is what packing saves)
             seg = by_static[split.static] = _tracecache.cached(
-                "segment", run, repr((pn, ps, steps, split.static)), options)
+                "segment", run, repr((pn, ps, steps, split.static)), options, fallback=jit(run))
         return seg(nlps, states, split.values)
 
     def exchange(nlps, states, sub, lanes, new_lanes):

@@ -3,6 +3,7 @@ deserialised instead of traced, must compute exactly what the traced program com
 
 import os
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -52,12 +53,47 @@ def test_a_kept_program_is_loaded_without_tracing_and_computes_what_the_traced_o
         np.testing.assert_array_equal(a, c)
         np.testing.assert_array_equal(b, c)
     # another shape is another program; another static key too
-    _tracecache.cached("sqrt", fn, "test")(jnp.ones(()), jnp.asarray(3))
-    assert len(traces) == 1  # same shapes and dtypes: the same program
+    _tracecache.cached("sqrt", fn, "test")(jnp.asarray(3.0), jnp.asarray(3))
+    assert len(traces) == 1  # same shapes, dtypes and weak types: the same program
     _tracecache.cached("sqrt", fn, "test")(jnp.ones((), jnp.float32), jnp.asarray(3))
     assert len(traces) == 2
     _tracecache.cached("sqrt", fn, "other")(*args)  # (JAX's in-process cache has its trace)
     assert len(os.listdir(cache_dir / _tracecache.FOLDER)) == 3
+
+
+class _Scaled(eqx.Module):  # a jtraj-like module: a static field, an array and a float leaf
+    kind: str = eqx.field(static=True)
+    a: jax.Array
+    factor: float
+
+
+def test_pytrees_with_static_parts_and_plain_values(cache_dir, monkeypatch):
+    # this test module's class counts as jtraj's own here (a user's class is foreign)
+    monkeypatch.setattr(_tracecache, "_OWN_MODULES", ("jtraj", _Scaled.__module__))
+    traces = []
+
+    def fn(m, b):
+        traces.append(1)
+        y = m.a * m.factor + b["x"]
+        return {"y": y, "kind": m.kind, "m": _Scaled(m.kind, y, m.factor)}
+
+    args = (_Scaled("s", jnp.arange(3.0), 2.0), {"x": jnp.ones(3)})
+    out = _tracecache.cached("mod", fn, "test")(*args)
+    again = _tracecache.cached("mod", fn, "test")(*args)  # from the file
+    assert len(traces) == 1
+    for o in (out, again):
+        np.testing.assert_array_equal(o["y"], [1.0, 3.0, 5.0])
+        assert o["kind"] == "s" and isinstance(o["m"], _Scaled) and o["m"].factor == 2.0
+        np.testing.assert_array_equal(o["m"].a, o["y"])
+    # a plain value is part of the program: another value, another program
+    other = _tracecache.cached("mod", fn, "test")(_Scaled("s", jnp.arange(3.0), 3.0), {"x": jnp.ones(3)})
+    np.testing.assert_array_equal(other["y"], [1.0, 4.0, 7.0])
+    assert len(os.listdir(_tracecache.directory())) == 2
+    # a class from outside jtraj: no program kept, traced as eqx.filter_jit would
+    monkeypatch.setattr(_tracecache, "_OWN_MODULES", ("jtraj",))
+    out = _tracecache.cached("mod", fn, "test")(_Scaled("s", jnp.arange(3.0), 4.0), {"x": jnp.ones(3)})
+    np.testing.assert_array_equal(out["y"], [1.0, 5.0, 9.0])
+    assert len(os.listdir(_tracecache.directory())) == 2
 
 
 def test_no_key_without_a_stable_text_or_for_foreign_pytree_nodes(cache_dir):
