@@ -265,21 +265,9 @@ def worker_task(spec: Spec, c: int):
 
 def _source_hash() -> str:
     """sha256 of jtraj's Python sources (a solver edited between two runs changes it)."""
-    import hashlib
+    from .._tracecache import source_hash
 
-    import jtraj
-
-    root = os.path.dirname(os.path.abspath(jtraj.__file__))
-    h = hashlib.sha256()
-    for dirpath, dirnames, files in os.walk(root):
-        dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
-        for f in sorted(files):
-            if f.endswith(".py"):
-                full = os.path.join(dirpath, f)
-                h.update(os.path.relpath(full, root).encode())
-                with open(full, "rb") as fh:
-                    h.update(fh.read())
-    return h.hexdigest()[:16]
+    return source_hash()
 
 
 def _versions() -> dict:
