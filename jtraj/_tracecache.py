@@ -153,7 +153,11 @@ def program(name: str, fn: Callable, args: tuple, static: str,
             kept["skeleton"] = jax.tree.unflatten(out_tree, [_Slot() if eqx.is_array(x) else x for x in out_leaves])
             return [x for x in out_leaves if eqx.is_array(x)]
 
-        blob = jax.export.export(jax.jit(flat))(*[x for x, a in zip(leaves, is_array) if a]).serialize()
+        exported = jax.export.export(jax.jit(flat))(*[x for x, a in zip(leaves, is_array) if a])
+        try:
+            blob = exported.serialize()
+        except ImportError:  # jax.export's serialisation needs the flatbuffers package
+            return None
         skeleton = kept["skeleton"]
         try:
             payload = pickle.dumps((skeleton, bytes(blob)))

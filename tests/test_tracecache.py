@@ -153,3 +153,14 @@ def test_solve_batch_is_the_same_with_and_without_kept_programs(monkeypatch):
     assert np.all(np.asarray(kept.converged))
     for name in ("v", "h", "cost", "iterations", "status"):
         np.testing.assert_array_equal(np.asarray(getattr(kept, name)), np.asarray(getattr(traced, name)), err_msg=name)
+
+
+def test_without_flatbuffers_the_program_is_traced(cache_dir, monkeypatch):
+    """jax.export serialises with the flatbuffers package (a dependency); without it the
+    program is traced as usual, not an error."""
+    def no_flatbuffers(self, *a, **k):
+        raise ImportError("Please install 'flatbuffers'")
+
+    monkeypatch.setattr(jax.export.Exported, "serialize", no_flatbuffers)
+    assert _tracecache.program("f", lambda x: 2 * x, (jnp.ones(2),), "s") is None
+    np.testing.assert_array_equal(_tracecache.cached("f", lambda x: 2 * x, "s")(jnp.ones(2)), [2.0, 2.0])
