@@ -7,10 +7,12 @@ each ``jtraj solve`` pays it), against a few seconds of actual solving.
 
 Where the persistent compilation cache is on (``jax_compilation_cache_dir`` set: the CLI,
 ``jtraj dataset``'s workers, the tests), :func:`program` keeps a program's traced and
-lowered form (a serialised :class:`jax.export.Exported`) next to it, keyed by everything
-its trace depends on: jtraj's source (a hash of its ``.py`` files), the JAX and jaxlib
-versions, the backend, the JAX settings that change a trace (x64, precision, promotion), the caller's static key and the
-arguments' shapes and dtypes. A later process deserialises it instead of tracing (a
+lowered form (a serialised :class:`jax.export.Exported` of the program on its arguments'
+array leaves, with a pickled skeleton of its output's structure) next to it, keyed by
+everything its trace depends on: jtraj's source (a hash of its ``.py`` files), the JAX
+and jaxlib versions, the backend, the JAX settings that change a trace (x64, precision,
+promotion), the caller's static key, the arguments' tree structure and plain values, and
+their arrays' shapes, dtypes and weak types. A later process deserialises it instead of tracing (a
 fraction of a second). The program is always run from its deserialised form, also right
 after it was exported, so a result does not depend on whether the file existed; the
 tests check that it equals the traced program's bit for bit.
@@ -125,8 +127,8 @@ def key(name: str, static: str, args: tuple, compiler_options: dict | None) -> s
 
 def program(name: str, fn: Callable, args: tuple, static: str,
             compiler_options: dict | None = None) -> Callable | None:
-    """``fn(*args)`` as a callable of the arguments' array leaves (in
-    ``jax.tree.leaves(args)`` order) returning ``fn``'s output, compiled from the program
+    """``fn(*args)`` as a callable of the arguments' leaves (``jax.tree.leaves(args)``
+    of arguments with the same signature) returning ``fn``'s output, compiled from the program
     kept on disk, exported now if missing; None when the cache is off or no stable key
     exists (then trace ``fn`` as usual). ``static`` names what ``fn`` closes over (see
     the module's docstring); the arguments' non-array leaves are part of the key."""
@@ -177,8 +179,8 @@ def program(name: str, fn: Callable, args: tuple, static: str,
     out_leaves, out_tree = jax.tree.flatten(skeleton)
     slots = [isinstance(x, _Slot) for x in out_leaves]
 
-    def run(arrays):
-        it = iter(compiled(*arrays))
+    def run(leaves):  # the arguments' leaves, as jax.tree.leaves(args) gives them
+        it = iter(compiled(*[x for x, a in zip(leaves, is_array) if a]))
         return jax.tree.unflatten(out_tree, [next(it) if s else x for s, x in zip(slots, out_leaves)])
 
     return run
@@ -204,6 +206,6 @@ def cached(name: str, fn: Callable, static: str, compiler_options: dict | None =
         run = loaded[sig]
         if run is None:
             return fallback(*args)
-        return run([x for x in leaves if eqx.is_array(x)])
+        return run(leaves)
 
     return call

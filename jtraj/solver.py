@@ -462,21 +462,17 @@ def _split_cached(opts: SolverOptions, _width) -> _SplitOptions:
     return _SplitOptions(static=dataclasses.replace(opts, **static), values=values)
 
 
-def _options_jit(jit=None):
-    """Like the solver's jit decorator (``jit``; default :func:`jtraj._compile.solver_jit`),
-    but every :class:`SolverOptions` argument crosses the boundary split by
-    :func:`_split_options` and is read inside as :class:`_TracedOptions`. With the
-    default decorator on a CPU, the traced program is kept across processes where the
-    compilation cache is on (:mod:`jtraj._tracecache`)."""
-
-    default = jit is None
-    jit = _jit if jit is None else jit
+def _options_jit():
+    """Like the solver's jit decorator (:func:`jtraj._compile.solver_jit`), but every
+    :class:`SolverOptions` argument crosses the boundary split by :func:`_split_options`
+    and is read inside as :class:`_TracedOptions`. On a CPU the traced program is kept
+    across processes where the compilation cache is on (:mod:`jtraj._tracecache`)."""
 
     def decorate(fn):
         def unsplit(*args):
             return fn(*(_TracedOptions(a) if isinstance(a, _SplitOptions) else a for a in args))
 
-        inner = jit(functools.wraps(fn)(unsplit))
+        inner = _jit(functools.wraps(fn)(unsplit))
 
         @functools.lru_cache(maxsize=1)
         def kept():
@@ -487,7 +483,7 @@ def _options_jit(jit=None):
         @functools.wraps(fn)
         def call(*args):
             args = tuple(_split_options(a) if isinstance(a, SolverOptions) else a for a in args)
-            if default and jax.default_backend() == "cpu":
+            if jax.default_backend() == "cpu":
                 return kept()(*args)
             return inner(*args)
 
@@ -1663,15 +1659,11 @@ def _gather_jit(nlps, states, idx):
     return _take(nlps, idx), _take(states, idx)
 
 
-# The batch's states are donated, so the lanes are written back in place instead of
-# copying the whole batch's state at every segment (O(B) per segment, O(B^2) per batch):
-# one core, N = 20, B = 1024: 46.3 -> 43.9 ms per problem; a gather and a scatter now
-# take 0.3 ms at B = 256 as at B = 4096.
-# (``opts``: the static copy of :func:`_split_options`; _finished reads max_outer only,
-# and the traced values would be donated with the states)
+# The restarted lanes written back into the batch's states, donated so in place (the
+# segments' lanes go through _lane_programs' exchange, on packed arrays)
 @cpu_jit(SOLVER_XLA_OPTIONS, donate="all")
-def _scatter_jit(states, sub, idx, opts):
-    return jax.tree.map(lambda a, b: a.at[idx].set(b), states, sub), _finished(sub, opts)
+def _scatter_jit(states, sub, idx):
+    return jax.tree.map(lambda a, b: a.at[idx].set(b), states, sub)
 
 
 @_options_jit()
@@ -1768,7 +1760,7 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
             break
         for start in range(0, todo.size, slots):
             idx = _padded(todo[start:start + slots], slots)
-            states, _ = _scatter_jit(states, _restart_jit(*_gather_jit(nlps, states, idx), opts), idx, opts)
+            states = _scatter_jit(states, _restart_jit(*_gather_jit(nlps, states, idx), opts), idx)
         states = _run_lanes(nlps, states, todo, opts, slots, steps)
     # on a CPU the finish, too, runs ``slots`` problems at a time (see _finish_lanes)
     if jax.default_backend() == "cpu":
@@ -1846,21 +1838,10 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
     def take(nlps, states, lanes):
         return tuple(a[lanes] for a in nlps), tuple(a[lanes] for a in states)
 
-    by_static = {}  # the segment program per static part of the options
-
     def segment(nlps, states, split):
-        seg = by_static.get(split.static)
-        if seg is None:
-            def run(nlps, states, values, static=split.static):
-                opts = _TracedOptions(_SplitOptions(static=static, values=values))
-                out = _segment(_packing.unpack(nlps, pn), _packing.unpack(states, ps), opts, steps)
-                return _packing.pack(_packing.arrays(out), ps), _finished(out, opts)
-
-            # kept across processes where the compilation cache is on (jtraj._tracecache)
-            # (plain jit where it is off: eqx.filter_jit's per-call work is what packing saves)
-            seg = by_static[split.static] = _tracecache.cached(
-                "segment", run, repr((pn, ps, steps, split.static)), options, fallback=jit(run))
-        return seg(nlps, states, split.values)
+        opts = _TracedOptions(split)
+        out = _segment(_packing.unpack(nlps, pn), _packing.unpack(states, ps), opts, steps)
+        return _packing.pack(_packing.arrays(out), ps), _finished(out, opts)
 
     def exchange(nlps, states, sub, lanes, new_lanes):
         states = put(states, sub, lanes)
@@ -1868,7 +1849,11 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
 
     return _LanePrograms(
         pack=jit(lambda nlps, states: (_packing.pack(nlps, pn), _packing.pack(states, ps))),
-        take=jit(take), segment=segment, exchange=jit(exchange, donate_argnums=1),
+        # the segment program kept across processes where the compilation cache is on
+        # (jtraj._tracecache; plain jit where it is off: eqx.filter_jit's per-call work is
+        # what the packing saves)
+        segment=_tracecache.cached("segment", segment, repr((pn, ps, steps)), options, fallback=jit(segment)),
+        take=jit(take), exchange=jit(exchange, donate_argnums=1),
         # (no donation: the unpacked arrays cannot reuse the packed buffers; called once)
         result=jit(lambda states, sub, lanes: _packing.arrays(_packing.unpack(put(states, sub, lanes), ps))),
         states=ps)
