@@ -1649,6 +1649,12 @@ def _segment(nlps, states, opts, steps: int):
     return eqx.filter_vmap(lambda n, s: _loop(n, s, opts, s.it + steps))(nlps, states)
 
 
+def _restart_lanes(nlps, states, need, opts):
+    """``states`` (a set of lanes) with the lanes ``need`` restarted (:func:`_restart`)."""
+    new = eqx.filter_vmap(lambda n, s: _restart(n, s, opts))(nlps, states)
+    return jax.tree.map(lambda a, b: jnp.where(need.reshape(need.shape + (1,) * (a.ndim - 1)), a, b), new, states)
+
+
 #: :func:`_segment` on pytrees (``benchmarks/iteration_cost.py``; the batch driver runs it on
 #: packed arrays, see :func:`_lane_programs`)
 _segment_jit = _options_jit()(_segment)
@@ -1657,25 +1663,6 @@ _segment_jit = _options_jit()(_segment)
 @_jit
 def _gather_jit(nlps, states, idx):
     return _take(nlps, idx), _take(states, idx)
-
-
-# The restarted lanes written back into the batch's states, donated so in place (the
-# segments' lanes go through _lane_programs' exchange, on packed arrays)
-@cpu_jit(SOLVER_XLA_OPTIONS, donate="all")
-def _scatter_jit(states, sub, idx):
-    return jax.tree.map(lambda a, b: a.at[idx].set(b), states, sub)
-
-
-@_options_jit()
-def _needs_restart_jit(states, opts):
-    return _needs_restart(states, opts)
-
-
-# on the gathered lanes, not the whole batch: its compilation (a few seconds: the polish,
-# the least-squares multipliers) then does not depend on B and is done once per lane count
-@_options_jit()
-def _restart_jit(nlps, states, opts):
-    return eqx.filter_vmap(lambda n, s: _restart(n, s, opts))(nlps, states)
 
 
 @_options_jit()
@@ -1746,22 +1733,13 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     handing finished slots to pending problems brings the cost to about the mean. Once
     nothing is pending, the unfinished problems move to fewer lanes (see
     :func:`_lane_counts`). Each problem takes the iterations it takes in a one-shot batch
-    (results equal up to rounding at another batch width). The problems whose run ended
-    uncertified are then restarted (:func:`_restart`, gathered ``slots`` at a time) and
-    run through the same lanes again.
+    (results equal up to rounding at another batch width), restarts included: a run that
+    ends uncertified is restarted on its lane (see :func:`_run_lanes`).
     Measured (serial3, N = 20, 96 dataset pairs, 2 cores, warm, segments of 25): 27.6 s
     with 32 lanes throughout (64 % of the lane-iterations useful), 19.2 s stepping down
     to 8 and 2 (17.8 s with segments of 10, the default)."""
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
     states = _run_lanes(nlps, states, np.arange(int(valid.shape[0])), opts, slots, steps)
-    for _ in range(_max_restarts(opts)):  # at most one restart, two for a PBM run (see _restart)
-        todo = np.flatnonzero(np.asarray(_needs_restart_jit(states, opts)))
-        if not todo.size:
-            break
-        for start in range(0, todo.size, slots):
-            idx = _padded(todo[start:start + slots], slots)
-            states = _scatter_jit(states, _restart_jit(*_gather_jit(nlps, states, idx), opts), idx)
-        states = _run_lanes(nlps, states, todo, opts, slots, steps)
     # on a CPU the finish, too, runs ``slots`` problems at a time (see _finish_lanes)
     if jax.default_backend() == "cpu":
         return _finish_lanes(nlps, states, opts, valid, slots)
@@ -1774,12 +1752,16 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
 
     The batch's problems and states travel packed (:mod:`jtraj._packing`): after each
     segment one call writes the lanes back and takes the next ones (:func:`_lane_programs`).
+    A run that ended uncertified in a segment is restarted (:func:`_restart`) on its lane
+    and goes on there: 256 benchmark pairs of seed 1, one core, PBM (whose fallback is
+    such a restart, 13 pairs) 7.7-8.1 s against 8.2-8.9 s with the restarts in a second
+    round of lanes after the batch, PHR (3 restarts) unchanged.
     With a gather, a segment and a scatter per segment on the pytrees (``eqx.filter_jit``,
     about 50 leaves), the driver's own work was 14 % of a batch's time (serial3, N = 20,
     128 pairs, one core: 0.25 s gathering and 0.22 s scattering of 5.2 s)."""
     B = todo.size
     counts = _lane_counts(slots)
-    while len(counts) > 1 and counts[1] >= B:  # few problems (restarts): fewer lanes
+    while len(counts) > 1 and counts[1] >= B:  # few problems: fewer lanes
         counts = counts[1:]
     # fewer problems than lanes: the other lanes repeat the first problem (the same
     # iterates, written back twice)
@@ -1792,7 +1774,12 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
     lanes = todo[idx]  # NumPy index arrays: the compiled calls take them without jnp's dispatch
     sub_nlps, sub_states = progs.take(all_nlps, all_states, lanes)
     while True:
-        sub_states, fin = progs.segment(sub_nlps, sub_states, split)
+        sub_states, fin, need = progs.segment(sub_nlps, sub_states, split)
+        need = np.asarray(need)
+        if need.any():
+            # a run that ended uncertified goes on, restarted, on its lane; compiled for a
+            # lane count only when a restart first happens there
+            sub_states, fin = progs.restart(sub_nlps, sub_states, need, split)
         fin = np.asarray(fin)
         done[idx[fin]] = True
         for j in np.flatnonzero(fin):
@@ -1818,7 +1805,8 @@ class _LanePrograms(NamedTuple):
 
     pack: Any  # (nlps' arrays, states' arrays) -> packed nlps, packed states
     take: Any  # (nlps, states, lanes) -> the lanes' nlps and states
-    segment: Any  # (lane nlps, lane states, split options) -> (lane states, finished)
+    segment: Any  # (lane nlps, lane states, split options) -> (lane states, finished, to restart)
+    restart: Any  # (lane nlps, lane states, which, split options) -> (lane states, finished)
     exchange: Any  # (nlps, states, lane states, lanes, next lanes) -> lanes written back, next taken
     result: Any  # (states, lane states, lanes) -> the states' arrays, lanes written back (_packing.from_arrays)
     states: _packing.Packing  # how the states are packed
@@ -1840,7 +1828,16 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
 
     def segment(nlps, states, split):
         opts = _TracedOptions(split)
-        out = _segment(_packing.unpack(nlps, pn), _packing.unpack(states, ps), opts, steps)
+        nlps, before = _packing.unpack(nlps, pn), _packing.unpack(states, ps)
+        out = _segment(nlps, before, opts, steps)
+        fin = _finished(out, opts)
+        # the lanes whose run ended in this segment uncertified, to restart (_restart)
+        need = fin & ~_finished(before, opts) & _needs_restart(out, opts)
+        return _packing.pack(_packing.arrays(out), ps), fin, need
+
+    def restart(nlps, states, need, split):
+        opts = _TracedOptions(split)
+        out = _restart_lanes(_packing.unpack(nlps, pn), _packing.unpack(states, ps), need, opts)
         return _packing.pack(_packing.arrays(out), ps), _finished(out, opts)
 
     def exchange(nlps, states, sub, lanes, new_lanes):
@@ -1853,6 +1850,7 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
         # (jtraj._tracecache; plain jit where it is off: eqx.filter_jit's per-call work is
         # what the packing saves)
         segment=_tracecache.cached("segment", segment, repr((pn, ps, steps)), options, fallback=jit(segment)),
+        restart=_tracecache.cached("restart", restart, repr((pn, ps)), options, fallback=jit(restart)),
         take=jit(take), exchange=jit(exchange, donate_argnums=1),
         # (no donation: the unpacked arrays cannot reuse the packed buffers; called once)
         result=jit(lambda states, sub, lanes: _packing.arrays(_packing.unpack(put(states, sub, lanes), ps))),
