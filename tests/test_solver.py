@@ -514,9 +514,10 @@ def test_options_differing_in_numbers_share_one_compilation(single):
 
 
 def test_compacted_batch_restarts_like_single_solves(robot, batch):
-    """The compacted batch gathers its restarts and runs them through the lanes again:
-    every problem must take exactly the iterations of its single solve (RESTART's
-    numbers are traced: the programs of ``single`` and ``batch`` serve)."""
+    """The compacted batch restarts a run that ends uncertified on its lane (the lane
+    driver's restart program) and runs it on: every problem must take exactly the
+    iterations of its single solve (RESTART's numbers are traced: the programs of
+    ``single`` and ``batch`` serve, plus the restart program of the batch's lanes)."""
     q0, q1, _ = batch
     lanes = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=RESTART)
     for i in range(3):
