@@ -51,7 +51,7 @@ import numpy as np
 from jaxtyping import Array
 
 from . import _packing, _tracecache, lq
-from ._compile import SOLVER_XLA_OPTIONS, cpu_jit, supported_options
+from ._compile import SOLVER_XLA_OPTIONS, supported_options
 from ._compile import solver_jit as _jit
 from ._math import log1p
 from .problem import Problem, Weights
