@@ -1057,19 +1057,17 @@ def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above
             # correction would take across their boundary join them (four rounds: each
             # correction can cross others)
             def select(c):
-                rows, _, i, _ = c
-                Jm = jnp.where(rows[:, None], J, 0.0)
-                dz = correction(Jm, jnp.where(rows, raw, 0.0), fixed)
-                rows = rows | (is_ineq & (raw - J @ dz > 0))
-                # (the last round's J^T J of the rows selected, for the correction below)
-                Jm = jnp.where(rows[:, None], J, 0.0)
-                return rows, dz, i + 1, Jm.T @ Jm
+                rows, _, i = c
+                dz = correction(jnp.where(rows[:, None], J, 0.0), jnp.where(rows, raw, 0.0), fixed)
+                return rows | (is_ineq & (raw - J @ dz > 0)), dz, i + 1
 
-            rows, dz, _, gram_rel = jax.lax.while_loop(lambda c: rel & (c[2] < 4), select,
-                                                       (~is_ineq | (raw > 0), dz, jnp.asarray(0), gram))
+            rows, dz, _ = jax.lax.while_loop(lambda c: rel & (c[2] < 4), select,
+                                             (~is_ineq | (raw > 0), dz, jnp.asarray(0)))
             Jr = jnp.where(rel, jnp.where(rows[:, None], J, 0.0), J)
             r = jnp.where(rel, jnp.where(rows, raw, 0.0), r)
-            gram = jnp.where(rel, gram_rel, gram)
+            # the selected rows' J^T J, formed (like the rounds) only while some lane releases
+            gram, _ = jax.lax.while_loop(lambda c: rel & ~c[1], lambda c: (Jr.T @ Jr, jnp.asarray(True)),
+                                         (gram, jnp.asarray(False)))
         # variables the correction would push through a bound are held there and the
         # correction recomputed (clipping it would undo part of it)
         dz = correction(Jr, r, fixed | (z - dz < lo) | (z - dz > hi), gram)
