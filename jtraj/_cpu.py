@@ -6,6 +6,13 @@ single ``jtraj.solve`` (serial3, N = 20, warm, 2-core machine) took a median 171
 in a process pinned to one core against 282-406 ms unpinned, with the same iterates.
 Batches gain from several cores only through several processes (one per core, see
 :mod:`jtraj.dataset._local`).
+
+The same iterates, but not the same last bits: at N = 20 XLA splits some of the
+solver's larger products over its threads, which changes their rounding (serial3
+dataset pairs: trajectories 1e-12 apart, relative, between a pinned process and one on 2
+cores, 2026-12-03). Every process that solves dataset chunks therefore runs on one CPU
+(:mod:`jtraj.dataset.build`), so that a dataset's values do not depend on where its
+chunks were solved.
 """
 
 from __future__ import annotations
@@ -28,3 +35,38 @@ def pin_to_one_cpu(index: int | None = None) -> int | None:
     cpu = cpus[(os.getpid() if index is None else index) % len(cpus)]
     os.sched_setaffinity(0, {cpu})
     return cpu
+
+
+#: lock files of the CPUs this process claimed (held open, hence locked, until it exits)
+_claimed: list[int] = []
+
+
+def claim_one_cpu() -> int | None:
+    """Pin this process to a CPU that no other live process has claimed on this machine,
+    and return it.
+
+    For worker processes that no one hands an index (Ray's): each takes an exclusive
+    ``flock`` on a lock file per CPU in the temporary directory and keeps the first it
+    gets until it exits (the kernel releases the lock then, also after a ``kill -9``), so
+    that concurrent workers on one machine spread over its cores. Where every CPU is
+    claimed it falls back to :func:`pin_to_one_cpu` by process id. Returns None where
+    affinity is not supported (not Linux).
+    """
+    if not hasattr(os, "sched_setaffinity"):
+        return None
+    import fcntl
+    import tempfile
+
+    folder = os.path.join(tempfile.gettempdir(), f"jtraj-cpus-{os.getuid()}")
+    os.makedirs(folder, exist_ok=True)
+    for cpu in sorted(os.sched_getaffinity(0)):
+        fd = os.open(os.path.join(folder, f"cpu-{cpu}.lock"), os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        _claimed.append(fd)
+        os.sched_setaffinity(0, {cpu})
+        return cpu
+    return pin_to_one_cpu()

@@ -21,11 +21,13 @@ from jtraj.dataset import sampling, store
 from jtraj.dataset.build import H_MAX_FACTOR
 
 FAKE = "jtraj.dataset.testing:fake_solve_batch"
+FAKE_CPUS = "jtraj.dataset.testing:fake_solve_batch_cpus"  # iterations: the solving process's CPUs
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def fake_spec(pairs=40, seed=3, batch=16, **kw):
-    return dataset.make_spec("serial3", pairs, seed, N=kw.pop("N", 6), batch=batch, solver=FAKE, **kw)
+    return dataset.make_spec("serial3", pairs, seed, N=kw.pop("N", 6), batch=batch, solver=kw.pop("solver", FAKE),
+                             **kw)
 
 
 def assert_same(a, b):
@@ -407,15 +409,37 @@ def test_local_worker_processes_equal_this_process(tmp_path):
     assert not os.path.exists(tmp_path / "bad")
 
 
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs several CPUs (Linux)")
+def test_every_chunk_is_solved_on_one_cpu(tmp_path):
+    """XLA's rounding depends on how many CPUs the solving process may use, so by default
+    every chunk is solved in a process restricted to one, also a resumed run's single
+    last chunk (it used to be solved in this unpinned process, 1e-12 apart from the
+    workers' with the real solver at N = 20). The stand-in solver reports the CPUs of the
+    process that solved each pair as its ``iterations``."""
+    spec = fake_spec(pairs=24, batch=8, solver=FAKE_CPUS)
+    out = str(tmp_path / "d")
+    dataset.build(spec, out, progress=False, max_chunks=1)  # one chunk: one worker
+    dataset.build(spec, out, progress=False, max_chunks=1)  # resumed, one chunk again
+    dataset.build(spec, out, progress=False)  # the last one
+    np.testing.assert_array_equal(dataset.load(out)["iterations"], np.ones(24, np.int32))
+    # workers=1 solves in this process, as documented (on all of its CPUs here)
+    dataset.build(spec, str(tmp_path / "here"), progress=False, workers=1)
+    assert set(dataset.load(str(tmp_path / "here"))["iterations"]) == {len(os.sched_getaffinity(0))}
+
+
 @pytest.mark.slow  # ~35 s on 2 cores: starts a local Ray instance
 @pytest.mark.filterwarnings("ignore:os.fork")
 def test_ray_local_cluster_two_workers_equals_single_process(tmp_path):
     pytest.importorskip("ray")
-    spec = fake_spec(pairs=40, batch=8)
+    # the stand-in solver reports each solving process's CPUs as `iterations`: Ray's
+    # workers claim one CPU each, as the local ones are pinned (identical rounding)
+    spec = fake_spec(pairs=40, batch=8, solver=FAKE_CPUS)
     dataset.build(spec, str(tmp_path / "single"), progress=False)
     s = dataset.build(spec, str(tmp_path / "ray"), ray="local:2", progress=False)
     assert s["complete"]
     assert_same(dataset.load(str(tmp_path / "single")), dataset.load(str(tmp_path / "ray")))
+    np.testing.assert_array_equal(dataset.load(str(tmp_path / "ray"))["iterations"], np.ones(40, np.int32))
 
 
 # ----------------------------------------------------------------------------- real solver
@@ -450,7 +474,9 @@ def test_real_solver_end_to_end(tmp_path):
 
     spec = dataset.make_spec("serial3", 8, 11, N=10, batch=8)
     out = str(tmp_path / "d")
-    stats = dataset.build(spec, out, progress=False)
+    # in this process, as the reference solve below (test_every_chunk_is_solved_on_one_cpu
+    # covers the default, a pinned worker process)
+    stats = dataset.build(spec, out, progress=False, workers=1)
     assert stats["complete"]
     data = dataset.load(out)
     assert data["q"].shape == (8, 11, 3) and data["tau"].shape == (8, 10, 3)
@@ -478,11 +504,24 @@ def test_real_solver_end_to_end(tmp_path):
         assert r["cost"] == pytest.approx(float(data["cost"][i]), rel=1e-9)
 
 
+@pytest.mark.slow  # compiles the solver at N = 20 in worker processes
+def test_real_solver_resumed_last_chunk_equals_uninterrupted_run(tmp_path):
+    """The issue's check (a run killed with one chunk left, then resumed) with the real
+    solver at N = 20, where XLA's rounding depends on the CPUs of the solving process:
+    the resumed run's last chunk used to be solved in the unpinned driver, 1e-12 off."""
+    spec = dataset.make_spec("serial3", 16, 2, N=20, batch=8)
+    dataset.build(spec, str(tmp_path / "a"), progress=False)
+    dataset.build(spec, str(tmp_path / "b"), progress=False, max_chunks=1)
+    dataset.build(spec, str(tmp_path / "b"), progress=False)
+    assert_same(dataset.load(str(tmp_path / "a")), dataset.load(str(tmp_path / "b")))
+
+
 @pytest.mark.slow  # compiles the solver in each of the 2 Ray workers
 @pytest.mark.filterwarnings("ignore:os.fork")
 def test_ray_real_solver_equals_single_process(tmp_path):
     pytest.importorskip("ray")
-    spec = dataset.make_spec("serial3", 16, 2, N=10, batch=8)
+    # N = 20: at N = 10 the rounding does not depend on the solving process's CPUs
+    spec = dataset.make_spec("serial3", 16, 2, N=20, batch=8)
     dataset.build(spec, str(tmp_path / "single"), progress=False)
     dataset.build(spec, str(tmp_path / "ray"), ray="local:2", progress=False)
     assert_same(dataset.load(str(tmp_path / "single")), dataset.load(str(tmp_path / "ray")))

@@ -15,7 +15,8 @@ into the directory store PATH (manifest.json + chunks/chunk-XXXXXX.h5). Every pa
 kept with its status; failures are flagged, not dropped. Re-running the same command
 resumes an interrupted run (a kill loses at most the chunks in flight); other parameters
 into an existing dataset are refused. Chunks are solved by one pinned worker
-process per CPU (--workers K to choose; 1 solves in this process); --ray
+process per CPU (--workers K to choose; 1 solves in this process, whose results equal
+the workers' only when it runs on one CPU, e.g. under taskset -c 0); --ray
 auto|HOST:PORT|local[:K] distributes them over a Ray cluster instead, with identical results.
 """
 
@@ -44,7 +45,8 @@ def configure(parser):
                         help="distribute over Ray: auto, HOST:PORT, ray://HOST:PORT, or local[:K] (start one here)")
     parser.add_argument("--workers", type=_workers, default=None,
                         help="local worker processes, one pinned to each core (default: one per "
-                             "available CPU; 1 solves in this process); ignored with --ray")
+                             "available CPU; 1 solves in this process, equal to the workers' results in the last "
+                             "bits only when it runs on one CPU); ignored with --ray")
     parser.add_argument("--start-range", type=float, default=1.2, help="joint-space start range +-a (default 1.2)")
     parser.add_argument("--step-range", type=float, default=0.8, help="joint-space step range +-b (default 0.8)")
     parser.add_argument("--min-separation", type=float, default=0.05,

@@ -3,9 +3,11 @@
 A vmapped solver in one JAX process does not use several CPU cores well (XLA parallelises
 inside operations, and the solver's are small). One process per core, each pinned to its
 core, does: on 2 cores a 256-pair serial3 dataset took 142 s in one process and 93 s in
-two workers. XLA's threading is left as it is (pinning alone gives the speed-up): a
-single-threaded XLA changed results in the last bits, and workers, Ray tasks and this
-process must give identical datasets. Workers are started with ``spawn`` (no forked JAX
+two workers. Pinning also fixes the rounding: XLA's CPU results depend in the last
+bits on how many CPUs the solving process may use (:mod:`jtraj._cpu`), so chunks are
+solved only in processes restricted to one CPU (these workers, Ray tasks that claim a
+CPU, or this process where it runs on one CPU; see :func:`solves_here`), and a dataset
+is the same wherever its chunks were solved. Workers are started with ``spawn`` (no forked JAX
 state), die with the driver (``PR_SET_PDEATHSIG`` on Linux: a ``kill -9`` of the driver
 leaves no solver running) and return each chunk's numpy arrays; only the driver writes
 the store, as with Ray. One chunk per worker is in flight, so a kill loses at most that
@@ -34,6 +36,15 @@ def default_workers() -> int:
     import jax
 
     return available_cpus() if jax.default_backend() == "cpu" else 1
+
+
+def solves_here() -> bool:
+    """Whether this process solves a dataset's chunks as a pinned worker would: where
+    JAX's default backend is an accelerator, or where this process may run on one CPU
+    only (restricted before JAX started, e.g. under ``taskset -c 0``, for the rounding
+    to match). Otherwise :func:`jtraj.dataset.build` hands even a single chunk to a
+    worker process."""
+    return default_workers() == 1
 
 
 def init_worker(counter):

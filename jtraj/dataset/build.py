@@ -256,11 +256,36 @@ def compute_chunk(spec: Spec, c: int) -> dict:
 
 def worker_task(spec: Spec, c: int):
     """``(c, compute_chunk(spec, c))`` in a worker process (Ray task or local process):
-    float64 and the compilation cache set up as in the CLI process first."""
+    the process on one CPU (a Ray worker claims one, see :func:`_one_cpu`), then float64
+    and the compilation cache set up as in the CLI process."""
+    _one_cpu()
     from jtraj.cli import setup_jax
 
     setup_jax()
     return c, compute_chunk(spec, c)
+
+
+def _one_cpu():
+    """Restrict a worker process to one CPU before JAX starts in it (a no-op in the local
+    workers, pinned when they start). A Ray worker may run on all of its node's CPUs;
+    XLA would then spread the solver over threads, which is slower and changes the last
+    bits of the results (:mod:`jtraj._cpu`), so it claims a CPU of its own
+    (:func:`jtraj._cpu.claim_one_cpu`). A process whose JAX already started keeps its
+    threads: its chunks may differ in the last bits (a warning says so)."""
+    if _local.available_cpus() <= 1:
+        return
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        import warnings
+
+        warnings.warn("jtraj dataset: this worker process started JAX on several CPUs before its first chunk; "
+                      "its chunks may differ in the last bits from those solved by single-CPU workers",
+                      RuntimeWarning, stacklevel=2)
+        return
+    from jtraj._cpu import claim_one_cpu
+
+    claim_one_cpu()
 
 
 def _source_hash() -> str:
@@ -396,7 +421,13 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
     ``workers``: without Ray, the number of local worker processes (pinned
     JAX, one per core; ``None``: one per available CPU, or 1 when JAX's default backend
     is an accelerator); 1 solves in this process. Workers are spawned: a script calling
-    ``build`` with more than one must do so under ``if __name__ == "__main__":``.
+    ``build`` with them must do so under ``if __name__ == "__main__":``. With ``None``
+    on a CPU with several cores even a single (last) chunk goes to a worker process:
+    XLA's rounding depends on how many CPUs the solving process may use, and this
+    process is not pinned, so its chunks would differ in the last bits (1e-12) from the
+    workers' (a resumed run with one chunk left did, 2026-12-03). ``workers=1`` solves
+    here all the same: its values equal the workers' only where this process runs on one
+    CPU (restricted before JAX starts, e.g. ``taskset -c 0 python ...``).
     ``max_chunks`` stops after that many new chunks (tests).
     """
     log = log or (lambda s: print(s, file=sys.stderr))
@@ -448,7 +479,9 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
 
         if todo and backend is None:
             k = min(len(todo), _local.default_workers() if workers is None else workers)
-            if k > 1:
+            # by default even one chunk goes to a (pinned) worker process unless this
+            # process solves as one would: its rounding would differ (see _local)
+            if k > 1 or (workers is None and not _local.solves_here()):
                 backend = _local.ProcessBackend(k)
         if todo:
             if backend is None:

@@ -37,3 +37,11 @@ def fake_solve_batch(robot, q_start, q_goal, *, N=20, weights=None, options=None
             "max_violation": {"overall": np.where(bad, 0.1, 0.0), "goal": np.zeros(B)},
             "converged": ~bad, "status": status, "iterations": np.full(B, 7, np.int32),
             "outer_iterations": np.full(B, 2, np.int32)}
+
+
+def fake_solve_batch_cpus(robot, q_start, q_goal, *, N=20, weights=None, options=None):
+    """:func:`fake_solve_batch` whose ``iterations`` is the number of CPUs the solving
+    process may run on (tests of where chunks are solved: one, for identical rounding)."""
+    out = fake_solve_batch(robot, q_start, q_goal, N=N, weights=weights, options=options)
+    out["iterations"] = np.full(len(out["T"]), len(os.sched_getaffinity(0)), np.int32)
+    return out
