@@ -274,9 +274,12 @@ def _one_cpu():
     threads: its chunks may differ in the last bits (a warning says so)."""
     if _local.available_cpus() <= 1:
         return
-    from jax._src import xla_bridge
-
-    if xla_bridge.backends_are_initialized():
+    try:  # (JAX's private API: without it, assume JAX has not started)
+        from jax._src.xla_bridge import backends_are_initialized
+    except ImportError:
+        def backends_are_initialized():
+            return False
+    if backends_are_initialized():
         import warnings
 
         warnings.warn("jtraj dataset: this worker process started JAX on several CPUs before its first chunk; "
@@ -421,13 +424,13 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
     ``workers``: without Ray, the number of local worker processes (pinned
     JAX, one per core; ``None``: one per available CPU, or 1 when JAX's default backend
     is an accelerator); 1 solves in this process. Workers are spawned: a script calling
-    ``build`` with them must do so under ``if __name__ == "__main__":``. With ``None``
-    on a CPU with several cores even a single (last) chunk goes to a worker process:
-    XLA's rounding depends on how many CPUs the solving process may use, and this
-    process is not pinned, so its chunks would differ in the last bits (1e-12) from the
-    workers' (a resumed run with one chunk left did, 2026-12-03). ``workers=1`` solves
-    here all the same: its values equal the workers' only where this process runs on one
-    CPU (restricted before JAX starts, e.g. ``taskset -c 0 python ...``).
+    ``build`` with them must do so under ``if __name__ == "__main__":``. With ``None``,
+    where this process may use several CPUs, even a single (last) chunk goes to a worker
+    process: XLA's rounding depends on how many CPUs the solving process may use, so
+    chunks solved here would differ in the last bits (1e-12) from the workers' (a
+    resumed run with one chunk left did, 2026-12-03). ``workers=1`` solves here all the
+    same: its values equal the workers' only where this process runs on one CPU
+    (restricted before JAX starts, e.g. ``taskset -c 0 python ...``).
     ``max_chunks`` stops after that many new chunks (tests).
     """
     log = log or (lambda s: print(s, file=sys.stderr))
