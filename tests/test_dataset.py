@@ -428,6 +428,38 @@ def test_every_chunk_is_solved_on_one_cpu(tmp_path):
     assert set(dataset.load(str(tmp_path / "here"))["iterations"]) == {len(os.sched_getaffinity(0))}
 
 
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs several CPUs (Linux)")
+def test_concurrent_workers_claim_different_cpus(tmp_path):
+    """jtraj._cpu.claim_one_cpu (Ray's workers): two live processes get two CPUs, and a
+    CPU is free again once its holder has exited."""
+    code = ("import os, sys, time; from jtraj._cpu import claim_one_cpu; "
+            "print(claim_one_cpu(), sorted(os.sched_getaffinity(0)), flush=True); sys.stdin.read()")
+    env = dict(os.environ, TMPDIR=str(tmp_path))  # its own lock folder
+
+    def start():
+        return subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                text=True, env=env, cwd=ROOT)
+
+    def claimed(proc):
+        cpu, affinity = proc.stdout.readline().split(" ", 1)
+        assert json.loads(affinity) == [int(cpu)]  # pinned to the CPU it claimed
+        return int(cpu)
+
+    first, second = start(), start()
+    try:
+        a, b = claimed(first), claimed(second)
+        assert a != b
+        first.communicate("")  # exits: its lock goes with it
+        third = start()
+        assert claimed(third) == a
+        third.communicate("")
+    finally:
+        for p in (first, second):
+            if p.poll() is None:
+                p.communicate("")
+
+
 @pytest.mark.slow  # ~35 s on 2 cores: starts a local Ray instance
 @pytest.mark.filterwarnings("ignore:os.fork")
 def test_ray_local_cluster_two_workers_equals_single_process(tmp_path):
