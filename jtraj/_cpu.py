@@ -49,17 +49,21 @@ def claim_one_cpu() -> int | None:
     ``flock`` on a lock file per CPU in the temporary directory and keeps the first it
     gets until it exits (the kernel releases the lock then, also after a ``kill -9``), so
     that concurrent workers on one machine spread over its cores. Where every CPU is
-    claimed it falls back to :func:`pin_to_one_cpu` by process id. Returns None where
+    claimed it falls back to :func:`pin_to_one_cpu` by process id. A process already
+    restricted to one CPU keeps it (a local worker, or a second call). Returns None where
     affinity is not supported (not Linux).
     """
     if not hasattr(os, "sched_setaffinity"):
         return None
+    cpus = os.sched_getaffinity(0)
+    if len(cpus) == 1:
+        return next(iter(cpus))
     import fcntl
     import tempfile
 
     folder = os.path.join(tempfile.gettempdir(), f"jtraj-cpus-{os.getuid()}")
     os.makedirs(folder, exist_ok=True)
-    for cpu in sorted(os.sched_getaffinity(0)):
+    for cpu in sorted(cpus):
         fd = os.open(os.path.join(folder, f"cpu-{cpu}.lock"), os.O_RDWR | os.O_CREAT, 0o600)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -433,7 +433,7 @@ def test_every_chunk_is_solved_on_one_cpu(tmp_path):
 def test_concurrent_workers_claim_different_cpus(tmp_path):
     """jtraj._cpu.claim_one_cpu (Ray's workers): two live processes get two CPUs, and a
     CPU is free again once its holder has exited."""
-    code = ("import os, sys, time; from jtraj._cpu import claim_one_cpu; "
+    code = ("import os, sys; from jtraj._cpu import claim_one_cpu; "
             "print(claim_one_cpu(), sorted(os.sched_getaffinity(0)), flush=True); sys.stdin.read()")
     env = dict(os.environ, TMPDIR=str(tmp_path))  # its own lock folder
 
