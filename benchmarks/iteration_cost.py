@@ -36,6 +36,13 @@ Two measures:
 
     python benchmarks/iteration_cost.py                  # wall clock
     python benchmarks/iteration_cost.py --instructions   # callgrind counts (~6 min)
+    python benchmarks/iteration_cost.py --pbm --option penalty_init=30   # other options
+
+The pieces at one mid-run state are not the cost of a whole batch: on 2026-12-03 the PBM
+term's iteration counted 1.21x PHR's instructions here (the logarithm at every trial
+point), but whole batches of dataset-family pairs took 1.3-1.5x PHR's time per Newton
+iteration; its fallback's restarts (a feasibility polish and multiplier estimate on all
+8 lanes, about 30 ms a call) were about 10 % of such a batch's time.
 """
 
 from __future__ import annotations
@@ -52,7 +59,7 @@ from pathlib import Path
 PIECES = ("model", "stage_derivs", "bounds", "dirs", "trials", "grad", "iter")
 
 
-def _programs(pairs: int, seed: int, warm: int):
+def _programs(pairs: int, seed: int, warm: int, pbm: bool = False, options=()):
     """{piece name: a thunk calling it on the mid-run state}, each compiled and run once."""
     import equinox as eqx
     import jax
@@ -68,7 +75,13 @@ def _programs(pairs: int, seed: int, warm: int):
 
     robot = jtraj.robots.get("serial3")
     q0, q1 = benchmark_pairs(pairs, seed)
-    opts = S.SolverOptions()
+    extra = {}
+    for item in options:
+        key, _, value = item.partition("=")
+        if not hasattr(S.SolverOptions, key):
+            raise SystemExit(f"--option {item!r}: jtraj.SolverOptions has no field {key!r}")
+        extra[key] = type(getattr(S.SolverOptions, key))(value)
+    opts = S.SolverOptions.pbm(**extra) if pbm else S.SolverOptions(**extra)
     weights = jtraj.Weights(time=1.0, energy=0.1)
     problems = eqx.filter_vmap(lambda a, b: jtraj.Problem(robot, a, b, N=20, weights=weights, validate=False))(
         jnp.asarray(q0), jnp.asarray(q1))
@@ -122,7 +135,7 @@ def _wall(args) -> None:
     import jax
     import numpy as np
 
-    calls = _programs(args.pairs, args.seed, args.warm)
+    calls = _programs(args.pairs, args.seed, args.warm, args.pbm, args.option)
     print(f"serial3, N = 20, {args.pairs} lanes, {args.warm} iterations in; us per problem "
           f"(median / min of {args.rounds} x {args.calls} calls)")
     for name in PIECES:
@@ -143,7 +156,7 @@ def _counted_child(args) -> None:
     counts after each piece."""
     import jax
 
-    calls = _programs(args.pairs, args.seed, args.warm)
+    calls = _programs(args.pairs, args.seed, args.warm, args.pbm, args.option)
     pid = str(os.getpid())
 
     def control(*flags):
@@ -169,7 +182,8 @@ def _instructions(args) -> None:
         out = Path(tmp) / "callgrind.out"
         cmd = ["valgrind", "--tool=callgrind", "--instr-atstart=no", f"--callgrind-out-file={out}",
                sys.executable, __file__, "--counted-child", "--pairs", str(args.pairs), "--seed", str(args.seed),
-               "--warm", str(args.warm), "--calls", str(args.calls)]
+               "--warm", str(args.warm), "--calls", str(args.calls),
+               *(["--pbm"] if args.pbm else []), *(f"--option={o}" for o in args.option)]
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         counts = {}
         for f in Path(tmp).glob("callgrind.out.*"):
@@ -196,6 +210,9 @@ def main(argv=None) -> None:
     ap.add_argument("--warm", type=int, default=30, help="iterations run before measuring (a mid-run state)")
     ap.add_argument("--calls", type=int, default=10, help="calls of each piece per round")
     ap.add_argument("--rounds", type=int, default=9, help="wall clock: rounds per piece")
+    ap.add_argument("--pbm", action="store_true", help="the PBM inequality term (SolverOptions.pbm())")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a numeric or text jtraj.SolverOptions field, e.g. --option penalty_init=30 (repeatable)")
     ap.add_argument("--instructions", action="store_true", help="count instructions with callgrind instead")
     ap.add_argument("--counted-child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
