@@ -71,16 +71,12 @@ def _programs(pairs: int, seed: int, warm: int, pbm: bool = False, options=()):
     from jtraj._compile import SOLVER_XLA_OPTIONS, cpu_jit
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_solver import _option  # bench_solver's own --option parser
     from peers.pairs import benchmark_pairs
 
     robot = jtraj.robots.get("serial3")
     q0, q1 = benchmark_pairs(pairs, seed)
-    extra = {}
-    for item in options:
-        key, _, value = item.partition("=")
-        if not hasattr(S.SolverOptions, key):
-            raise SystemExit(f"--option {item!r}: jtraj.SolverOptions has no field {key!r}")
-        extra[key] = type(getattr(S.SolverOptions, key))(value)
+    extra = dict(_option(o) for o in options)
     opts = S.SolverOptions.pbm(**extra) if pbm else S.SolverOptions(**extra)
     weights = jtraj.Weights(time=1.0, energy=0.1)
     problems = eqx.filter_vmap(lambda a, b: jtraj.Problem(robot, a, b, N=20, weights=weights, validate=False))(
@@ -212,7 +208,7 @@ def main(argv=None) -> None:
     ap.add_argument("--rounds", type=int, default=9, help="wall clock: rounds per piece")
     ap.add_argument("--pbm", action="store_true", help="the PBM inequality term (SolverOptions.pbm())")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
-                    help="a numeric or text jtraj.SolverOptions field, e.g. --option penalty_init=30 (repeatable)")
+                    help="another jtraj.SolverOptions field, as in bench_solver.py, e.g. --option penalty_init=30 (repeatable)")
     ap.add_argument("--instructions", action="store_true", help="count instructions with callgrind instead")
     ap.add_argument("--counted-child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
