@@ -275,3 +275,64 @@ def _riccati(h, bq, bqd, bh, Q, S, R, cx, cu, PN, ff, shifts):
     _, du = jax.lax.scan(fwd, jnp.zeros((nx,) + lanes, Q.dtype), (K, kff, recs))
     du = du * ff  # (N, m, *lanes)
     return jnp.concatenate([du[:, :n].reshape((N * n,) + lanes), du[:, -1]]), ok
+
+
+def kkt_directions(model: StageModel, shifts: Array, terminal: Array) -> tuple[Array, Array, Array]:
+    """Newton directions for several right-hand sides from one factorisation per shift
+    (the interior-point method's KKT solve, :mod:`jtraj.ipm`): column 0 is
+    ``-(H + s I)^{-1} g`` for the model's own gradient, column j >= 1 is
+    ``-(H + s I)^{-1} J_N^T e_j``, the response to a unit linear term
+    ``terminal[:, j - 1]`` on the terminal state (the rows of the terminal equalities'
+    Jacobian), whose Schur complement gives their multipliers. All controls are free.
+
+    Args:
+        model: :func:`stage_model`.
+        shifts: (L,) shifts added to the whole diagonal in z.
+        terminal: (nx, r) linear terms on the terminal state x_N.
+
+    Returns (d (nz, 1 + r, L), dX (N+1, nx, 1 + r, L) the state trajectories of the
+    directions, ok (L,): whether every stage factorisation was positive definite).
+    """
+    N, nx, m = model.B.shape
+    n = m - 1
+    r = terminal.shape[1]
+    dt = model.B.dtype
+    ix = jnp.arange(n)
+    recs = (model.A[:, 0, n], model.B[:, ix, ix], model.B[:, n + ix, ix], model.B[:, :, n])
+    cx = jnp.zeros((N + 1, nx, 1 + r), dt).at[:, :, 0].set(model.cx).at[N, :, 1:].set(terminal)
+    cu = jnp.zeros((N, m, 1 + r), dt).at[:, :, 0].set(model.cu)
+    lane = (x[..., None] for x in (*recs, model.Q, model.S, model.R, cx, cu, model.PN))
+    h, bq, bqd, bh, Q, S, R, cx, cu, PN = lane
+    eye = jnp.eye(m, dtype=dt)[..., None]
+
+    def back(carry, xs):
+        P, p, ok = carry
+        rec, Rk, Sk, Qk, rk, cxk = xs
+        rec = _Recursion(*rec)
+        PA = rec.right_A(P)
+        Quu = Rk + rec.left_Bt(rec.right_B(P)) + eye * shifts
+        Qux = Sk + rec.left_Bt(PA)
+        Qxx = Qk + rec.left_At(PA)
+        qu = rk + rec.left_Bt(p)  # (m, 1 + r, L)
+        qx = cxk + rec.left_At(p)
+        X, pd = small_cho_solve(Quu, jnp.concatenate([Qux, qu], axis=1))
+        K, kff = -X[:, :nx], -X[:, nx:]
+        QuxT = jnp.swapaxes(Qux, 0, 1)
+        P_new = Qxx + _mm(QuxT, K)
+        return (0.5 * (P_new + jnp.swapaxes(P_new, 0, 1)), qx + _mm(QuxT, kff), ok & pd), (K, kff)
+
+    lanes = shifts.shape
+    init = (jnp.broadcast_to(PN, PN.shape[:2] + lanes), jnp.broadcast_to(cx[N], (nx, 1 + r) + lanes),
+            jnp.ones(lanes, bool))
+    (_, _, ok), (K, kff) = jax.lax.scan(back, init, ((h, bq, bqd, bh), R, S, Q, cu, cx[:N]), reverse=True)
+
+    def fwd(dx, xs):  # dx (nx, 1 + r, L)
+        Kk, kk, rec = xs
+        du = _mm(Kk, dx) + kk
+        rec = _Recursion(*(x[:, None] for x in rec))  # broadcast over the right-hand sides
+        return rec.step(dx, du), (dx, du)
+
+    xN, (dX, du) = jax.lax.scan(fwd, jnp.zeros((nx, 1 + r) + lanes, dt), (K, kff, (h, bq, bqd, bh)))
+    dX = jnp.concatenate([dX, xN[None]])
+    d = jnp.concatenate([du[:, :n].reshape((N * n, 1 + r) + lanes), du[:, -1]])
+    return d, dX, ok

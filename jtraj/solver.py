@@ -530,6 +530,8 @@ class _NLP(eqx.Module):
         return jnp.asarray(self.pbm_on) & (self.ineq_penalty == "pbm")
 
     def ineq_term(self, g, rho, mu):
+        if self.ineq_penalty == "lagrangian":  # the interior-point method's (jtraj.ipm)
+            return jnp.sum(rho * g)
         if self.ineq_penalty == "pbm":
             return jnp.where(self.pbm_on, _pbm(g, rho, mu), _phr(g, rho, mu))
         return _phr(g, rho, mu)

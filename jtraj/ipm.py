@@ -1,0 +1,348 @@
+"""A primal-dual interior-point inner method on the stage-wise Riccati recursion
+(``SolverOptions(method="ip")``).
+
+The same NLP as the augmented-Lagrangian solver (:mod:`jtraj.solver`): unknowns z (the
+scaled accelerations and periods), the stage inequalities g_k(w_k) <= 0 and the bound on
+T, the terminal equalities e(z) = 0 (the goal state), and the boxes on z. Here, as in
+IPOPT (Waechter and Biegler 2006):
+
+* every inequality gets a slack s > 0 and a multiplier y > 0 (``g + s = 0``, ``s y = mu``),
+  every finite bound of z a multiplier, and the barrier parameter mu falls by IPOPT's
+  monotone rule (``mu <- max(tol / 10, min(mu / 5, mu^1.5))`` once the barrier problem's
+  error is below ``10 mu``);
+* the Newton step of the primal-dual system, with slacks and multipliers eliminated, is
+  an equality-constrained linear-quadratic problem over the stages: the Hessian of the
+  Lagrangian (exact, from the same per-stage autodiff pieces as the AL solver, with the
+  Lagrangian's multipliers in place of the AL's terms) plus ``J_k^T (y / s) J_k`` per
+  stage and the bounds' ``z_L / (z - lo) + z_U / (hi - z)``. The terminal equalities are
+  kept exactly: one Riccati factorisation solves the gradient's right-hand side and one
+  per goal row (:func:`jtraj.lq.kkt_directions`), and a 2n x 2n Schur complement gives
+  their multipliers. ``rho_e |e|^2 / 2`` is added to the Hessian (it changes no solution
+  of the KKT system) so that it is positive definite whenever the reduced Hessian is;
+  otherwise the smallest of a few shifts that is (all factorised at once) is taken;
+* a filter line search (IPOPT's, with its constants) over a few step lengths, evaluated
+  at once, after the fraction-to-the-boundary rule.
+
+Everything is branch-free with fixed shapes: the loop is a bounded ``while_loop`` and a
+problem's iterations end with a status, so it vmaps. No restoration phase: a problem the
+method does not solve within ``ip_max_iter`` iterations is handed to the AL solver's
+cold run by the caller (:func:`jtraj.solver.solve`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from . import lq
+
+#: step lengths tried at once (fractions of the largest step the fraction-to-the-boundary
+#: rule allows)
+_ALPHAS = np.array([1.0, 0.5, 0.25, 0.1, 0.03, 0.01])
+_FILTER = 16  # filter entries kept (the oldest is overwritten)
+#: the shifts tried at once, x the reference shift (which follows the one taken); the first is 0
+_SHIFT_LADDER = np.array([0.0, 0.25, 2.0, 16.0])
+_TAU_MIN = 0.99  # fraction to the boundary
+_KAPPA_EPS = 10.0  # mu falls when the barrier problem's error is below this x mu
+_RHO_E = 1e3  # the terminal equalities' term added to the Hessian (see the module doc)
+
+
+class IPState(NamedTuple):
+    z: Array  # (nz,)
+    s: Array  # (N+1, mi) slacks of the stage inequalities
+    y: Array  # (N+1, mi) their multipliers
+    sT: Array  # (1,) slack of the bound on T
+    yT: Array  # (1,)
+    lam: Array  # (2n,) multipliers of the goal equalities
+    zl: Array  # (nz,) bound multipliers
+    zu: Array  # (nz,)
+    mu: Array
+    filt: Array  # (_FILTER, 2): (theta, phi) pairs
+    fi: Array  # next filter slot
+    th_min: Array
+    th_max: Array
+    delta: Array  # reference shift (see _SHIFT_LADDER)
+    it: Array
+    done: Array
+    failed: Array
+
+
+def _flat(tree):
+    """Stage-structured dict of (N+1, ...) arrays -> (N+1, total)."""
+    leaves = jax.tree.leaves(tree)
+    return jnp.concatenate([x.reshape(x.shape[0], -1) for x in leaves], axis=1)
+
+
+def _unflat(flat, like):
+    leaves, treedef = jax.tree.flatten(like)
+    out, start = [], 0
+    for x in leaves:
+        size = int(np.prod(x.shape[1:]))
+        out.append(flat[:, start:start + size].reshape(x.shape))
+        start += size
+    return jax.tree.unflatten(treedef, out)
+
+
+def check(nlp):
+    """Raise ValueError where the interior-point method does not apply (before tracing)."""
+    if nlp.tr.name != "decoupled":
+        raise ValueError("options.method='ip' needs the decoupled transcription, got "
+                         f"{nlp.tr.name!r}")
+
+
+class _Pieces(NamedTuple):
+    G: Array  # (N+1, mi) stage inequalities
+    gT: Array  # (1,)
+    e: Array  # (2n,) goal equalities
+    f: Array  # cost
+
+
+def _parts(nlp, z):
+    """(stage inequalities, T's, goal equalities, cost) at z, one pass through the dynamics."""
+    zero = _zero_mult(nlp, z)
+    _, ((eq, ineq, glob), cost) = nlp.al_and_parts(z, zero, jnp.asarray(1.0, z.dtype))
+    N = nlp.layout.N
+    return _Pieces(_flat(ineq), glob, eq["goal"][N], cost)
+
+
+def _zero_mult(nlp, z):
+    from .solver import Multipliers
+
+    eq, ineq, glob = jax.eval_shape(nlp.constraints, z)
+    zeros = lambda t: jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), t)  # noqa: E731
+    return Multipliers(zeros(eq), zeros(ineq), zeros(glob))
+
+
+def _bounds(nlp, z):
+    lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
+    has_lo, has_hi = jnp.isfinite(lo), jnp.isfinite(hi)
+    dl = jnp.where(has_lo, z - jnp.where(has_lo, lo, 0.0), 1.0)
+    du = jnp.where(has_hi, jnp.where(has_hi, hi, 0.0) - z, 1.0)
+    return dl, du, has_lo, has_hi
+
+
+def _barrier_phi(nlp, z, s, sT, f, mu):
+    dl, du, has_lo, has_hi = _bounds(nlp, z)
+    logs = (jnp.sum(jnp.log(s)) + jnp.sum(jnp.log(sT)) + jnp.sum(jnp.where(has_lo, jnp.log(dl), 0.0))
+            + jnp.sum(jnp.where(has_hi, jnp.log(du), 0.0)))
+    return f - mu * logs
+
+
+def _theta(p: _Pieces, s, sT):
+    return jnp.sum(jnp.abs(p.e)) + jnp.sum(jnp.abs(p.G + s)) + jnp.sum(jnp.abs(p.gT + sT))
+
+
+def init(nlp, z0, mu0=0.1) -> IPState:
+    lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
+    rng = jnp.where(jnp.isfinite(hi - lo), hi - lo, jnp.inf)
+    push_lo = jnp.minimum(1e-2 * jnp.maximum(1.0, jnp.abs(lo)), 0.49 * rng)
+    push_hi = jnp.minimum(1e-2 * jnp.maximum(1.0, jnp.abs(hi)), 0.49 * rng)
+    z = jnp.clip(z0, jnp.where(jnp.isfinite(lo), lo + push_lo, -jnp.inf), jnp.where(jnp.isfinite(hi), hi - push_hi, jnp.inf))
+    p = _parts(nlp, z)
+    dt = z.dtype
+    mu = jnp.asarray(mu0, dt)
+    s = jnp.maximum(-p.G, 1e-2)
+    sT = jnp.maximum(-p.gT, 1e-2)
+    th0 = _theta(p, s, sT)
+    _, _, has_lo, has_hi = _bounds(nlp, z)
+    return IPState(
+        z=z, s=s, y=mu / s, sT=sT, yT=mu / sT, lam=jnp.zeros_like(p.e),
+        zl=jnp.where(has_lo, 1.0, 0.0).astype(dt), zu=jnp.where(has_hi, 1.0, 0.0).astype(dt), mu=mu,
+        filt=jnp.full((_FILTER, 2), jnp.inf, dt), fi=jnp.asarray(0),
+        th_min=1e-4 * jnp.maximum(1.0, th0), th_max=1e4 * jnp.maximum(1.0, th0),
+        delta=jnp.asarray(1.0, dt), it=jnp.asarray(0), done=jnp.asarray(False), failed=jnp.asarray(False))
+
+
+def _z_to_stages(v, N, n):
+    """A vector in z's layout (all v, then all h) -> (N, n+1) stage controls."""
+    return jnp.concatenate([v[:N * n].reshape(N, n), v[N * n:, None]], axis=1)
+
+
+def _model(nlp, st: IPState):
+    """The primal-dual Newton model at st without its barrier right-hand side (see
+    :func:`_with_rhs`; ``model.g`` is the Lagrangian's gradient in z): (model, stage
+    Jacobians of the inequalities, dg_T/dT, pieces, goal Jacobian in the terminal state)."""
+    from .solver import Multipliers
+
+    layout, problem, tr = nlp.layout, nlp.problem, nlp.tr
+    N, n = layout.N, problem.robot.n
+    z, mu = st.z, st.mu
+    W = nlp.W(z)
+    like = jax.eval_shape(nlp.constraints, z)
+    eq_like, ineq_like = like[0], like[1]
+    lam_full = jnp.zeros(eq_like["goal"].shape, z.dtype).at[N].set(st.lam)
+    mult = Multipliers(eq={"goal": lam_full}, ineq=_unflat(st.y, ineq_like), glob=st.yT)
+    lag = dataclasses.replace(nlp, ineq_penalty="lagrangian")
+    _, c, Hk = lag.stage_derivatives(W, mult, jnp.asarray(0.0, z.dtype))
+
+    def stage_ineq(w, sdk):
+        return _flat(jax.tree.map(lambda a: a[None], tr.stage_constraints(problem, w, sdk)[1]))[0]
+
+    G, Jg = jax.vmap(lambda w, sdk: (stage_ineq(w, sdk), jax.jacfwd(stage_ineq)(w, sdk)))(W, nlp.sd)
+    Sig = st.y / st.s
+    Hk = Hk + jnp.einsum("kim,ki,kin->kmn", Jg, Sig, Jg)
+    T = jnp.sum(W[:-1, -1])
+    gT_of = lambda t: tr.time_inequalities(problem, t)  # noqa: E731
+    gT = gT_of(T)
+    dgT = jax.jacfwd(gT_of)(T)
+    SigT = st.yT / st.sT
+    dphi = jnp.sum(st.yT * dgT)
+    d2phi = jnp.sum(SigT * dgT**2)
+    model = lq.stage_model(W, c, Hk, layout.u_scale, layout.h_scale, (dphi, d2phi))
+    dl, du, has_lo, has_hi = _bounds(nlp, z)
+    bound_h = jnp.where(has_lo, st.zl / dl, 0.0) + jnp.where(has_hi, st.zu / du, 0.0)
+    model = model._replace(R=model.R + jax.vmap(jnp.diag)(_z_to_stages(bound_h, N, n)))
+    goal = lambda x: tr.stage_constraints(problem, jnp.concatenate([x, W[N, 2 * n:]]), jax.tree.map(  # noqa: E731
+        lambda a: a[N], nlp.sd))[0]["goal"]
+    Ex = jax.jacfwd(goal)(W[N, :2 * n])  # (2n, 2n)
+    Ex = jnp.concatenate([Ex, jnp.zeros((Ex.shape[0], 1), z.dtype)], axis=1)  # the t column
+    e = goal(W[N, :2 * n])
+    # rho_e E^T E on the terminal state, and its gradient rho_e E^T e (the goal rows are
+    # linear in x_N): the exact Newton step of the KKT system is unchanged
+    model = model._replace(PN=model.PN + _RHO_E * Ex.T @ Ex, cx=model.cx.at[N].add(_RHO_E * Ex.T @ e))
+    return model, Jg, dgT, _Pieces(G, gT, e, None), Ex
+
+
+def _with_rhs(nlp, st: IPState, model, Jg, dgT, p: _Pieces, mu):
+    """The model's linear terms for barrier parameter mu: the correction
+    J^T (mu / s + Sigma (g + s) - y) and the bounds' barrier gradient enter the gradients
+    only (the co-states of the curvature are the Lagrangian's, ``model.g``)."""
+    layout = nlp.layout
+    N, n = layout.N, nlp.problem.robot.n
+    corr = jnp.einsum("kim,ki->km", Jg, mu / st.s + (st.y / st.s) * (p.G + st.s) - st.y)
+    corrT = jnp.sum((mu / st.sT + (st.yT / st.sT) * (p.gT + st.sT) - st.yT) * dgT)
+    sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
+    dl, du, has_lo, has_hi = _bounds(nlp, st.z)
+    bound_g = jnp.where(has_lo, -mu / dl, 0.0) + jnp.where(has_hi, mu / du, 0.0)
+    cx = model.cx.at[:, :2 * n].add(corr[:, :2 * n]).at[N, -1].add(corrT)
+    cu = model.cu + corr[:N, 2 * n:] * sy + _z_to_stages(bound_g, N, n)
+    return model._replace(cx=cx, cu=cu)
+
+
+def _errors(nlp, st: IPState, g_lag, p: _Pieces, mu):
+    """IPOPT's scaled optimality error of the barrier problem with parameter mu."""
+    rd = g_lag - st.zl + st.zu
+    nd = st.y.size + st.yT.size + st.lam.size + 2 * st.z.size
+    s_d = jnp.maximum(100.0, (jnp.sum(jnp.abs(st.lam)) + jnp.sum(st.y) + jnp.sum(st.yT) + jnp.sum(st.zl)
+                              + jnp.sum(st.zu)) / nd) / 100.0
+    prim = jnp.maximum(jnp.max(jnp.abs(p.e)), jnp.maximum(jnp.max(jnp.abs(p.G + st.s)), jnp.max(jnp.abs(p.gT + st.sT))))
+    dl, du, has_lo, has_hi = _bounds(nlp, st.z)
+    comp = jnp.maximum(jnp.max(jnp.abs(st.s * st.y - mu)), jnp.max(jnp.abs(st.sT * st.yT - mu)))
+    comp = jnp.maximum(comp, jnp.max(jnp.where(has_lo, jnp.abs(dl * st.zl - mu), 0.0)))
+    comp = jnp.maximum(comp, jnp.max(jnp.where(has_hi, jnp.abs(du * st.zu - mu), 0.0)))
+    return jnp.maximum(jnp.maximum(jnp.max(jnp.abs(rd)) / s_d, prim), comp / s_d)
+
+
+def step(nlp, st: IPState, tol) -> IPState:
+    """One interior-point iteration (or, where converged, the state marked done)."""
+    layout = nlp.layout
+    N, n = layout.N, nlp.problem.robot.n
+    dt = st.z.dtype
+    model, Jg, dgT, p, Ex = _model(nlp, st)
+    g_lag = model.g
+    converged = _errors(nlp, st, g_lag, p, 0.0) <= tol  # g_lag: the Lagrangian's gradient
+    # barrier update (up to two decreases per iteration), the filter reset with it
+    mu, reset = st.mu, jnp.asarray(False)
+    for _ in range(2):
+        fall = (_errors(nlp, st, g_lag, p, mu) <= _KAPPA_EPS * mu) & (mu > tol / 10)
+        mu = jnp.where(fall, jnp.maximum(tol / 10, jnp.minimum(0.2 * mu, mu**1.5)), mu)
+        reset = reset | fall
+    model = _with_rhs(nlp, st, model, Jg, dgT, p, mu)
+    filt = jnp.where(reset, jnp.inf, st.filt)
+    fi = jnp.where(reset, 0, st.fi)
+    # Newton directions for a few shifts at once; the least shifted positive definite one
+    shifts = st.delta * jnp.asarray(_SHIFT_LADDER, dt)
+    d, dX, ok = lq.kkt_directions(model, shifts, Ex.T)
+    k = jnp.argmax(ok)
+    any_pd = jnp.any(ok)
+    # the next reference shift: the one taken (kept after an unshifted step), x 128 after none
+    delta = jnp.clip(jnp.where(any_pd, jnp.where(k == 0, st.delta, shifts[k]), 128.0 * st.delta), 1e-6, 1e8)
+    d, dX = jnp.where(any_pd, d[..., k], 0.0), jnp.where(any_pd, dX[..., k], 0.0)  # (nz, 1 + 2n), (N+1, nx, 1 + 2n)
+    # the goal multipliers' step from the Schur complement: E dz = -e
+    ED = Ex @ dX[N]  # (2n, 1 + 2n)
+    dlam = -jnp.linalg.solve(jnp.where(any_pd, ED[:, 1:], -jnp.eye(ED.shape[0], dtype=dt)), p.e + ED[:, 0])
+    dz = d[:, 0] + d[:, 1:] @ dlam
+    dXz = dX[..., 0] + dX[..., 1:] @ dlam  # (N+1, nx)
+    sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
+    du_st = _z_to_stages(dz, N, n) * sy
+    dW = jnp.concatenate([dXz[:, :2 * n], jnp.concatenate([du_st, jnp.zeros((1, n + 1), dt)])], axis=1)
+    Jdz = jnp.einsum("kim,km->ki", Jg, dW)
+    dT = jnp.sum(du_st[:, -1])
+    ds = -(p.G + st.s) - Jdz
+    dsT = -(p.gT + st.sT) - dgT * dT
+    dy = mu / st.s - st.y - (st.y / st.s) * ds
+    dyT = mu / st.sT - st.yT - (st.yT / st.sT) * dsT
+    dl, du, has_lo, has_hi = _bounds(nlp, st.z)
+    dzl = jnp.where(has_lo, mu / dl - st.zl - (st.zl / dl) * dz, 0.0)
+    dzu = jnp.where(has_hi, mu / du - st.zu + (st.zu / du) * dz, 0.0)
+    tau = jnp.maximum(_TAU_MIN, 1.0 - mu)
+
+    def amax(x, dx, mask=True):
+        neg = (dx < 0) & mask
+        return jnp.min(jnp.where(neg, -tau * x / jnp.where(neg, dx, -1.0), 1.0), initial=1.0)
+
+    ap = jnp.minimum(jnp.minimum(amax(st.s, ds), amax(st.sT, dsT)),
+                     jnp.minimum(amax(dl, dz, has_lo), amax(du, -dz, has_hi)))
+    ad = jnp.minimum(jnp.minimum(amax(st.y, dy), amax(st.yT, dyT)),
+                     jnp.minimum(amax(st.zl, dzl, has_lo), amax(st.zu, dzu, has_hi)))
+    # filter line search over a few step lengths at once
+    f0, df = jax.jvp(lambda zz: _parts(nlp, zz).f, (st.z,), (dz,))
+    th0 = _theta(p, st.s, st.sT)
+    ph0 = _barrier_phi(nlp, st.z, st.s, st.sT, f0, mu)
+    dlog = (jnp.sum(ds / st.s) + jnp.sum(dsT / st.sT) + jnp.sum(jnp.where(has_lo, dz / dl, 0.0))
+            - jnp.sum(jnp.where(has_hi, dz / du, 0.0)))
+    gphi = df - mu * dlog
+    alphas = ap * jnp.asarray(_ALPHAS, dt)
+
+    def trial(a):
+        zt, stt, sTt = st.z + a * dz, st.s + a * ds, st.sT + a * dsT
+        pt = _parts(nlp, zt)
+        return _theta(pt, stt, sTt), _barrier_phi(nlp, zt, stt, sTt, pt.f, mu)
+
+    ths, phs = jax.vmap(trial)(alphas)
+    finite = jnp.isfinite(ths) & jnp.isfinite(phs)
+    m = alphas * gphi
+    switch = (m < 0) & ((-m) ** 2.3 * alphas ** (1 - 2.3) > th0 ** 1.1)
+    armijo = phs <= ph0 + 1e-8 * m
+    f_type = (th0 <= st.th_min) & switch
+    suff = (ths <= (1 - 1e-5) * th0) | (phs <= ph0 - 1e-8 * th0)
+    blocked = jnp.any((ths[:, None] >= filt[None, :, 0]) & (phs[:, None] >= filt[None, :, 1]), axis=1)
+    accept = finite & (ths <= st.th_max) & ~blocked & jnp.where(f_type, armijo, suff) & any_pd
+    j = jnp.argmax(accept)
+    moved = jnp.any(accept)
+    a = jnp.where(moved, alphas[j], 0.0)
+    add = moved & ~(f_type[j] & armijo[j])
+    filt = jnp.where(add, filt.at[fi].set(jnp.stack([(1 - 1e-5) * th0, ph0 - 1e-8 * th0])), filt)
+    fi = jnp.where(add, (fi + 1) % _FILTER, fi)
+    ad = jnp.where(moved, ad, 0.0)
+    z1, s1, sT1 = st.z + a * dz, st.s + a * ds, st.sT + a * dsT
+    # IPOPT's safeguard keeps each bound multiplier within a factor 1e10 of mu / slack
+    k_sig = 1e10
+
+    def guard(v, slack):
+        return jnp.clip(v, mu / (k_sig * slack), k_sig * mu / slack)
+
+    dl1, du1, _, _ = _bounds(nlp, z1)
+    new = IPState(
+        z=z1, s=s1, y=guard(st.y + ad * dy, s1), sT=sT1, yT=guard(st.yT + ad * dyT, sT1),
+        lam=st.lam + a * dlam, zl=jnp.where(has_lo, guard(st.zl + ad * dzl, dl1), 0.0),
+        zu=jnp.where(has_hi, guard(st.zu + ad * dzu, du1), 0.0), mu=mu, filt=filt, fi=fi,
+        th_min=st.th_min, th_max=st.th_max, delta=delta,
+        it=st.it + 1, done=st.done, failed=st.failed)
+    failed = ~(jnp.all(jnp.isfinite(new.z)) & jnp.all(jnp.isfinite(new.y)) & jnp.all(jnp.isfinite(new.lam)))
+    new = new._replace(failed=failed)
+    stop = converged | st.done | st.failed
+    return jax.tree.map(lambda old, nw: jnp.where(stop, old, nw), st._replace(done=st.done | converged), new)
+
+
+def run(nlp, z0, max_iter: int, tol) -> IPState:
+    """The interior-point loop from z0: at most ``max_iter`` iterations."""
+    def cond(st):
+        return ~st.done & ~st.failed & (st.it < max_iter)
+
+    return jax.lax.while_loop(cond, lambda st: step(nlp, st, tol), init(nlp, z0))
