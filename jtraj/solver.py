@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _packing, _tracecache, lq
+from . import _packing, _tracecache, ipm, lq
 from ._compile import SOLVER_XLA_OPTIONS, supported_options
 from ._compile import solver_jit as _jit
 from ._math import log1p
@@ -299,6 +299,14 @@ class SolverOptions(eqx.Module):
             a penalty increase and then fall, and without ``detect_min_viol = 1e-2`` 2 of
             64 feasible pairs of seed 1 stopped as likely infeasible (3 without the bound
             ``pbm_ratio`` on the multiplier update).
+        method: the inner method. "al" (default): the augmented-Lagrangian loop described
+            here. "ip": the primal-dual interior-point method of :mod:`jtraj.ipm` (IPOPT's
+            algorithm on the same stage-wise Riccati recursion, decoupled transcription
+            only), for up to ``ip_max_iter`` iterations to ``ip_tol`` (IPOPT's scaled
+            optimality error); a problem it leaves unsolved is then solved by the "al"
+            loop from the same start with these options (``Solution.iterations`` counts
+            both). The final polish and the strict verification are the same.
+        ip_max_iter, ip_tol: see ``method``.
         kink_margin, kink_after: from the ``kink_after``-th Newton iteration of an AL
             subproblem on, its Newton model adds the penalty's curvature ``mu grad g grad
             g^T`` of the inequalities just short of their PHR kink
@@ -353,6 +361,9 @@ class SolverOptions(eqx.Module):
     pbm_ratio: float = eqx.field(static=True, default=4.0)
     pbm_fallback_iter: int = eqx.field(static=True, default=200)
     detect_min_viol: float = eqx.field(static=True, default=0.0)
+    method: str = eqx.field(static=True, default="al")
+    ip_max_iter: int = eqx.field(static=True, default=150)
+    ip_tol: float = eqx.field(static=True, default=1e-7)
 
     @classmethod
     def pbm(cls, **overrides) -> "SolverOptions":
@@ -363,6 +374,8 @@ class SolverOptions(eqx.Module):
     def __check_init__(self):
         if self.schedule not in ("default", "thesis"):
             raise ValueError(f"schedule must be 'default' or 'thesis', got {self.schedule!r}")
+        if self.method not in ("al", "ip"):
+            raise ValueError(f"method must be 'al' or 'ip', got {self.method!r}")
         if self.inequality_penalty not in ("phr", "pbm"):
             raise ValueError(f"inequality_penalty must be 'phr' or 'pbm', got {self.inequality_penalty!r}")
         if not self.pbm_ratio > 1:
@@ -377,7 +390,7 @@ class SolverOptions(eqx.Module):
         for name in ("max_iter", "max_outer", "max_inner"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
-        for name in ("restart_iter", "kink_after", "stall_window", "stall_after", "pbm_fallback_iter"):
+        for name in ("restart_iter", "kink_after", "stall_window", "stall_after", "pbm_fallback_iter", "ip_max_iter"):
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0):
                 raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
@@ -390,7 +403,7 @@ class SolverOptions(eqx.Module):
             if not ok:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         for name in ("tol_feasibility", "tol_optimality", "verify_tol", "penalty_init", "penalty_max",
-                     "damping_init", "restart_penalty_max", "pbm_init"):
+                     "damping_init", "restart_penalty_max", "pbm_init", "ip_tol"):
             value = getattr(self, name)
             try:
                 ok = 0 < float(value) < float("inf")  # NumPy scalars of any float width too
@@ -1528,7 +1541,32 @@ def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, war
 
 def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False) -> Solution:
     nlp, state, valid = _prepare(problem, opts, tr, init, warm)
+    if _static(opts).method == "ip":
+        # one problem: a real branch (vmapped, both sides would run; solve_batch does not
+        # come here with "ip")
+        ip = _ip_run(nlp, state, opts)
+        solved = _ip_solved(state, ip)
+        state = jax.lax.cond(solved, lambda: _ip_result(state, ip),
+                             lambda: _run_with_restart(nlp, state, opts))
+        sol = _finish(nlp, state, opts, valid)
+        return dataclasses.replace(sol, iterations=sol.iterations + jnp.where(solved, 0, ip.it))
     return _finish(nlp, _run_with_restart(nlp, state, opts), opts, valid)
+
+
+def _ip_run(nlp: _NLP, state: _State, opts: SolverOptions):
+    """The interior-point method (:mod:`jtraj.ipm`) from the state's start; a state the
+    AL loop would not run (a warm start already optimal) takes no iteration."""
+    return ipm.run(nlp, state.z, jnp.where(state.done, 0, _static(opts).ip_max_iter), _static(opts).ip_tol)
+
+
+def _ip_solved(state: _State, ip) -> Array:
+    return ~state.done & ip.done & ~ip.failed
+
+
+def _ip_result(state: _State, ip) -> _State:
+    """The AL loop's state for a problem the interior-point method solved: its point,
+    certified (``_finish`` polishes and verifies it as any other)."""
+    return state._replace(z=ip.z, done=jnp.asarray(True), it=ip.it, stationarity=jnp.zeros_like(state.stationarity))
 
 
 def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
@@ -1766,6 +1804,42 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     return _finish_batch_jit(nlps, states, opts, valid)
 
 
+@_options_jit()
+def _ip_batch_jit(nlps, states, opts):
+    return eqx.filter_vmap(lambda n, s: _ip_run(n, s, opts))(nlps, states)
+
+
+@_jit
+def _ip_merge_jit(states, ips):
+    solved = _ip_solved(states, ips)
+    merged = eqx.filter_vmap(_ip_result)(states, ips)
+    return jax.tree.map(lambda a, b: jnp.where(solved.reshape(solved.shape + (1,) * (a.ndim - 1)), a, b),
+                        merged, states), solved
+
+
+def _solve_batch_ip(problems, opts, transcription, init, warm, slots: int, steps: int):
+    """``solve_batch`` with ``method="ip"``: the interior-point method on every problem,
+    ``slots`` at a time (vmapped; each group runs to its slowest member), then the AL
+    loop on the problems it left unsolved (:func:`_run_lanes`), then the finish."""
+    nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
+    B = int(valid.shape[0])
+    parts = []
+    for start in range(0, B, slots):
+        idx = _padded(np.arange(start, min(start + slots, B)), slots)
+        sub_nlps, sub_states = _gather_jit(nlps, states, idx)
+        parts.append(_ip_batch_jit(sub_nlps, sub_states, opts))
+    ips = jax.tree.map(lambda *xs: jnp.concatenate(xs)[:B], *parts)
+    states, solved = _ip_merge_jit(states, ips)
+    todo = np.flatnonzero(~np.asarray(solved) & ~np.asarray(states.done) & np.asarray(valid))
+    if todo.size:
+        states = _run_lanes(nlps, states, todo, opts, slots, steps)
+    if jax.default_backend() == "cpu":
+        sol = _finish_lanes(nlps, states, opts, valid, slots)
+    else:
+        sol = _finish_batch_jit(nlps, states, opts, valid)
+    return dataclasses.replace(sol, iterations=sol.iterations + jnp.where(solved, 0, ips.it))
+
+
 def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
     """Run the problems ``todo`` (indices into the batch) to the end of their loop through
     ``slots`` vmapped lanes (see :func:`_solve_compacted`); returns the states.
@@ -1972,6 +2046,8 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
     if not isinstance(segment, int) or segment < 1:
         raise ValueError(f"segment must be a positive integer, got {segment!r}")
+    if opts.method == "ip":
+        return _solve_batch_ip(problems, opts, transcription, init, jnp.asarray(warm), slots or B, segment)
     if slots is not None and B > min(_lane_counts(slots)):
         return _solve_compacted(problems, opts, transcription, init, jnp.asarray(warm), slots, segment)
     return _solve_batch_jit(problems, opts, transcription, init, jnp.asarray(warm))
