@@ -340,9 +340,19 @@ def step(nlp, st: IPState, tol) -> IPState:
     return jax.tree.map(lambda old, nw: jnp.where(stop, old, nw), st._replace(done=st.done | converged), new)
 
 
-def run(nlp, z0, max_iter: int, tol) -> IPState:
-    """The interior-point loop from z0: at most ``max_iter`` iterations."""
-    def cond(st):
-        return ~st.done & ~st.failed & (st.it < max_iter)
+def finished(st: IPState, max_iter) -> Array:
+    return st.done | st.failed | (st.it >= max_iter)
 
-    return jax.lax.while_loop(cond, lambda st: step(nlp, st, tol), init(nlp, z0))
+
+def loop(nlp, st: IPState, max_iter, tol, limit=None) -> IPState:
+    """Iterate from st until finished (at most ``max_iter`` iterations in all) or until
+    ``st.it`` reaches ``limit``: resumable, so a batch runs in segments."""
+    def cond(s):
+        return ~finished(s, max_iter) if limit is None else ~finished(s, max_iter) & (s.it < limit)
+
+    return jax.lax.while_loop(cond, lambda s: step(nlp, s, tol), st)
+
+
+def run(nlp, z0, max_iter, tol) -> IPState:
+    """The interior-point loop from z0: at most ``max_iter`` iterations."""
+    return loop(nlp, init(nlp, z0), max_iter, tol)

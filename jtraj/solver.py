@@ -1805,8 +1805,14 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
 
 
 @_options_jit()
-def _ip_batch_jit(nlps, states, opts):
-    return eqx.filter_vmap(lambda n, s: _ip_run(n, s, opts))(nlps, states)
+def _ip_init_batch_jit(nlps, states, opts):
+    """The interior-point states of a batch (a state the AL loop would not run, a warm
+    start already optimal, starts finished)."""
+    def one(n, s):
+        st = ipm.init(n, s.z)
+        return st._replace(done=s.done)
+
+    return eqx.filter_vmap(one)(nlps, states)
 
 
 @_jit
@@ -1818,17 +1824,12 @@ def _ip_merge_jit(states, ips):
 
 
 def _solve_batch_ip(problems, opts, transcription, init, warm, slots: int, steps: int):
-    """``solve_batch`` with ``method="ip"``: the interior-point method on every problem,
-    ``slots`` at a time (vmapped; each group runs to its slowest member), then the AL
-    loop on the problems it left unsolved (:func:`_run_lanes`), then the finish."""
+    """``solve_batch`` with ``method="ip"``: the interior-point method on every problem
+    through ``slots`` lanes (:func:`_run_lanes`), then the AL loop on the problems it left
+    unsolved (the same lanes), then the finish."""
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
-    B = int(valid.shape[0])
-    parts = []
-    for start in range(0, B, slots):
-        idx = _padded(np.arange(start, min(start + slots, B)), slots)
-        sub_nlps, sub_states = _gather_jit(nlps, states, idx)
-        parts.append(_ip_batch_jit(sub_nlps, sub_states, opts))
-    ips = jax.tree.map(lambda *xs: jnp.concatenate(xs)[:B], *parts)
+    ips = _ip_init_batch_jit(nlps, states, opts)
+    ips = _run_lanes(nlps, ips, np.flatnonzero(~np.asarray(ips.done)), opts, slots, steps, kind="ip")
     states, solved = _ip_merge_jit(states, ips)
     todo = np.flatnonzero(~np.asarray(solved) & ~np.asarray(states.done) & np.asarray(valid))
     if todo.size:
@@ -1840,7 +1841,7 @@ def _solve_batch_ip(problems, opts, transcription, init, warm, slots: int, steps
     return dataclasses.replace(sol, iterations=sol.iterations + jnp.where(solved, 0, ips.it))
 
 
-def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
+def _run_lanes(nlps, states, todo, opts, slots: int, steps: int, kind: str = "al"):
     """Run the problems ``todo`` (indices into the batch) to the end of their loop through
     ``slots`` vmapped lanes (see :func:`_solve_compacted`); returns the states.
 
@@ -1862,7 +1863,9 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
     idx = np.concatenate([np.arange(min(counts[0], B)), np.zeros(max(counts[0] - B, 0), int)])
     nxt = min(counts[0], B)
     done = np.zeros(B, bool)
-    progs = _lane_programs(_packing.packing(nlps), _packing.packing(states), steps, jax.default_backend())
+    if todo.size == 0:
+        return states
+    progs = _lane_programs(_packing.packing(nlps), _packing.packing(states), steps, jax.default_backend(), kind)
     split = _split_options(opts)
     all_nlps, all_states = progs.pack(_packing.arrays(nlps), _packing.arrays(states))
     lanes = todo[idx]  # NumPy index arrays: the compiled calls take them without jnp's dispatch
@@ -1907,8 +1910,10 @@ class _LanePrograms(NamedTuple):
 
 
 @functools.lru_cache(maxsize=32)
-def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backend: str) -> _LanePrograms:
-    """The programs for problems packed as ``pn`` and states as ``ps`` (plain ``jax.jit``
+def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backend: str,
+                   kind: str = "al") -> _LanePrograms:
+    """The programs for problems packed as ``pn`` and states as ``ps`` (``kind``: "al"
+    for the AL loop's states, "ip" for the interior-point method's, which never restart) (plain ``jax.jit``
     on packed arrays: no pytree partitioning per call), compiled with the solver's XLA
     options on a CPU (see :mod:`jtraj._compile`)."""
     options = supported_options(SOLVER_XLA_OPTIONS) if backend == "cpu" else None
@@ -1923,6 +1928,11 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
     def segment(nlps, states, split):
         opts = _TracedOptions(split)
         nlps, before = _packing.unpack(nlps, pn), _packing.unpack(states, ps)
+        if kind == "ip":
+            max_iter, tol = _static(opts).ip_max_iter, _static(opts).ip_tol
+            out = eqx.filter_vmap(lambda n, s: ipm.loop(n, s, max_iter, tol, s.it + steps))(nlps, before)
+            fin = ipm.finished(out, max_iter)
+            return _packing.pack(_packing.arrays(out), ps), fin, jnp.zeros_like(fin)
         out = _segment(nlps, before, opts, steps)
         fin = _finished(out, opts)
         # the lanes whose run ended in this segment uncertified, to restart (_restart)
@@ -1943,7 +1953,7 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
         # the segment program kept across processes where the compilation cache is on
         # (jtraj._tracecache; plain jit where it is off: eqx.filter_jit's per-call work is
         # what the packing saves)
-        segment=_tracecache.cached("segment", segment, repr((pn, ps, steps)), options, fallback=jit(segment)),
+        segment=_tracecache.cached("segment", segment, repr((pn, ps, steps, kind)), options, fallback=jit(segment)),
         restart=_tracecache.cached("restart", restart, repr((pn, ps)), options, fallback=jit(restart)),
         take=jit(take), exchange=jit(exchange, donate_argnums=1),
         # (no donation: the unpacked arrays cannot reuse the packed buffers; called once)
