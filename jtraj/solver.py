@@ -1560,13 +1560,17 @@ def _ip_run(nlp: _NLP, state: _State, opts: SolverOptions):
 
 
 def _ip_solved(state: _State, ip) -> Array:
-    return ~state.done & ip.done & ~ip.failed
+    """Where the interior-point method decided (solved, or stalled as likely infeasible:
+    see :mod:`jtraj.ipm`); elsewhere the AL loop takes over."""
+    return ~state.done & ((ip.done & ~ip.failed) | ip.infeasible)
 
 
 def _ip_result(state: _State, ip) -> _State:
-    """The AL loop's state for a problem the interior-point method solved: its point,
-    certified (``_finish`` polishes and verifies it as any other)."""
-    return state._replace(z=ip.z, done=jnp.asarray(True), it=ip.it, stationarity=jnp.zeros_like(state.stationarity))
+    """The AL loop's state for a problem the interior-point method decided: its point,
+    certified or stalled (``_finish`` polishes and verifies it as any other)."""
+    solved = ip.done & ~ip.failed
+    return state._replace(z=ip.z, done=solved, stalled=~solved, it=ip.it,
+                          stationarity=jnp.zeros_like(state.stationarity))
 
 
 def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
