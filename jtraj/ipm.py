@@ -102,13 +102,6 @@ def _unflat(flat, like):
     return jax.tree.unflatten(treedef, out)
 
 
-def check(nlp):
-    """Raise ValueError where the interior-point method does not apply (before tracing)."""
-    if nlp.tr.name != "decoupled":
-        raise ValueError("options.method='ip' needs the decoupled transcription, got "
-                         f"{nlp.tr.name!r}")
-
-
 class _Pieces(NamedTuple):
     G: Array  # (N+1, mi) stage inequalities
     gT: Array  # (1,)

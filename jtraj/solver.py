@@ -1667,12 +1667,23 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     if warm not in ("full", "primal"):
         raise ValueError(f"warm must be 'full' or 'primal', got {warm!r}")
     opts = SolverOptions() if options is None else options
+    _check_method(opts, transcription, problem.robot)
     warm = init is not None and warm == "full"
     if init is None:
         init = _guess_jit(problem, opts, transcription)
     else:
         init = _check_init(problem, init, transcription)
     return _solve_jit(problem, opts, transcription, init, jnp.asarray(warm))
+
+
+def _check_method(opts: SolverOptions, transcription: str, robot):
+    """``method="ip"`` needs the decoupled transcription and no equalities but the goal."""
+    if opts.method != "ip":
+        return
+    if transcription != "decoupled":
+        raise ValueError(f"options.method='ip' needs transcription='decoupled', got {transcription!r}")
+    if getattr(robot, "path_equalities", None) is not None:
+        raise ValueError("options.method='ip' does not handle a robot's path_equalities; use method='al'")
 
 
 def _check_efforts(efforts, transcription):
@@ -2036,6 +2047,7 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     Transcription(transcription)
     _check_efforts(efforts, transcription)
     opts = SolverOptions() if options is None else options
+    _check_method(opts, transcription, robot)
     weights = Weights() if weights is None else weights
 
     def make(a, b, c, d, t):

@@ -1,0 +1,146 @@
+"""The interior-point inner method (``SolverOptions(method="ip")``, :mod:`jtraj.ipm`).
+
+* its Newton step (stage-wise Riccati with the goal rows' Schur complement) against the
+  KKT system assembled densely from jax.hessian of the plain Lagrangian in z;
+* a batch solved with it: the converged trajectory re-simulated by the independent NumPy +
+  Pinocchio verifier and its cost against CasADi + IPOPT, an infeasible problem stopped
+  as likely infeasible, a non-finite sample flagged; one solve equals its batch lane;
+* a run cut short hands over to the AL loop, which reaches the same optimum;
+* bad options are refused before tracing.
+"""
+
+import os
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jtraj
+from jtraj import Status, ipm, lq
+from jtraj import solver as S
+from jtraj.solver import SolverOptions
+from jtraj.transcription import Transcription
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+
+N = 10
+W = jtraj.Weights(time=1.0, energy=0.1)
+Q0 = np.array([1.077, -0.096, 0.619])
+Q1 = np.array([1.2, -0.049, 0.9])  # feasible with N = 10 (T <= 1 s), as in test_solver.py
+QI = np.array([0.0, 0.3, -0.3])  # + 0.7 rad per joint: not within N h_max = 1 s under the torque limits
+IP = SolverOptions(method="ip")
+
+
+def _nlp(q0=Q0, q1=Q1):
+    problem = jtraj.Problem(jtraj.robots.get("serial3"), q0, q1, N=N, weights=W)
+    tr = Transcription("decoupled")
+    nlp, state, _ = S._prepare(problem, SolverOptions(), tr, S.initial_guess(problem, SolverOptions(), tr))
+    return nlp, state.z
+
+
+def test_newton_step_equals_the_dense_kkt_solve():
+    """At an interior point with random multipliers and slacks, the stage-wise step
+    (dz and the goal multipliers) equals the dense KKT solve
+    [[H + J^T S J + Z + rho E^T E + d I, E^T], [E, 0]] with H = jax.hessian of
+    f + lam . e + y . g in z (no stage machinery), to 1e-9 relative."""
+    nlp, z0 = _nlp()
+    st = ipm.init(nlp, z0)
+    rng = np.random.default_rng(0)
+    st = st._replace(y=jnp.asarray(rng.uniform(0.01, 2.0, st.y.shape)), s=jnp.asarray(rng.uniform(0.05, 1.0, st.s.shape)),
+                     lam=jnp.asarray(rng.normal(size=st.lam.shape)), zl=jnp.asarray(rng.uniform(0.1, 1.0, st.z.shape)),
+                     zu=jnp.asarray(rng.uniform(0.1, 1.0, st.z.shape)), mu=jnp.asarray(0.02))
+    model, Jg, dgT, p, Ex = ipm._model(nlp, st)
+    model = ipm._with_rhs(nlp, st, model, Jg, dgT, p, st.mu)
+    delta = 3.0  # enough to make the matrix positive definite at this point
+    d, dX, ok = lq.kkt_directions(model, jnp.array([delta]), Ex.T)
+    assert bool(ok[0])
+    d, dX = d[..., 0], dX[..., 0]
+    ED = Ex @ dX[N]
+    dlam = -jnp.linalg.solve(ED[:, 1:], p.e + ED[:, 0])
+    dz = d[:, 0] + d[:, 1:] @ dlam
+
+    def f(z):
+        return sum(nlp.cost_terms(z).values())
+
+    def e(z):
+        return nlp.constraints(z)[0]["goal"][N]
+
+    def g(z):
+        return ipm._flat(nlp.constraints(z)[1]).ravel()
+
+    z = st.z
+    H = jax.hessian(lambda zz: f(zz) + st.lam @ e(zz) + st.y.ravel() @ g(zz))(z)
+    J, E = jax.jacfwd(g)(z), jax.jacfwd(e)(z)
+    lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
+    s, sig = st.s.ravel(), (st.y / st.s).ravel()
+    Wd = (H + J.T @ (sig[:, None] * J) + jnp.diag(st.zl / (z - lo) + st.zu / (hi - z)) + ipm._RHO_E * E.T @ E
+          + delta * jnp.eye(z.size))
+    r = -(jax.grad(f)(z) - st.mu / (z - lo) + st.mu / (hi - z) + J.T @ (st.mu / s + sig * (g(z) + s))) \
+        - ipm._RHO_E * E.T @ e(z)
+    K = jnp.block([[Wd, E.T], [E, jnp.zeros((E.shape[0], E.shape[0]))]])
+    ref = jnp.linalg.solve(K, jnp.concatenate([r, -e(z)]))
+    np.testing.assert_allclose(np.asarray(dz), np.asarray(ref[:z.size]), rtol=1e-9, atol=1e-9 * float(jnp.max(jnp.abs(ref))))
+    np.testing.assert_allclose(np.asarray(st.lam + dlam), np.asarray(ref[z.size:]), rtol=1e-9, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def batch():
+    robot = jtraj.robots.get("serial3")
+    q0 = np.stack([Q0, QI, Q0])
+    q1 = np.stack([Q1, QI + 0.7, np.full(3, np.nan)])
+    return q0, q1, jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=IP, slots=2)
+
+
+def test_ip_batch_converges_to_ipopts_optimum_and_flags_the_rest(batch):
+    V = pytest.importorskip("peers.verify")
+    P = pytest.importorskip("peers.ipopt_peer")
+    q0, q1, sol = batch
+    status = np.asarray(sol.status)
+    assert status[0] == Status.CONVERGED
+    chk = V.verify(Q0, Q1, np.asarray(sol.v[0]), np.asarray(sol.h[0]), tol=1e-6)
+    assert chk["ok"] and chk["goal_error"] <= 1e-6, (chk["max_rel_violation"], chk["goal_error"])
+    assert chk["cost"] == pytest.approx(float(sol.cost[0]), rel=1e-9)
+    ref = P.solve_pair(Q0, Q1, N=N)
+    assert ref["success"]
+    assert ref["cost"] * (1 - 1e-4) <= float(sol.cost[0]) <= ref["cost"] * (1 + 1e-4)
+    # solved by the interior-point method itself (no AL fallback)
+    assert int(sol.iterations[0]) < IP.ip_max_iter
+    assert status[1] == Status.LIKELY_INFEASIBLE, status
+    assert float(sol.max_violation["overall"][1]) > 1e-3
+    assert int(sol.iterations[1]) < IP.ip_max_iter  # stopped by the interior-point method's stall test
+    assert status[2] == Status.INVALID_INPUT and int(sol.iterations[2]) == 0
+    assert np.all(np.isfinite(np.asarray(sol.q)))
+
+
+def test_single_ip_solve_equals_its_batch_lane(batch):
+    q0, q1, sol = batch
+    one = jtraj.solve(jtraj.Problem(jtraj.robots.get("serial3"), Q0, Q1, N=N, weights=W), options=IP)
+    assert bool(one.converged)
+    assert int(one.iterations) == int(sol.iterations[0])
+    assert float(one.cost) == pytest.approx(float(sol.cost[0]), rel=1e-9)
+
+
+def test_ip_run_cut_short_hands_over_to_the_al_loop(batch):
+    q0, q1, ref = batch
+    robot = jtraj.robots.get("serial3")
+    sol = jtraj.solve_batch(robot, q0[:1], q1[:1], N=N, weights=W, options=SolverOptions(method="ip", ip_max_iter=3))
+    assert int(sol.status[0]) == Status.CONVERGED
+    assert int(sol.iterations[0]) > 3
+    assert float(sol.cost[0]) == pytest.approx(float(ref.cost[0]), rel=1e-3)
+
+
+def test_ip_options_are_checked_before_tracing():
+    robot = jtraj.robots.get("serial3")
+    with pytest.raises(ValueError, match="method"):
+        SolverOptions(method="newton")
+    with pytest.raises(ValueError, match="ip_max_iter"):
+        SolverOptions(method="ip", ip_max_iter=-1)
+    with pytest.raises(ValueError, match="ip_tol"):
+        SolverOptions(method="ip", ip_tol=0.0)
+    problem = jtraj.Problem(robot, Q0, Q1, N=N, weights=W)
+    with pytest.raises(ValueError, match="transcription='decoupled'"):
+        jtraj.solve(problem, options=IP, transcription="coupled")
+    with pytest.raises(ValueError, match="transcription='decoupled'"):
+        jtraj.solve_batch(robot, Q0[None], Q1[None], N=N, weights=W, options=IP, transcription="collocation")
