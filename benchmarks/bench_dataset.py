@@ -116,6 +116,7 @@ def main(argv=None) -> dict:
                     help="CasADi form of the IPOPT peer (default lifted, the fast one; see peers/ipopt_peer.py)")
     ap.add_argument("--solver", default="jtraj:solve_batch", help=argparse.SUPPRESS)
     ap.add_argument("--out-dir", default=".", help="where bench_dataset.json/.png go")
+    ap.add_argument("--method", choices=("al", "ip"), default="al", help="jtraj's inner method (as jtraj dataset --method)")
     ap.add_argument("--inequalities", choices=("phr", "pbm"), default="phr",
                     help="jtraj's inequality term (as jtraj dataset --inequalities)")
     args = ap.parse_args(argv)
@@ -136,7 +137,10 @@ def main(argv=None) -> dict:
     workers = args.workers or available_cpus()
     from jtraj.solver import PBM_SETTINGS
 
-    options = dict(PBM_SETTINGS) if args.inequalities == "pbm" else None
+    options = dict(PBM_SETTINGS) if args.inequalities == "pbm" else {}
+    if args.method != "al":
+        options["method"] = args.method
+    options = options or None
     results, pairs = [], None
     for B in batches:
         chunks = args.chunks or (1 if args.quick else max(2, 2048 // B))
@@ -158,7 +162,7 @@ def main(argv=None) -> dict:
               f"({ipopt['pairs']} pairs in {ipopt['seconds']:.1f} s, setup {ipopt['setup_seconds']:.1f} s), "
               f"success {100 * ipopt['success_fraction']:.1f} %")
     best = max(results, key=lambda r: r["pairs_per_s"])
-    summary = {"cores": cores, "jax": jax.__version__, "N": args.N, "inequalities": args.inequalities,
+    summary = {"cores": cores, "jax": jax.__version__, "N": args.N, "inequalities": args.inequalities, "method": args.method,
                "results": results, "ipopt": ipopt,
                "best_batch": best["batch"], "best_pairs_per_s": best["pairs_per_s"],
                "cpu_hours_per_million": 1e6 / best["pairs_per_s"] / 3600 * cores}

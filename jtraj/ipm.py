@@ -59,6 +59,7 @@ _RHO_E = 1e3  # the terminal equalities' term added to the Hessian (see the modu
 #: lowering it (one feasible pair froze at 0.087 with mu at 2e-6 and went to the AL loop)
 _STALL_WINDOW = 20
 _MU0 = 0.1
+_STALL_THETA = 1.0  # the stall test applies above this violation (or above _INFEASIBLE_THETA at mu0)
 #: a stalled run with mu never lowered and theta above this is reported likely infeasible
 _INFEASIBLE_THETA = 0.1
 
@@ -345,7 +346,8 @@ def step(nlp, st: IPState, tol) -> IPState:
     failed = ~(jnp.all(jnp.isfinite(new.z)) & jnp.all(jnp.isfinite(new.y)) & jnp.all(jnp.isfinite(new.lam)))
     new = new._replace(failed=failed)
     checkpoint = (st.it % _STALL_WINDOW == 0) & (st.it > 0)
-    stalled = checkpoint & (st.it >= 2 * _STALL_WINDOW) & (th0 > 0.99 * st.th_ref) & ~converged
+    far = (th0 > _STALL_THETA) | ((st.mu >= _MU0) & (th0 > _INFEASIBLE_THETA))
+    stalled = checkpoint & (st.it >= 2 * _STALL_WINDOW) & (th0 > 0.99 * st.th_ref) & far & ~converged
     new = new._replace(th_ref=jnp.where(checkpoint, th0, st.th_ref), stalled=stalled,
                        infeasible=stalled & (st.mu >= _MU0) & (th0 > _INFEASIBLE_THETA))
     stop = converged | st.done | st.failed | st.stalled
