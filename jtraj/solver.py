@@ -1813,7 +1813,12 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     to 8 and 2 (17.8 s with segments of 10, the default)."""
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
     states = _run_lanes(nlps, states, np.arange(int(valid.shape[0])), opts, slots, steps)
-    # on a CPU the finish, too, runs ``slots`` problems at a time (see _finish_lanes)
+    return _finish_all(nlps, states, opts, valid, slots)
+
+
+def _finish_all(nlps, states, opts, valid, slots: int):
+    """:func:`_finish` over a batch; on a CPU ``slots`` problems at a time (see
+    :func:`_finish_lanes`)."""
     if jax.default_backend() == "cpu":
         return _finish_lanes(nlps, states, opts, valid, slots)
     return _finish_batch_jit(nlps, states, opts, valid)
@@ -1847,12 +1852,8 @@ def _solve_batch_ip(problems, opts, transcription, init, warm, slots: int, steps
     ips = _run_lanes(nlps, ips, np.flatnonzero(~np.asarray(ips.done)), opts, slots, steps, kind="ip")
     states, solved = _ip_merge_jit(states, ips)
     todo = np.flatnonzero(~np.asarray(solved) & ~np.asarray(states.done) & np.asarray(valid))
-    if todo.size:
-        states = _run_lanes(nlps, states, todo, opts, slots, steps)
-    if jax.default_backend() == "cpu":
-        sol = _finish_lanes(nlps, states, opts, valid, slots)
-    else:
-        sol = _finish_batch_jit(nlps, states, opts, valid)
+    states = _run_lanes(nlps, states, todo, opts, slots, steps)
+    sol = _finish_all(nlps, states, opts, valid, slots)
     return dataclasses.replace(sol, iterations=sol.iterations + jnp.where(solved, 0, ips.it))
 
 

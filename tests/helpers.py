@@ -1,13 +1,14 @@
-"""Independent reference models and state samplers for the robot tests.
+"""Independent reference models, state samplers and the small solver problems for the tests.
 
-Nothing here calls jtraj's dynamics: the Pinocchio models are built from the link data
-alone, and the closed forms are written out by hand.
+The references call nothing of jtraj's dynamics: the Pinocchio models are built from the
+link data alone, and the closed forms are written out by hand.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+import jtraj
 import jtraj.robots as robots
 
 
@@ -113,3 +114,21 @@ def verified_ipopt_cost(sol, i, q_start, q_goal, N):
     ref = P.solve_pair(q_start, q_goal, N=N)
     assert ref["success"]
     return ref["cost"]
+
+
+# ----- the small solver problems shared by test_pbm.py and test_ipm.py ---------------------
+N_SMALL = 10
+W_SMALL = jtraj.Weights(time=1.0, energy=0.1)
+Q0 = np.array([1.077, -0.096, 0.619])
+Q1 = np.array([1.2, -0.049, 0.9])  # feasible with N = 10 (T <= 1 s), as in test_solver.py
+QI = np.array([0.0, 0.3, -0.3])  # + 0.7 rad per joint: not within N h_max = 1 s under the torque limits
+
+
+def three_sample_batch(options):
+    """(q_start, q_goal, Solution) of one batch on 2 lanes: Q0 -> Q1 (feasible), QI -> QI + 0.7
+    (infeasible) and a non-finite goal. 2 lanes throughout: one segment program (the default 8
+    would step down to 2: two)."""
+    q0 = np.stack([Q0, QI, Q0])
+    q1 = np.stack([Q1, QI + 0.7, np.full(3, np.nan)])
+    return q0, q1, jtraj.solve_batch(robots.get("serial3"), q0, q1, N=N_SMALL, weights=W_SMALL, options=options,
+                                     slots=2)

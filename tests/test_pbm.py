@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 import jtraj
-from helpers import verified_ipopt_cost
+from helpers import N_SMALL as N, Q0, Q1, W_SMALL as W, three_sample_batch, verified_ipopt_cost
 from jtraj import Status
 from jtraj import solver as S
 from jtraj.solver import SolverOptions
@@ -28,11 +28,6 @@ from jtraj.transcription import Transcription
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 
-N = 10
-W = jtraj.Weights(time=1.0, energy=0.1)
-Q0 = np.array([1.077, -0.096, 0.619])
-Q1 = np.array([1.2, -0.049, 0.9])  # feasible with N = 10 (T <= 1 s), as in test_solver.py
-QI = np.array([0.0, 0.3, -0.3])  # + 0.7 rad per joint: not within N h_max = 1 s under the torque limits
 
 
 def test_phi_is_the_log_barrier_continued_twice_differentiably():
@@ -87,11 +82,7 @@ def test_pbm_preset_and_validation():
 
 @pytest.fixture(scope="module")
 def batch():
-    robot = jtraj.robots.get("serial3")
-    q0 = np.stack([Q0, QI, Q0])
-    q1 = np.stack([Q1, QI + 0.7, np.full(3, np.nan)])
-    # 2 lanes throughout: one segment program (the default 8 would step down to 2: two)
-    return q0, q1, jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=SolverOptions.pbm(), slots=2)
+    return three_sample_batch(SolverOptions.pbm())
 
 
 def test_pbm_batch_converges_to_ipopts_optimum_and_flags_the_rest(batch):
