@@ -180,7 +180,7 @@ def _model(nlp, st: IPState):
 
     layout, problem, tr = nlp.layout, nlp.problem, nlp.tr
     N, n = layout.N, problem.robot.n
-    z, mu = st.z, st.mu
+    z = st.z
     W = nlp.W(z)
     like = jax.eval_shape(nlp.constraints, z)
     eq_like, ineq_like = like[0], like[1]
