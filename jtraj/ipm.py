@@ -25,8 +25,9 @@ IPOPT (Waechter and Biegler 2006):
 
 Everything is branch-free with fixed shapes: the loop is a bounded ``while_loop`` and a
 problem's iterations end with a status, so it vmaps. No restoration phase: a problem the
-method does not solve within ``ip_max_iter`` iterations, or whose violation stops
-shrinking (:data:`_STALL_WINDOW`), is handed to the AL solver's cold run by the caller
+method does not solve within ``ip_max_iter`` iterations, whose violation stops
+shrinking (:data:`_STALL_WINDOW`), or whose Hessian no shift makes positive definite
+(:data:`_DELTA_RANGE`), is handed to the AL solver's cold run by the caller
 (:func:`jtraj.solver.solve`), except where it stalled far from feasible with the barrier
 parameter never lowered: that run is reported likely infeasible.
 """
@@ -49,6 +50,13 @@ _ALPHAS = np.array([1.0, 0.5, 0.25, 0.1, 0.03, 0.01])
 _FILTER = 16  # filter entries kept (the oldest is overwritten)
 #: the shifts tried at once, x the reference shift (which follows the one taken); the first is 0
 _SHIFT_LADDER = np.array([0.0, 0.25, 2.0, 16.0])
+#: the reference shift's range. A run whose ladder finds no positive definite shift with
+#: the reference at the top is stuck (it would never move again) and stops as stalled: on
+#: bench_solver's 256 pairs of seed 1, 25 of the 30 pairs IPOPT reports infeasible got
+#: there (slacks near 1e-8 with multipliers near 1e10, so y / s near 1e18 in the Hessian,
+#: whose factorisation then fails at every shift) from about iteration 12 and idled until
+#: the stall test at iteration 40: 527 of 8,986 lane-iterations
+_DELTA_RANGE = (1e-6, 1e8)
 _TAU_MIN = 0.99  # fraction to the boundary
 _KAPPA_EPS = 10.0  # mu falls when the barrier problem's error is below this x mu
 _RHO_E = 1e3  # the terminal equalities' term added to the Hessian (see the module doc)
@@ -172,22 +180,27 @@ def _z_to_stages(v, N, n):
     return jnp.concatenate([v[:N * n].reshape(N, n), v[N * n:, None]], axis=1)
 
 
+def multipliers(nlp, st: IPState):
+    """The state's multipliers in the AL solver's structure (``jtraj.solver.Multipliers``:
+    the goal rows' at the last sample, the stage inequalities', T's), with the same sign
+    convention (the Lagrangian ``f + lam . e + y . g``)."""
+    from .solver import Multipliers
+
+    eq_like, ineq_like, _ = jax.eval_shape(nlp.constraints, st.z)
+    lam_full = jnp.zeros(eq_like["goal"].shape, st.z.dtype).at[nlp.layout.N].set(st.lam)
+    return Multipliers(eq={"goal": lam_full}, ineq=_unflat(st.y, ineq_like), glob=st.yT)
+
+
 def _model(nlp, st: IPState):
     """The primal-dual Newton model at st without its barrier right-hand side (see
     :func:`_with_rhs`; ``model.g`` is the Lagrangian's gradient in z): (model, stage
     Jacobians of the inequalities, dg_T/dT, pieces, goal Jacobian in the terminal state)."""
-    from .solver import Multipliers
-
     layout, problem, tr = nlp.layout, nlp.problem, nlp.tr
     N, n = layout.N, problem.robot.n
     z = st.z
     W = nlp.W(z)
-    like = jax.eval_shape(nlp.constraints, z)
-    eq_like, ineq_like = like[0], like[1]
-    lam_full = jnp.zeros(eq_like["goal"].shape, z.dtype).at[N].set(st.lam)
-    mult = Multipliers(eq={"goal": lam_full}, ineq=_unflat(st.y, ineq_like), glob=st.yT)
     lag = dataclasses.replace(nlp, ineq_penalty="lagrangian")
-    _, c, Hk = lag.stage_derivatives(W, mult, jnp.asarray(0.0, z.dtype))
+    _, c, Hk = lag.stage_derivatives(W, multipliers(nlp, st), jnp.asarray(0.0, z.dtype))
 
     def stage_ineq(w, sdk):
         return _flat(jax.tree.map(lambda a: a[None], tr.stage_constraints(problem, w, sdk)[1]))[0]
@@ -270,7 +283,8 @@ def step(nlp, st: IPState, tol) -> IPState:
     k = jnp.argmax(ok)
     any_pd = jnp.any(ok)
     # the next reference shift: the one taken (kept after an unshifted step), x 128 after none
-    delta = jnp.clip(jnp.where(any_pd, jnp.where(k == 0, st.delta, shifts[k]), 128.0 * st.delta), 1e-6, 1e8)
+    delta = jnp.clip(jnp.where(any_pd, jnp.where(k == 0, st.delta, shifts[k]), 128.0 * st.delta), *_DELTA_RANGE)
+    stuck = ~any_pd & (st.delta >= _DELTA_RANGE[1])
     d, dX = jnp.where(any_pd, d[..., k], 0.0), jnp.where(any_pd, dX[..., k], 0.0)  # (nz, 1 + 2n), (N+1, nx, 1 + 2n)
     # the goal multipliers' step from the Schur complement: E dz = -e
     ED = Ex @ dX[N]  # (2n, 1 + 2n)
@@ -347,7 +361,7 @@ def step(nlp, st: IPState, tol) -> IPState:
     new = new._replace(failed=failed)
     checkpoint = (st.it % _STALL_WINDOW == 0) & (st.it > 0)
     far = (th0 > _STALL_THETA) | ((st.mu >= _MU0) & (th0 > _INFEASIBLE_THETA))
-    stalled = checkpoint & (st.it >= 2 * _STALL_WINDOW) & (th0 > 0.99 * st.th_ref) & far & ~converged
+    stalled = (stuck | (checkpoint & (st.it >= 2 * _STALL_WINDOW) & (th0 > 0.99 * st.th_ref) & far)) & ~converged
     new = new._replace(th_ref=jnp.where(checkpoint, th0, st.th_ref), stalled=stalled,
                        infeasible=stalled & (st.mu >= _MU0) & (th0 > _INFEASIBLE_THETA))
     stop = converged | st.done | st.failed | st.stalled

@@ -990,7 +990,7 @@ def _ridge_solve(Jf, b, eps, gram=None):
 _POLISH_DONE = 1e-12
 
 
-def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above=None):
+def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above=None, skip=None):
     """Feasibility polish: a few Gauss-Newton projections of z onto the manifold of the
     equalities and nearly-active inequalities (minimum-norm corrections, simple bounds
     held). The AL leaves O((lambda* - lambda)/mu) violations; this removes them without
@@ -1097,23 +1097,44 @@ def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above
         return z, v, k, going, rel, v_start
 
     v0 = viol(z)
+    need = v0 > done if skip is None else (v0 > done) & ~skip
     if chord:
         # every row's Jacobian at z; the holding phase's rows are those nearly active there
         # (the rows of jac(nlp, z, window)), the releasing phase's all rows (a chord from z,
         # not from where the releasing phase starts: a point the holding phase moved by
-        # the size of the AL's violations)
-        J_all = jac(nlp, z, jnp.inf)
-        J_near = jnp.where((_residual(nlp, z, jnp.inf) > -window)[:, None] | ~is_ineq[:, None], J_all, 0.0)
-        # J^T J once per chord, not twice per projection (each a (rows x nz)^T (rows x nz)
-        # product: serial3, N = 20, 241 x 80)
-        G_near = J_near.T @ J_near
-    carry = (z, v0, jnp.asarray(0), v0 > done, jnp.asarray(False), v0)
+        # the size of the AL's violations). J^T J once per chord, not twice per projection
+        # (each a (rows x nz)^T (rows x nz) product: serial3, N = 20, 241 x 80). Inside a
+        # loop of at most one pass, so that under vmap it runs only if some lane polishes
+        J_all, J_near, G_near = _at_most_once(need, lambda zz: _chord_jacobian(nlp, zz, window, is_ineq), z)
+    carry = (z, v0, jnp.asarray(0), need, jnp.asarray(False), v0)
     # a bounded loop (under vmap it runs while some lane still improves)
     z, *_ = jax.lax.while_loop(lambda c: c[3] & (c[2] < iterations), body, carry)
     return z
 
 
-def _final_polish(nlp: _NLP, z, opts: SolverOptions, chord: bool = True):
+def _at_most_once(pred, fn, x, fill=0.0):
+    """``fn(x)`` where ``pred``, else ``fill`` in its shape: a loop of at most one pass, so
+    that under vmap (where ``lax.cond`` evaluates both sides) it runs only if some lane
+    needs it. The body's argument is x plus zero times the pass count: an argument that
+    does not change from pass to pass lets XLA hoist the whole body out of the loop
+    (loop-invariant code motion), and it then ran on every call."""
+    out = jax.tree.map(lambda a: jnp.full(a.shape, fill, a.dtype), jax.eval_shape(fn, x))
+
+    def body(c):
+        return fn(x + 0.0 * c[1]), c[1] + 1
+
+    return jax.lax.while_loop(lambda c: pred & (c[1] < 1), body, (out, jnp.zeros((), x.dtype)))[0]
+
+
+def _chord_jacobian(nlp: _NLP, z, window, is_ineq):
+    """Every constraint row's Jacobian at z, the holding phase's rows of it (those nearly
+    active within ``window``), and their J^T J (see :func:`_polish`)."""
+    J_all = jax.jacfwd(_residual, argnums=1)(nlp, z, jnp.inf)
+    J_near = jnp.where((_residual(nlp, z, jnp.inf) > -window)[:, None] | ~is_ineq[:, None], J_all, 0.0)
+    return J_all, J_near, J_near.T @ J_near
+
+
+def _final_polish(nlp: _NLP, z, opts: SolverOptions, chord: bool = True, skip=None):
     """:func:`_polish` with its releasing phase for a point the holding one leaves violated
     by more than ``verify_tol``. Where the holding polish succeeds its result is kept
     unchanged. ``chord``: chord or Gauss-Newton projections (see :func:`_polish`).
@@ -1130,7 +1151,7 @@ def _final_polish(nlp: _NLP, z, opts: SolverOptions, chord: bool = True):
     while some lane needs it (as a ``lax.cond`` whose predicate differs between lanes it
     ran on every lane, and was then 45 % of a batch's finish, 5.7 of 12.6 ms per problem,
     where hardly any lane needed it)."""
-    return _polish(nlp, z, chord=chord, release_above=opts.verify_tol)
+    return _polish(nlp, z, chord=chord, release_above=opts.verify_tol, skip=skip)
 
 
 def _init_multipliers(nlp: _NLP, z) -> Multipliers:
@@ -1546,9 +1567,9 @@ def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, 
         # come here with "ip")
         ip = _ip_run(nlp, state, opts)
         solved = _ip_solved(state, ip)
-        state = jax.lax.cond(solved, lambda: _ip_result(state, ip),
+        state = jax.lax.cond(solved, lambda: _ip_result(nlp, state, ip),
                              lambda: _run_with_restart(nlp, state, opts))
-        sol = _finish(nlp, state, opts, valid)
+        sol = _finish(nlp, state, opts, valid, light=solved)
         return dataclasses.replace(sol, iterations=sol.iterations + jnp.where(solved, 0, ip.it))
     return _finish(nlp, _run_with_restart(nlp, state, opts), opts, valid)
 
@@ -1565,18 +1586,28 @@ def _ip_solved(state: _State, ip) -> Array:
     return ~state.done & ((ip.done & ~ip.failed) | ip.infeasible)
 
 
-def _ip_result(state: _State, ip) -> _State:
+def _ip_result(nlp: _NLP, state: _State, ip) -> _State:
     """The AL loop's state for a problem the interior-point method decided: its point,
-    certified or stalled (``_finish`` polishes and verifies it as any other)."""
+    certified or stalled, and its multipliers (``_finish(..., light=True)`` verifies it
+    and reports their KKT error)."""
     solved = ip.done & ~ip.failed
-    return state._replace(z=ip.z, done=solved, stalled=~solved, it=ip.it,
+    return state._replace(z=ip.z, mult=ipm.multipliers(nlp, ip), done=solved, stalled=~solved, it=ip.it,
                           stationarity=jnp.zeros_like(state.stationarity))
 
 
-def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
+def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> Solution:
+    """The solution of a finished run: polished (:func:`_final_polish`), verified and
+    certified. ``light``: a point the interior-point method decided (converged to
+    ``ip_tol``, feasible to ~1e-8, or stalled far from feasible) is verified as it is,
+    without the polish, and its KKT error is that of its own multipliers (``s.mult``), not
+    of least-squares ones: both cost a Jacobian of every constraint row (serial3, N = 20,
+    8 lanes, one core: the finish 1.48 ms per problem, of which the polish about 0.8 and
+    the least-squares KKT error about 0.7). Under vmap either runs only while some lane
+    needs it, so :func:`_finish_lanes` groups the light problems together."""
     nlp = _with_phase(nlp, s)
     problem, tr = nlp.problem, nlp.tr
-    s = s._replace(z=_final_polish(nlp, s.z, opts))
+    light = jnp.asarray(light)
+    s = s._replace(z=_final_polish(nlp, s.z, opts, skip=light))
     _, h = nlp.layout.unpack(s.z)
     W = nlp.W(s.z)
     q, qd, c, _ = jax.vmap(lambda w: tr.split_stage(problem, w))(W)
@@ -1611,7 +1642,8 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid) -> Solution:
     # the loop certifies optimality on the AL's own measure at the end of a subproblem;
     # a point it left uncertified (iteration limit) may still be a KKT point of the
     # original problem: the KKT error with the best of three multiplier estimates decides
-    kkt = jnp.minimum(_kkt_error(nlp, s.z), _al_kkt_error(nlp, s.z, s.mult, s.mu))
+    kkt_ls = _at_most_once(~light, lambda zz: _kkt_error(nlp, zz), s.z, fill=jnp.inf)
+    kkt = jnp.minimum(kkt_ls, _al_kkt_error(nlp, s.z, s.mult, s.mu))
     certified = s.done | (kkt <= opts.tol_optimality)
     unfinished = jnp.where(s.stalled, Status.LIKELY_INFEASIBLE, Status.MAX_ITERATIONS)
     status = jnp.where(
@@ -1739,12 +1771,12 @@ def _gather_jit(nlps, states, idx):
 
 
 @_options_jit()
-def _finish_batch_jit(nlps, states, opts, valid):
+def _finish_batch_jit(nlps, states, opts, valid, light):
     """:func:`_finish` over a batch, vmapped (see :func:`_finish_lanes` on a CPU)."""
-    return eqx.filter_vmap(lambda n, s, v: _finish(n, s, opts, v))(nlps, states, valid)
+    return eqx.filter_vmap(lambda n, s, v, l: _finish(n, s, opts, v, l))(nlps, states, valid, light)
 
 
-def _finish_lanes(nlps, states, opts, valid, slots: int):
+def _finish_lanes(nlps, states, opts, valid, slots: int, light):
     """:func:`_finish_batch_jit` over ``slots`` problems at a time (the last group padded
     with a repeat of its first problem), the results concatenated in order. On a CPU a
     wide vmap costs more per problem, as the loop's lanes do (serial3, N = 20, one core:
@@ -1753,14 +1785,18 @@ def _finish_lanes(nlps, states, opts, valid, slots: int):
     gathered lanes, a first batch of a new size (72 benchmark pairs after 64, one core)
     took 6.9 s instead of 20.4 s (2.9 s warm): as a ``lax.map`` inside one kernel the
     finish took 7 s to compile for each size. The same 1024 pairs: the same results to
-    the last bit, 35.8-37.2 against 35.5-36.3 s."""
+    the last bit, 35.8-37.2 against 35.5-36.3 s. The ``light`` problems (NumPy mask, see
+    :func:`_finish`) go first, in groups of their own, so that their groups skip the work
+    they do not need."""
     B = int(valid.shape[0])
+    order = np.argsort(~light, kind="stable")  # the light problems first, each kind in order
     parts = []
     for start in range(0, B, slots):
-        idx = _padded(np.arange(start, min(start + slots, B)), slots)
+        idx = _padded(order[start:start + slots], slots)
         sub_nlps, (sub_states, sub_valid) = _gather_jit(nlps, (states, valid), idx)
-        parts.append(_finish_batch_jit(sub_nlps, sub_states, opts, sub_valid))
-    return jax.tree.map(lambda *xs: jnp.concatenate(xs)[:B], *parts)
+        parts.append(_finish_batch_jit(sub_nlps, sub_states, opts, sub_valid, jnp.asarray(light)[idx]))
+    back = jnp.asarray(np.argsort(order))
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs)[:B][back], *parts)
 
 
 def _padded(group, width: int):
@@ -1816,12 +1852,14 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     return _finish_all(nlps, states, opts, valid, slots)
 
 
-def _finish_all(nlps, states, opts, valid, slots: int):
+def _finish_all(nlps, states, opts, valid, slots: int, light=None):
     """:func:`_finish` over a batch; on a CPU ``slots`` problems at a time (see
-    :func:`_finish_lanes`)."""
+    :func:`_finish_lanes`). ``light``: (B,) NumPy mask of the problems the interior-point
+    method decided (see :func:`_finish`), or None."""
+    light = np.zeros(int(valid.shape[0]), bool) if light is None else np.asarray(light, bool)
     if jax.default_backend() == "cpu":
-        return _finish_lanes(nlps, states, opts, valid, slots)
-    return _finish_batch_jit(nlps, states, opts, valid)
+        return _finish_lanes(nlps, states, opts, valid, slots, light)
+    return _finish_batch_jit(nlps, states, opts, valid, jnp.asarray(light))
 
 
 @_options_jit()
@@ -1836,9 +1874,9 @@ def _ip_init_batch_jit(nlps, states, opts):
 
 
 @_jit
-def _ip_merge_jit(states, ips):
+def _ip_merge_jit(nlps, states, ips):
     solved = _ip_solved(states, ips)
-    merged = eqx.filter_vmap(_ip_result)(states, ips)
+    merged = eqx.filter_vmap(_ip_result)(nlps, states, ips)
     return jax.tree.map(lambda a, b: jnp.where(solved.reshape(solved.shape + (1,) * (a.ndim - 1)), a, b),
                         merged, states), solved
 
@@ -1850,10 +1888,11 @@ def _solve_batch_ip(problems, opts, transcription, init, warm, slots: int, steps
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
     ips = _ip_init_batch_jit(nlps, states, opts)
     ips = _run_lanes(nlps, ips, np.flatnonzero(~np.asarray(ips.done)), opts, slots, steps, kind="ip")
-    states, solved = _ip_merge_jit(states, ips)
-    todo = np.flatnonzero(~np.asarray(solved) & ~np.asarray(states.done) & np.asarray(valid))
+    states, solved = _ip_merge_jit(nlps, states, ips)
+    solved = np.asarray(solved)
+    todo = np.flatnonzero(~solved & ~np.asarray(states.done) & np.asarray(valid))
     states = _run_lanes(nlps, states, todo, opts, slots, steps)
-    sol = _finish_all(nlps, states, opts, valid, slots)
+    sol = _finish_all(nlps, states, opts, valid, slots, light=solved)
     return dataclasses.replace(sol, iterations=sol.iterations + jnp.where(solved, 0, ips.it))
 
 
