@@ -116,7 +116,8 @@ def main(argv=None) -> dict:
                     help="CasADi form of the IPOPT peer (default lifted, the fast one; see peers/ipopt_peer.py)")
     ap.add_argument("--solver", default="jtraj:solve_batch", help=argparse.SUPPRESS)
     ap.add_argument("--out-dir", default=".", help="where bench_dataset.json/.png go")
-    ap.add_argument("--method", choices=("al", "ip"), default="al", help="jtraj's inner method (as jtraj dataset --method)")
+    ap.add_argument("--method", choices=("auto", "al", "ip"), default="auto",
+                    help="jtraj's inner method (as jtraj dataset --method)")
     ap.add_argument("--inequalities", choices=("phr", "pbm"), default="phr",
                     help="jtraj's inequality term (as jtraj dataset --inequalities)")
     args = ap.parse_args(argv)
@@ -138,9 +139,7 @@ def main(argv=None) -> dict:
     from jtraj.solver import PBM_SETTINGS
 
     options = dict(PBM_SETTINGS) if args.inequalities == "pbm" else {}
-    if args.method != "al":
-        options["method"] = args.method
-    options = options or None
+    options["method"] = args.method
     results, pairs = [], None
     for B in batches:
         chunks = args.chunks or (1 if args.quick else max(2, 2048 // B))

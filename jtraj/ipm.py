@@ -191,6 +191,20 @@ def multipliers(nlp, st: IPState):
     return Multipliers(eq={"goal": lam_full}, ineq=_unflat(st.y, ineq_like), glob=st.yT)
 
 
+def snap_to_bounds(nlp, st: IPState) -> Array:
+    """z with the variables whose bound is active moved onto it. The method keeps z
+    strictly inside its boxes (``(z - lo) zl`` near mu, about 1e-8 at the end); a bound
+    counts as active where its multiplier exceeds the distance to it (``zl^2 > mu``
+    there). The AL solver's projections leave such variables exactly on the bound, and
+    its certificate (least-squares multipliers over the free variables) and warm start
+    read them so: unsnapped, the least-squares KKT error of a test problem's optimum
+    was 0.016 instead of 4e-5 and a warm start from it took 5 iterations instead of 0."""
+    dl, du, has_lo, has_hi = _bounds(nlp, st.z)
+    lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
+    z = jnp.where(has_lo & (st.zl > dl), lo, st.z)
+    return jnp.where(has_hi & (st.zu > du), hi, z)
+
+
 def _model(nlp, st: IPState):
     """The primal-dual Newton model at st without its barrier right-hand side (see
     :func:`_with_rhs`; ``model.g`` is the Lagrangian's gradient in z): (model, stage

@@ -299,13 +299,22 @@ class SolverOptions(eqx.Module):
             a penalty increase and then fall, and without ``detect_min_viol = 1e-2`` 2 of
             64 feasible pairs of seed 1 stopped as likely infeasible (3 without the bound
             ``pbm_ratio`` on the multiplier update).
-        method: the inner method. "al" (default): the augmented-Lagrangian loop described
-            here. "ip": the primal-dual interior-point method of :mod:`jtraj.ipm` (IPOPT's
+        method: the inner method. "al": the augmented-Lagrangian loop described here.
+            "ip": the primal-dual interior-point method of :mod:`jtraj.ipm` (IPOPT's
             algorithm on the same stage-wise Riccati recursion, decoupled transcription
             only), for up to ``ip_max_iter`` iterations to ``ip_tol`` (IPOPT's scaled
             optimality error); a problem it leaves unsolved is then solved by the "al"
             loop from the same start with these options (``Solution.iterations`` counts
-            both). The final polish and the strict verification are the same.
+            both). The strict verification is the same; a point the interior-point method
+            decided is not polished (feasible to about ``ip_tol`` already). "auto"
+            (default): "ip" where it applies (the decoupled transcription, no path
+            equalities, the PHR inequality term), "al" elsewhere. On the benchmark (7
+            seeds x 256 pairs) "ip" converges the pairs IPOPT does in about 4x fewer
+            Newton iterations than "al" (see the README). A warm start that already meets
+            the AL loop's tolerances returns at once with either method; from elsewhere
+            the interior-point method starts its barrier afresh at ``init`` (a test
+            problem 1 % off its optimum: 17 iterations, 72 for the AL loop's warm start
+            with least-squares multipliers).
         ip_max_iter, ip_tol: see ``method``.
         kink_margin, kink_after: from the ``kink_after``-th Newton iteration of an AL
             subproblem on, its Newton model adds the penalty's curvature ``mu grad g grad
@@ -361,7 +370,7 @@ class SolverOptions(eqx.Module):
     pbm_ratio: float = eqx.field(static=True, default=4.0)
     pbm_fallback_iter: int = eqx.field(static=True, default=200)
     detect_min_viol: float = eqx.field(static=True, default=0.0)
-    method: str = eqx.field(static=True, default="al")
+    method: str = eqx.field(static=True, default="auto")
     ip_max_iter: int = eqx.field(static=True, default=150)
     ip_tol: float = eqx.field(static=True, default=1e-7)
 
@@ -374,8 +383,8 @@ class SolverOptions(eqx.Module):
     def __check_init__(self):
         if self.schedule not in ("default", "thesis"):
             raise ValueError(f"schedule must be 'default' or 'thesis', got {self.schedule!r}")
-        if self.method not in ("al", "ip"):
-            raise ValueError(f"method must be 'al' or 'ip', got {self.method!r}")
+        if self.method not in ("auto", "al", "ip"):
+            raise ValueError(f"method must be 'auto', 'al' or 'ip', got {self.method!r}")
         if self.inequality_penalty not in ("phr", "pbm"):
             raise ValueError(f"inequality_penalty must be 'phr' or 'pbm', got {self.inequality_penalty!r}")
         if not self.pbm_ratio > 1:
@@ -1591,8 +1600,11 @@ def _ip_result(nlp: _NLP, state: _State, ip) -> _State:
     certified or stalled, and its multipliers (``_finish(..., light=True)`` verifies it
     and reports their KKT error)."""
     solved = ip.done & ~ip.failed
-    return state._replace(z=ip.z, mult=ipm.multipliers(nlp, ip), done=solved, stalled=~solved, it=ip.it,
-                          stationarity=jnp.zeros_like(state.stationarity))
+    # its active bounds snapped on (ipm.snap_to_bounds), unless that costs feasibility
+    snapped = ipm.snap_to_bounds(nlp, ip)
+    keep = _violation(*nlp.constraints(snapped)) <= jnp.maximum(1e-7, _violation(*nlp.constraints(ip.z)))
+    return state._replace(z=jnp.where(keep, snapped, ip.z), mult=ipm.multipliers(nlp, ip), done=solved,
+                          stalled=~solved, it=ip.it, stationarity=jnp.zeros_like(state.stationarity))
 
 
 def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> Solution:
@@ -1688,9 +1700,12 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
             (accelerations for "decoupled"; ``Transcription(name).controls_of(solution)``
             turns any Solution of that transcription into them).
         warm: with ``init``, "full" (default) also estimates multipliers at ``init``
-            and starts the penalty at ``penalty_max / 100``: right for a point near an
+            (a point that already meets the tolerances returns at once) and, in the AL
+            loop, starts the penalty at ``penalty_max / 100``: right for a point near an
             optimum (a previous solution, a perturbed problem); "primal" keeps the cold
             start's multipliers and penalty: right for a rough guess (a learned plan).
+            The interior-point method (``options.method``) starts its barrier at ``init``
+            either way.
     """
     Transcription(transcription)  # validates the name
     if not isinstance(problem, Problem):
@@ -1699,13 +1714,24 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     if warm not in ("full", "primal"):
         raise ValueError(f"warm must be 'full' or 'primal', got {warm!r}")
     opts = SolverOptions() if options is None else options
-    _check_method(opts, transcription, problem.robot)
     warm = init is not None and warm == "full"
+    opts = _resolve_method(opts, transcription, problem.robot)
     if init is None:
         init = _guess_jit(problem, opts, transcription)
     else:
         init = _check_init(problem, init, transcription)
     return _solve_jit(problem, opts, transcription, init, jnp.asarray(warm))
+
+
+def _resolve_method(opts: SolverOptions, transcription: str, robot) -> SolverOptions:
+    """The options with ``method="auto"`` resolved (see :class:`SolverOptions`) and an
+    explicit "ip" checked."""
+    if opts.method == "auto":
+        ip = (transcription == "decoupled" and getattr(robot, "path_equalities", None) is None
+              and opts.inequality_penalty == "phr")
+        return dataclasses.replace(opts, method="ip" if ip else "al")
+    _check_method(opts, transcription, robot)
+    return opts
 
 
 def _check_method(opts: SolverOptions, transcription: str, robot):
@@ -2086,8 +2112,7 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     T_max = jnp.broadcast_to(jnp.asarray(jnp.inf if T_max is None else T_max, float), (B,))
     Transcription(transcription)
     _check_efforts(efforts, transcription)
-    opts = SolverOptions() if options is None else options
-    _check_method(opts, transcription, robot)
+    opts = _resolve_method(SolverOptions() if options is None else options, transcription, robot)
     weights = Weights() if weights is None else weights
 
     def make(a, b, c, d, t):

@@ -57,9 +57,9 @@ def configure(parser):
                         help="inequality term of the solver: phr (default) or pbm (SolverOptions.pbm(): about 40 %% "
                              "fewer Newton iterations on the h_max 0.1 s benchmark family, but fewer pairs "
                              "certified with this command's default --h-max; see SolverOptions)")
-    parser.add_argument("--method", choices=("al", "ip"), default="al",
-                        help="inner method: al (default, the augmented-Lagrangian loop) or ip (the interior-point "
-                             "method, opt-in: SolverOptions(method='ip'), see the README)")
+    parser.add_argument("--method", choices=("auto", "al", "ip"), default="auto",
+                        help="inner method: auto (default: ip where it applies, else al), al (the "
+                             "augmented-Lagrangian loop) or ip (the interior-point method); see SolverOptions.method")
     parser.add_argument("--h-max", default="auto",
                         help="sampling-period bound [s]: auto (default: twice the robot's, so that the bound "
                              "does not decide which pairs are feasible), robot (the robot's own), or seconds")
@@ -142,8 +142,7 @@ def run(args) -> int:
         from jtraj.solver import PBM_SETTINGS
 
         options.update(PBM_SETTINGS)
-    if args.method != "al":
-        options["method"] = args.method
+    options["method"] = args.method  # recorded: a dataset resumes only with the same method
     spec = dataset.make_spec(args.robot, args.pairs, args.seed, N=args.N, weights=args.weights,
                              batch=batch, space=args.space,
                              start_range=args.start_range, step_range=args.step_range,

@@ -47,9 +47,10 @@ def configure(parser):
     parser.add_argument("--via-tol", type=float, default=1e-3, help="via-point tolerance [m] (default 1e-3)")
     parser.add_argument("--inequalities", choices=("phr", "pbm"), default="phr",
                         help="inequality term of the solver: phr (default) or pbm (SolverOptions.pbm(), opt-in)")
-    parser.add_argument("--method", choices=("al", "ip"), default="al",
-                        help="inner method: al (default) or ip (the interior-point method, SolverOptions(method='ip'), "
-                             "decoupled transcription only)")
+    parser.add_argument("--method", choices=("auto", "al", "ip"), default="auto",
+                        help="inner method: auto (default: ip where it applies, else al), al (the augmented-Lagrangian "
+                             "loop) or ip (the interior-point method, decoupled transcription only); see "
+                             "SolverOptions.method")
     parser.add_argument("--json", metavar="PATH", help="write the solution as JSON")
     parser.add_argument("--rate", type=float, default=None, metavar="HZ",
                         help="with --json: also write the trajectory resampled at this rate (t, q, qd, qdd, tau "
@@ -185,7 +186,7 @@ def solution_dict(args, problem, sol, solve_s, compile_s) -> dict:
     w = problem.weights
     return {
         "robot": args.robot, "N": problem.N, "transcription": args.transcription, "efforts": problem.efforts,
-        "inequalities": getattr(args, "inequalities", "phr"), "method": getattr(args, "method", "al"),
+        "inequalities": getattr(args, "inequalities", "phr"), "method": getattr(args, "method", "auto"),
         "weights": {k: float(getattr(w, k)) for k in ("time", "energy", "kinetic", "singularity")},
         "q_start": _tolist(problem.q_start), "q_goal": _tolist(problem.q_goal),
         "qd_start": _tolist(problem.qd_start), "qd_goal": _tolist(problem.qd_goal),
