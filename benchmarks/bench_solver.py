@@ -314,6 +314,10 @@ def main(argv=None):
     ip_cost = np.array([r["cost"] for r in ip])
 
     opts = {"linear_solver": args.linear_solver, **dict(_option(o) for o in args.option)}
+    chunks = -(-args.pairs // args.batch)
+    if chunks < args.workers:
+        print(f"  note: {chunks} chunk(s) of {args.batch} pairs for {args.workers} jtraj workers: only {chunks} "
+              f"core(s) solve, IPOPT uses {args.workers} (use --pairs >= {args.workers} x --batch)")
     jt = _jtraj_batch(q0, q1, args.N, args.batch, WEIGHTS, args.workers, opts)
     jt_thr = args.pairs / jt["wall"]
     checks = [verify(a, b, v, h, tol=1e-6) for a, b, v, h in zip(q0, q1, jt["v"], jt["h"])]
