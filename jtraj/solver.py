@@ -1610,7 +1610,7 @@ def _ip_result(nlp: _NLP, state: _State, ip) -> _State:
 def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> Solution:
     """The solution of a finished run: polished (:func:`_final_polish`), verified and
     certified. ``light``: a point the interior-point method decided (converged to
-    ``ip_tol``, feasible to ~1e-8, or stalled far from feasible) is verified as it is,
+    ``ip_tol``, feasible to ~1e-7, or stalled far from feasible) is verified as it is,
     without the polish, and its KKT error is that of its own multipliers (``s.mult``), not
     of least-squares ones: both cost a Jacobian of every constraint row (serial3, N = 20,
     8 lanes, one core: the finish 1.48 ms per problem, of which the polish about 0.8 and
