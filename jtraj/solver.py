@@ -1816,11 +1816,14 @@ def _finish_lanes(nlps, states, opts, valid, slots: int, light):
     they do not need."""
     B = int(valid.shape[0])
     order = np.argsort(~light, kind="stable")  # the light problems first, each kind in order
+    light_d = jnp.asarray(light)  # one copy to the device, not one per group
     parts = []
     for start in range(0, B, slots):
         idx = _padded(order[start:start + slots], slots)
         sub_nlps, (sub_states, sub_valid) = _gather_jit(nlps, (states, valid), idx)
-        parts.append(_finish_batch_jit(sub_nlps, sub_states, opts, sub_valid, jnp.asarray(light)[idx]))
+        parts.append(_finish_batch_jit(sub_nlps, sub_states, opts, sub_valid, light_d[idx]))
+    if not light.any() or light.all():  # in order already: no permutation per leaf
+        return jax.tree.map(lambda *xs: jnp.concatenate(xs)[:B], *parts)
     back = jnp.asarray(np.argsort(order))
     return jax.tree.map(lambda *xs: jnp.concatenate(xs)[:B][back], *parts)
 
