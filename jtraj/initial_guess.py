@@ -9,12 +9,25 @@ the per-joint minimum time
 and ``T = max_j T_j`` (limits that a robot does not have are skipped), then clipped to
 ``[N h_min, N h_max]`` and to ``T_max``.
 
+Torque-scaled cycloid (``"cycloidal_torque"``, the solver's default): the same path,
+slowed until it also meets the torque bounds. Along a path traversed c times slower the
+efforts are ``tau = D / c^2 + G(q)`` (D: the inertial and Coriolis part at duration T,
+G: gravity), so the smallest c that keeps ``|tau| <= tau_max`` at 2N + 1 points of the
+path is ``c^2 = max |D| / (tau_max - sign(D) G)`` (friction, which does not scale so, is
+counted in D). Measured on bench_solver's canonical serial3 problem (128 pairs of seed
+1, interior-point method): the kinematic cycloid's peak torque was a median 2.4x the
+bound (up to 4.9x) and the optimal T ranged over 0.8-1.8x its T; with the torque
+scaling the optimal T is 0.78-0.98x the guess's, and the Newton iterations fell by 10 %
+(3,937 against 4,375, the same 109 pairs solved, costs within 0.01 %). Starting slower
+(1.1x, 1.25x) or faster (0.8x) than the torque-feasible cycloid took more iterations.
+
 Trapezoidal profile: accelerate at ``a`` up to ``v_c``, cruise, decelerate, every joint
 synchronised to the slowest one.
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 from .problem import Problem
@@ -41,9 +54,33 @@ def cycloidal_time(problem: Problem):
     return T
 
 
-def cycloidal(problem: Problem):
-    """(v, h) sampled from the minimum-time cycloidal profile."""
-    T = _clip_T(problem, cycloidal_time(problem))
+def torque_scaled_time(problem: Problem, T):
+    """The duration >= T at which the cycloid meets the torque bounds (see the module
+    doc); T itself where the robot has none or its efforts are not per joint."""
+    robot = problem.robot
+    tau_max = robot.limits.tau_max
+    if tau_max is None:
+        return T
+    T0 = jnp.maximum(T, 1e-3)  # T = 0 when start == goal (D = 0 then)
+    s = jnp.arange(2 * problem.N + 1) / (2 * problem.N)
+    q, qd = cycloid_path(problem, T0, s * T0)
+    dq = problem.q_goal - problem.q_start
+    qdd = dq * (2 * jnp.pi / T0**2 * jnp.sin(2 * jnp.pi * s))[:, None]
+    tau = jax.vmap(robot.inverse_dynamics)(q, qd, qdd)
+    if tau.shape[-1] != tau_max.shape[-1]:
+        return T
+    G = jax.vmap(robot.inverse_dynamics)(q, jnp.zeros_like(qd), jnp.zeros_like(qdd))
+    D = tau - G
+    room = jnp.maximum(tau_max - jnp.sign(D) * G, 1e-3 * tau_max)  # gravity alone over the bound: slowest
+    c2 = jnp.max(jnp.abs(D) / room)
+    return jnp.where(c2 > 1.0, T0 * jnp.sqrt(c2), T)
+
+
+def cycloidal(problem: Problem, torque: bool = False):
+    """(v, h) sampled from the minimum-time cycloidal profile (Khoukhi's: kinematic
+    bounds only; with ``torque``, slowed until it meets the torque bounds too)."""
+    T = cycloidal_time(problem)
+    T = _clip_T(problem, torque_scaled_time(problem, T) if torque else T)
     N = problem.N
     h = jnp.full((N,), T / N)
     t = jnp.arange(N) * T / N + 0.5 * T / N  # mid-interval acceleration
@@ -86,4 +123,9 @@ def trapezoidal(problem: Problem, accel_fraction: float = 0.25):
     return sign[:, None] * a[None, :], h
 
 
-GUESSES = {"cycloidal": cycloidal, "trapezoidal": trapezoidal}
+def cycloidal_torque(problem: Problem):
+    """:func:`cycloidal` slowed until it meets the torque bounds."""
+    return cycloidal(problem, torque=True)
+
+
+GUESSES = {"cycloidal_torque": cycloidal_torque, "cycloidal": cycloidal, "trapezoidal": trapezoidal}

@@ -59,6 +59,7 @@ _SHIFT_LADDER = np.array([0.0, 0.25, 2.0, 16.0])
 _DELTA_RANGE = (1e-6, 1e8)
 _TAU_MIN = 0.99  # fraction to the boundary
 _KAPPA_EPS = 10.0  # mu falls when the barrier problem's error is below this x mu
+_KAPPA_MU, _THETA_MU = 0.2, 1.5  # ... to max(tol / 10, min(_KAPPA_MU mu, mu^_THETA_MU)) (IPOPT's)
 _RHO_E = 1e3  # the terminal equalities' term added to the Hessian (see the module doc)
 #: a run stops as stalled when theta (the l1 violation) fell by less than 1 % over the last
 #: window (checked every window from the second on). On bench_solver's 256 pairs of seed
@@ -286,7 +287,7 @@ def step(nlp, st: IPState, tol) -> IPState:
     mu, reset = st.mu, jnp.asarray(False)
     for _ in range(2):
         fall = (_errors(nlp, st, g_lag, p, mu) <= _KAPPA_EPS * mu) & (mu > tol / 10)
-        mu = jnp.where(fall, jnp.maximum(tol / 10, jnp.minimum(0.2 * mu, mu**1.5)), mu)
+        mu = jnp.where(fall, jnp.maximum(tol / 10, jnp.minimum(_KAPPA_MU * mu, mu**_THETA_MU)), mu)
         reset = reset | fall
     model = _with_rhs(nlp, st, model, Jg, dgT, p, mu)
     filt = jnp.where(reset, jnp.inf, st.filt)

@@ -206,8 +206,9 @@ class Planner:
         ``weights`` default to those of the training dataset (stored in the model's
         metadata as ``"weights"``, e.g. ``"time=1,energy=0.1"``), else ``Weights()``.
         Returns a JSON-able dict; with ``refine`` it adds the solver's status,
-        iterations, time, and the same solve from the cycloidal initial guess for
-        comparison (``cycloidal_iterations``, ``cycloidal_seconds``).
+        iterations, time, and the same solve from the solver's default initial guess
+        (the cycloid, slowed to meet the torque bounds) for comparison
+        (``cycloidal_iterations``, ``cycloidal_seconds``).
 
         ``warm``: ``"primal"`` (default) starts the solver at the plan with the
         multipliers and penalty of a cold start; ``"full"`` is ``jtraj.solve(init=...)``,

@@ -149,7 +149,9 @@ class SolverOptions(eqx.Module):
             run's PBM phase from ``pbm_inner_tol_ratio``).
         damping_init: initial Levenberg damping of the Newton system.
         verify_tol: relative/absolute tolerance of the final strict verification.
-        guess: "cycloidal" or "trapezoidal".
+        guess: "cycloidal_torque" (default): the minimum-time cycloid slowed until it
+            meets the torque bounds; "cycloidal": Khoukhi's (kinematic bounds only);
+            "trapezoidal" (see :mod:`jtraj.initial_guess`).
         linear_solver: how the Newton directions are computed. "auto" (default):
             "riccati" on a CPU, "dense" on an accelerator (where only the dense path has
             been measured so far). "riccati": a stage-wise Riccati recursion (decoupled transcription; :mod:`jtraj.lq`), cost
@@ -354,7 +356,7 @@ class SolverOptions(eqx.Module):
     schedule: str = eqx.field(static=True, default="default")
     damping_init: float = eqx.field(static=True, default=1e-4)
     verify_tol: float = eqx.field(static=True, default=1e-6)
-    guess: str = eqx.field(static=True, default="cycloidal")
+    guess: str = eqx.field(static=True, default="cycloidal_torque")
     detect_infeasible: bool = eqx.field(static=True, default=True)
     linear_solver: str = eqx.field(static=True, default="auto")
     restart_iter: int = eqx.field(static=True, default=600)
@@ -391,8 +393,8 @@ class SolverOptions(eqx.Module):
             raise ValueError(f"pbm_ratio must be > 1, got {self.pbm_ratio!r}")
         if self.linear_solver not in ("auto", "riccati", "dense"):
             raise ValueError(f"linear_solver must be 'auto', 'riccati' or 'dense', got {self.linear_solver!r}")
-        if self.guess not in ("cycloidal", "trapezoidal"):
-            raise ValueError(f"guess must be 'cycloidal' or 'trapezoidal', got {self.guess!r}")
+        if self.guess not in ("cycloidal_torque", "cycloidal", "trapezoidal"):
+            raise ValueError(f"guess must be 'cycloidal_torque', 'cycloidal' or 'trapezoidal', got {self.guess!r}")
         for name in ("inner_tol_ratio", "pbm_inner_tol_ratio"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
