@@ -61,10 +61,14 @@ def measure_jtraj(B, chunks, seed, N, solver, workers, options=None):
             "bytes_per_pair": size / pairs, "h_max": float(spec.robot_model().limits.h_max), "workers": workers}, (q0, q1)
 
 
-def measure_ipopt(q0, q1, processes, N, h_max, formulation="lifted"):
+def measure_ipopt(q0, q1, processes, N, h_max, formulation="lifted", init="same", options=None):
+    """IPOPT on the pairs (``init``: see ``bench_solver.peer_starts``; "same" starts it
+    where jtraj's ``options`` start)."""
+    from bench_solver import peer_starts
     from peers.ipopt_peer import solve_many
 
-    res = solve_many(q0, q1, processes=processes, N=N, h_max=h_max, formulation=formulation)
+    res = solve_many(q0, q1, processes=processes, N=N, h_max=h_max, formulation=formulation,
+                     inits=peer_starts(q0, q1, N, init, options, h_max))
     ok = np.array([r["success"] for r in res])
     return {"pairs": len(res), "processes": res.processes, "formulation": formulation, "seconds": res.wall_seconds,
             "setup_seconds": res.setup_seconds, "pairs_per_s": len(res) / res.wall_seconds,
@@ -114,6 +118,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--no-ipopt", action="store_true")
     ap.add_argument("--peer-formulation", choices=("lifted", "condensed"), default="lifted",
                     help="CasADi form of the IPOPT peer (default lifted, the fast one; see peers/ipopt_peer.py)")
+    ap.add_argument("--peer-init", choices=("same", "cycloidal"), default="same",
+                    help="IPOPT's starting point: jtraj's (default) or the peer's own kinematic cycloid")
     ap.add_argument("--solver", default="jtraj:solve_batch", help=argparse.SUPPRESS)
     ap.add_argument("--out-dir", default=".", help="where bench_dataset.json/.png go")
     ap.add_argument("--method", choices=("auto", "al", "ip"), default="auto",
@@ -156,12 +162,13 @@ def main(argv=None) -> dict:
         m = min(n_ipopt, len(pairs[0]))
         # the same problems: the dataset's period bound (twice the robot's by default)
         ipopt = measure_ipopt(pairs[0][:m], pairs[1][:m], args.processes, args.N, results[0]["h_max"],
-                              args.peer_formulation)
+                              args.peer_formulation, args.peer_init, options)
         print(f"IPOPT peer: {ipopt['pairs_per_s']:.2f} pairs/s on {ipopt['processes']} processes "
               f"({ipopt['pairs']} pairs in {ipopt['seconds']:.1f} s, setup {ipopt['setup_seconds']:.1f} s), "
               f"success {100 * ipopt['success_fraction']:.1f} %")
     best = max(results, key=lambda r: r["pairs_per_s"])
     summary = {"cores": cores, "jax": jax.__version__, "N": args.N, "inequalities": args.inequalities, "method": args.method,
+               "peer_init": args.peer_init,
                "results": results, "ipopt": ipopt,
                "best_batch": best["batch"], "best_pairs_per_s": best["pairs_per_s"],
                "cpu_hours_per_million": 1e6 / best["pairs_per_s"] / 3600 * cores}

@@ -29,3 +29,28 @@ def test_bench_dataset_writes_its_summary(tmp_path):
     # the stand-in flags the pairs with sum(q_goal) > 1 as failures
     assert 0.0 < r["converged_fraction"] < 1.0
     assert saved["ipopt"] is None and (out / "bench_dataset.png").stat().st_size > 0
+
+
+def test_peer_starts_are_jtrajs_starting_points():
+    import bench_solver
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jtraj
+    from jtraj.initial_guess import cycloidal_torque
+
+    q0 = np.array([[0.0, 0.3, -0.2], [0.5, -1.0, 0.1]])
+    q1 = q0 + np.array([[0.7, -0.6, 0.5], [-0.4, 0.8, 0.2]])
+    assert bench_solver.peer_starts(q0, q1, 20, "cycloidal") is None  # the peer's own guess
+    starts = bench_solver.peer_starts(q0, q1, 20, "same", {"method": "auto"}, h_max=0.2)
+    robot = jtraj.robots.get("serial3", h_max=0.2)
+    for (v, h), a, b in zip(starts, q0, q1):
+        v_ref, h_ref = cycloidal_torque(jtraj.Problem(robot, a, b, N=20))
+        assert v.shape == (20, 3) and h.shape == (20,)
+        np.testing.assert_allclose(v, np.asarray(v_ref), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(h, np.asarray(h_ref), rtol=1e-12)
+        assert float(jnp.sum(h)) > 0
+    # another guess through the options
+    (v, h), _ = bench_solver.peer_starts(q0, q1, 20, "same", {"guess": "cycloidal"})
+    v_k, h_k = jtraj.initial_guess.cycloidal(jtraj.Problem(jtraj.robots.get("serial3"), q0[0], q1[0], N=20))
+    np.testing.assert_allclose(h, np.asarray(h_k), rtol=1e-12)
