@@ -275,6 +275,37 @@ def _errors(nlp, st: IPState, g_lag, p: _Pieces, mu):
     return jnp.maximum(jnp.maximum(jnp.max(jnp.abs(rd)) / s_d, prim), comp / s_d)
 
 
+@jax.custom_batching.custom_vmap
+def _ladder_directions(model, shifts, terminal):
+    """:func:`jtraj.lq.kkt_directions` for the shift ladder, of which the caller takes the
+    least shifted positive definite one. For one problem the unshifted factorisation
+    comes first and the shifted ones only where it fails (a ``lax.cond``; their slots are
+    zeros and not positive definite otherwise): the same choice and the same numbers.
+    Under vmap a ``cond`` would run both branches, so there all shifts are factorised at
+    once (:func:`_ladder_directions_vmap`)."""
+    first = lq.kkt_directions(model, shifts[:1], terminal)
+
+    def alone(_):
+        d, dX, ok = first
+        pad = len(_SHIFT_LADDER) - 1
+        return (jnp.concatenate([d, jnp.zeros(d.shape[:-1] + (pad,), d.dtype)], -1),
+                jnp.concatenate([dX, jnp.zeros(dX.shape[:-1] + (pad,), dX.dtype)], -1),
+                jnp.concatenate([ok, jnp.zeros((pad,), bool)]))
+
+    def ladder(_):
+        rest = lq.kkt_directions(model, shifts[1:], terminal)
+        return tuple(jnp.concatenate([a, b], -1) for a, b in zip(first, rest))
+
+    return jax.lax.cond(first[2][0], alone, ladder, None)
+
+
+@_ladder_directions.def_vmap
+def _ladder_directions_vmap(axis_size, in_batched, model, shifts, terminal):
+    axes = jax.tree.map(lambda b: 0 if b else None, tuple(in_batched))
+    out = jax.vmap(lq.kkt_directions, in_axes=axes, axis_size=axis_size)(model, shifts, terminal)
+    return out, (True, True, True)
+
+
 def step(nlp, st: IPState, tol) -> IPState:
     """One interior-point iteration (or, where converged, the state marked done)."""
     layout = nlp.layout
@@ -294,7 +325,7 @@ def step(nlp, st: IPState, tol) -> IPState:
     fi = jnp.where(reset, 0, st.fi)
     # Newton directions for a few shifts at once; the least shifted positive definite one
     shifts = st.delta * jnp.asarray(_SHIFT_LADDER, dt)
-    d, dX, ok = lq.kkt_directions(model, shifts, Ex.T)
+    d, dX, ok = _ladder_directions(model, shifts, Ex.T)
     k = jnp.argmax(ok)
     any_pd = jnp.any(ok)
     # the next reference shift: the one taken (kept after an unshifted step), x 128 after none

@@ -36,6 +36,33 @@ def _nlp(q0=Q0, q1=Q1):
     return nlp, state.z
 
 
+def test_shift_ladder_for_one_problem_takes_the_batch_choice():
+    """One problem factorises the unshifted matrix first and the shifted ones only where
+    that fails (``ipm._ladder_directions``, a cond); a batch factorises all at once. The
+    least shifted positive definite direction is the same number for number, whether
+    shift 0 is positive definite or not."""
+    nlp, z0 = _nlp()
+    st = ipm.init(nlp, z0)
+    model, Jg, dgT, p, Ex = ipm._model(nlp, st)
+    model = ipm._with_rhs(nlp, st, model, Jg, dgT, p, st.mu)
+    m = model.R.shape[1]
+    # as it is (shift 0 positive definite) and with R made indefinite (it is not)
+    cases = [model, model._replace(R=model.R - 30.0 * jnp.eye(m))]
+    shifts = 40.0 * jnp.asarray(ipm._SHIFT_LADDER)
+    taken = []
+    for mdl in cases:
+        full = lq.kkt_directions(mdl, shifts, Ex.T)
+        one = jax.jit(ipm._ladder_directions)(mdl, shifts, Ex.T)
+        batch = jax.vmap(ipm._ladder_directions, in_axes=(None, 0, None))(mdl, shifts[None], Ex.T)
+        k = int(jnp.argmax(full[2]))
+        assert bool(full[2][k]) and int(jnp.argmax(one[2])) == k
+        for a, b, c in zip(full[:2], one[:2], batch[:2]):
+            np.testing.assert_array_equal(np.asarray(a[..., k]), np.asarray(b[..., k]))
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(c[0]))
+        taken.append(k)
+    assert taken[0] == 0 and taken[1] > 0
+
+
 def test_newton_step_equals_the_dense_kkt_solve():
     """At an interior point with random multipliers and slacks, the stage-wise step
     (dz and the goal multipliers) equals the dense KKT solve
