@@ -282,7 +282,9 @@ def _ladder_directions(model, shifts, terminal):
     comes first and the shifted ones only where it fails (a ``lax.cond``; their slots are
     zeros and not positive definite otherwise): the same choice and the same numbers.
     Under vmap a ``cond`` would run both branches, so there all shifts are factorised at
-    once (:func:`_ladder_directions_vmap`)."""
+    once (:func:`_ladder_directions_vmap`). Shift 0 is positive definite in about half
+    of the iterations; 8 single solves of seed 1, interleaved in one process, best of
+    15: 72.5 instead of 76.8 ms in all."""
     first = lq.kkt_directions(model, shifts[:1], terminal)
 
     def alone(_):
@@ -323,7 +325,8 @@ def step(nlp, st: IPState, tol) -> IPState:
     model = _with_rhs(nlp, st, model, Jg, dgT, p, mu)
     filt = jnp.where(reset, jnp.inf, st.filt)
     fi = jnp.where(reset, 0, st.fi)
-    # Newton directions for a few shifts at once; the least shifted positive definite one
+    # Newton directions for a few shifts (at once in a batch); the least shifted positive
+    # definite one
     shifts = st.delta * jnp.asarray(_SHIFT_LADDER, dt)
     d, dX, ok = _ladder_directions(model, shifts, Ex.T)
     k = jnp.argmax(ok)
