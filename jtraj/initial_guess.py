@@ -64,8 +64,7 @@ def torque_scaled_time(problem: Problem, T):
     T0 = jnp.maximum(T, 1e-3)  # T = 0 when start == goal (D = 0 then)
     s = jnp.arange(2 * problem.N + 1) / (2 * problem.N)
     q, qd = cycloid_path(problem, T0, s * T0)
-    dq = problem.q_goal - problem.q_start
-    qdd = dq * (2 * jnp.pi / T0**2 * jnp.sin(2 * jnp.pi * s))[:, None]
+    qdd = cycloid_acceleration(problem, T0, s * T0)
     tau = jax.vmap(robot.inverse_dynamics)(q, qd, qdd)
     if tau.shape[-1] != tau_max.shape[-1]:
         return T
@@ -84,9 +83,13 @@ def cycloidal(problem: Problem, torque: bool = False):
     N = problem.N
     h = jnp.full((N,), T / N)
     t = jnp.arange(N) * T / N + 0.5 * T / N  # mid-interval acceleration
+    return cycloid_acceleration(problem, T, t), h
+
+
+def cycloid_acceleration(problem: Problem, T, t):
+    """qdd(t) of the cycloid of duration T at times t."""
     dq = problem.q_goal - problem.q_start
-    v = dq[None, :] * (2 * jnp.pi / T**2) * jnp.sin(2 * jnp.pi * t / T)[:, None]
-    return v, h
+    return dq * (2 * jnp.pi / T**2 * jnp.sin(2 * jnp.pi * t / T))[:, None]
 
 
 def cycloid_path(problem: Problem, T, t):
