@@ -289,7 +289,7 @@ def _ladder_directions(model, shifts, terminal):
 
     def alone(_):
         d, dX, ok = first
-        pad = len(_SHIFT_LADDER) - 1
+        pad = shifts.shape[0] - 1
         return (jnp.concatenate([d, jnp.zeros(d.shape[:-1] + (pad,), d.dtype)], -1),
                 jnp.concatenate([dX, jnp.zeros(dX.shape[:-1] + (pad,), dX.dtype)], -1),
                 jnp.concatenate([ok, jnp.zeros((pad,), bool)]))
