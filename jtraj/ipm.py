@@ -23,6 +23,11 @@ IPOPT (Waechter and Biegler 2006):
 * a filter line search (IPOPT's, with its constants) over a few step lengths, evaluated
   at once, after the fraction-to-the-boundary rule.
 
+A run ends as solved where the overall scaled error is within the tolerance, or where
+its dual, primal and complementarity parts are each within their own (:class:`Tolerances`:
+the solver stops at the barrier parameter ~2e-6 instead of going on to tol / 10; see
+``SolverOptions.ip_dual_tol``).
+
 Everything is branch-free with fixed shapes: the loop is a bounded ``while_loop`` and a
 problem's iterations end with a status, so it vmaps. No restoration phase: a problem the
 method does not solve within ``ip_max_iter`` iterations, whose violation stops
@@ -71,6 +76,19 @@ _MU0 = 0.1
 _STALL_THETA = 1.0  # the stall test applies above this violation (or above _INFEASIBLE_THETA at mu0)
 #: a stalled run with mu never lowered and theta above this is reported likely infeasible
 _INFEASIBLE_THETA = 0.1
+
+
+class Tolerances(NamedTuple):
+    """When a run ends as solved: IPOPT's overall scaled optimality error at most
+    ``overall`` (which also sets the barrier parameter's floor, ``overall / 10``), or each
+    of its parts within its own tolerance: the scaled dual infeasibility within ``dual``,
+    the largest constraint residual (normalised units) within ``primal``, the scaled
+    complementarity within ``compl``. The defaults leave the second test off."""
+
+    overall: float
+    dual: float = 0.0
+    primal: float = 0.0
+    compl: float = 0.0
 
 
 class IPState(NamedTuple):
@@ -215,12 +233,29 @@ def _model(nlp, st: IPState):
     z = st.z
     W = nlp.W(z)
     lag = dataclasses.replace(nlp, ineq_penalty="lagrangian")
-    _, c, Hk = lag.stage_derivatives(W, multipliers(nlp, st), jnp.asarray(0.0, z.dtype))
+    mult, zero = multipliers(nlp, st), jnp.asarray(0.0, z.dtype)
+    if lag.split_derivatives:
+        # the inequalities' Jacobians by the chain rule through the efforts, whose
+        # values and Jacobians the stage derivatives computed (the inverse dynamics'
+        # derivatives once per iteration instead of twice)
+        _, c, Hk, tau, Jtau = lag.stage_derivatives(W, mult, zero, efforts=True)
 
-    def stage_ineq(w, sdk):
-        return _flat(jax.tree.map(lambda a: a[None], tr.stage_constraints(problem, w, sdk)[1]))[0]
+        def stage_ineq(w, t, sdk):
+            a = tr.split_stage(problem, w)[2]
+            return _flat(jax.tree.map(lambda x: x[None], tr.stage_constraints(problem, w, sdk, (a, t))[1]))[0]
 
-    G, Jg = jax.vmap(lambda w, sdk: (stage_ineq(w, sdk), jax.jacfwd(stage_ineq)(w, sdk)))(W, nlp.sd)
+        def value_and_jac(w, t, sdk, J):
+            Jw, Jt = jax.jacfwd(stage_ineq, argnums=(0, 1))(w, t, sdk)
+            return stage_ineq(w, t, sdk), Jw + Jt @ J
+
+        G, Jg = jax.vmap(value_and_jac)(W, tau, nlp.sd, Jtau)
+    else:
+        _, c, Hk = lag.stage_derivatives(W, mult, zero)
+
+        def stage_ineq(w, sdk):
+            return _flat(jax.tree.map(lambda x: x[None], tr.stage_constraints(problem, w, sdk)[1]))[0]
+
+        G, Jg = jax.vmap(lambda w, sdk: (stage_ineq(w, sdk), jax.jacfwd(stage_ineq)(w, sdk)))(W, nlp.sd)
     Sig = st.y / st.s
     Hk = Hk + jnp.einsum("kim,ki,kin->kmn", Jg, Sig, Jg)
     T = jnp.sum(W[:-1, -1])
@@ -261,8 +296,46 @@ def _with_rhs(nlp, st: IPState, model, Jg, dgT, p: _Pieces, mu):
     return model._replace(cx=cx, cu=cu)
 
 
-def _errors(nlp, st: IPState, g_lag, p: _Pieces, mu):
-    """IPOPT's scaled optimality error of the barrier problem with parameter mu."""
+class _Direction(NamedTuple):
+    dz: Array
+    dlam: Array
+    ds: Array
+    dsT: Array
+    dy: Array
+    dyT: Array
+    dzl: Array
+    dzu: Array
+
+
+def _direction(nlp, st: IPState, p: _Pieces, Jg, dgT, Ex, d, dX, mu, any_pd) -> _Direction:
+    """The full primal-dual step from the KKT solve's columns d (nz, 1 + 2n) and their
+    state trajectories dX (N+1, nx, 1 + 2n): the goal multipliers' step from the Schur
+    complement (E dz = -e), then the slacks' and multipliers' for barrier parameter mu."""
+    layout = nlp.layout
+    N, n = layout.N, nlp.problem.robot.n
+    dt = st.z.dtype
+    ED = Ex @ dX[N]  # (2n, 1 + 2n)
+    dlam = -jnp.linalg.solve(jnp.where(any_pd, ED[:, 1:], -jnp.eye(ED.shape[0], dtype=dt)), p.e + ED[:, 0])
+    dz = d[:, 0] + d[:, 1:] @ dlam
+    dXz = dX[..., 0] + dX[..., 1:] @ dlam  # (N+1, nx)
+    sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
+    du_st = _z_to_stages(dz, N, n) * sy
+    dW = jnp.concatenate([dXz[:, :2 * n], jnp.concatenate([du_st, jnp.zeros((1, n + 1), dt)])], axis=1)
+    Jdz = jnp.einsum("kim,km->ki", Jg, dW)
+    dT = jnp.sum(du_st[:, -1])
+    ds = -(p.G + st.s) - Jdz
+    dsT = -(p.gT + st.sT) - dgT * dT
+    dy = mu / st.s - st.y - (st.y / st.s) * ds
+    dyT = mu / st.sT - st.yT - (st.yT / st.sT) * dsT
+    dl, du, has_lo, has_hi = _bounds(nlp, st.z)
+    dzl = jnp.where(has_lo, mu / dl - st.zl - (st.zl / dl) * dz, 0.0)
+    dzu = jnp.where(has_hi, mu / du - st.zu + (st.zu / du) * dz, 0.0)
+    return _Direction(dz, dlam, ds, dsT, dy, dyT, dzl, dzu)
+
+
+def _errors(nlp, st: IPState, g_lag, p: _Pieces, mu, parts=False):
+    """IPOPT's scaled optimality error of the barrier problem with parameter mu
+    (``parts``: its dual, primal and complementarity parts apart)."""
     rd = g_lag - st.zl + st.zu
     nd = st.y.size + st.yT.size + st.lam.size + 2 * st.z.size
     s_d = jnp.maximum(100.0, (jnp.sum(jnp.abs(st.lam)) + jnp.sum(st.y) + jnp.sum(st.yT) + jnp.sum(st.zl)
@@ -272,6 +345,8 @@ def _errors(nlp, st: IPState, g_lag, p: _Pieces, mu):
     comp = jnp.maximum(jnp.max(jnp.abs(st.s * st.y - mu)), jnp.max(jnp.abs(st.sT * st.yT - mu)))
     comp = jnp.maximum(comp, jnp.max(jnp.where(has_lo, jnp.abs(dl * st.zl - mu), 0.0)))
     comp = jnp.maximum(comp, jnp.max(jnp.where(has_hi, jnp.abs(du * st.zu - mu), 0.0)))
+    if parts:
+        return jnp.max(jnp.abs(rd)) / s_d, prim, comp / s_d
     return jnp.maximum(jnp.maximum(jnp.max(jnp.abs(rd)) / s_d, prim), comp / s_d)
 
 
@@ -315,7 +390,11 @@ def step(nlp, st: IPState, tol) -> IPState:
     dt = st.z.dtype
     model, Jg, dgT, p, Ex = _model(nlp, st)
     g_lag = model.g
-    converged = _errors(nlp, st, g_lag, p, 0.0) <= tol  # g_lag: the Lagrangian's gradient
+    tols = tol if isinstance(tol, Tolerances) else Tolerances(tol)
+    tol = tols.overall
+    e_d, e_p, e_c = _errors(nlp, st, g_lag, p, 0.0, parts=True)  # g_lag: the Lagrangian's gradient
+    converged = (jnp.maximum(jnp.maximum(e_d, e_p), e_c) <= tol) | (
+        (e_d <= tols.dual) & (e_p <= tols.primal) & (e_c <= tols.compl))
     # barrier update (up to two decreases per iteration), the filter reset with it
     mu, reset = st.mu, jnp.asarray(False)
     for _ in range(2):
@@ -335,23 +414,8 @@ def step(nlp, st: IPState, tol) -> IPState:
     delta = jnp.clip(jnp.where(any_pd, jnp.where(k == 0, st.delta, shifts[k]), 128.0 * st.delta), *_DELTA_RANGE)
     stuck = ~any_pd & (st.delta >= _DELTA_RANGE[1])
     d, dX = jnp.where(any_pd, d[..., k], 0.0), jnp.where(any_pd, dX[..., k], 0.0)  # (nz, 1 + 2n), (N+1, nx, 1 + 2n)
-    # the goal multipliers' step from the Schur complement: E dz = -e
-    ED = Ex @ dX[N]  # (2n, 1 + 2n)
-    dlam = -jnp.linalg.solve(jnp.where(any_pd, ED[:, 1:], -jnp.eye(ED.shape[0], dtype=dt)), p.e + ED[:, 0])
-    dz = d[:, 0] + d[:, 1:] @ dlam
-    dXz = dX[..., 0] + dX[..., 1:] @ dlam  # (N+1, nx)
-    sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
-    du_st = _z_to_stages(dz, N, n) * sy
-    dW = jnp.concatenate([dXz[:, :2 * n], jnp.concatenate([du_st, jnp.zeros((1, n + 1), dt)])], axis=1)
-    Jdz = jnp.einsum("kim,km->ki", Jg, dW)
-    dT = jnp.sum(du_st[:, -1])
-    ds = -(p.G + st.s) - Jdz
-    dsT = -(p.gT + st.sT) - dgT * dT
-    dy = mu / st.s - st.y - (st.y / st.s) * ds
-    dyT = mu / st.sT - st.yT - (st.yT / st.sT) * dsT
+    dz, dlam, ds, dsT, dy, dyT, dzl, dzu = _direction(nlp, st, p, Jg, dgT, Ex, d, dX, mu, any_pd)
     dl, du, has_lo, has_hi = _bounds(nlp, st.z)
-    dzl = jnp.where(has_lo, mu / dl - st.zl - (st.zl / dl) * dz, 0.0)
-    dzu = jnp.where(has_hi, mu / du - st.zu + (st.zu / du) * dz, 0.0)
     tau = jnp.maximum(_TAU_MIN, 1.0 - mu)
 
     def amax(x, dx, mask=True):

@@ -136,6 +136,22 @@ def test_single_ip_solve_equals_its_batch_lane(batch):
     assert float(one.cost) == pytest.approx(float(sol.cost[0]), rel=1e-9)
 
 
+def test_split_tolerances_stop_early_near_the_strict_optimum(batch):
+    """A run also ends where the dual, primal and complementarity errors are each within
+    their own tolerance (the defaults), before the barrier parameter's last fall: fewer
+    iterations than the strict test alone (``ip_dual_tol = ip_compl_tol = 0``), feasible
+    to half ``verify_tol`` without a polish, and the cost within 2e-4 of the strict one."""
+    q0, q1, sol = batch
+    problem = jtraj.Problem(jtraj.robots.get("serial3"), Q0, Q1, N=N, weights=W)
+    strict = jtraj.solve(problem, options=SolverOptions(method="ip", ip_dual_tol=0.0, ip_compl_tol=0.0))
+    assert bool(strict.converged) and bool(sol.converged[0])
+    assert int(sol.iterations[0]) < int(strict.iterations)
+    assert float(sol.max_violation["overall"][0]) <= 0.5 * IP.verify_tol
+    assert float(sol.cost[0]) == pytest.approx(float(strict.cost), rel=2e-4)
+    with pytest.raises(ValueError, match="ip_dual_tol"):
+        SolverOptions(ip_dual_tol=-1.0)
+
+
 def test_ip_run_cut_short_hands_over_to_the_al_loop(batch):
     q0, q1, ref = batch
     robot = jtraj.robots.get("serial3")
