@@ -454,7 +454,7 @@ _TRACED_OPTIONS = ("max_iter", "max_inner", "tol_feasibility", "tol_optimality",
                    "pbm_inner_tol_ratio", "penalty_init", "penalty_growth", "penalty_max", "feasibility_ratio",
                    "damping_init", "verify_tol", "detect_infeasible", "restart_iter", "restart_penalty_max",
                    "kink_margin", "kink_after", "stall_window", "stall_ratio", "stall_min_viol", "stall_after",
-                   "pbm_fallback_iter", "detect_min_viol")
+                   "pbm_fallback_iter", "detect_min_viol", "ip_dual_tol", "ip_compl_tol")
 _SWITCHES = ("inner_tol_ratio", "pbm_inner_tol_ratio", "kink_margin", "pbm_fallback_iter")
 
 
@@ -1624,8 +1624,7 @@ def _ip_tolerances(opts) -> ipm.Tolerances:
     """When the interior-point method's run ends as solved (see ``SolverOptions.method``):
     the residual of every constraint within half ``verify_tol``, so that the strict
     verification passes without a polish."""
-    static = _static(opts)
-    return ipm.Tolerances(static.ip_tol, static.ip_dual_tol, 0.5 * opts.verify_tol, static.ip_compl_tol)
+    return ipm.Tolerances(_static(opts).ip_tol, opts.ip_dual_tol, 0.5 * opts.verify_tol, opts.ip_compl_tol)
 
 
 def _ip_solved(state: _State, ip) -> Array:
