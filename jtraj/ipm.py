@@ -384,9 +384,8 @@ def _ladder_directions_vmap(axis_size, in_batched, model, shifts, terminal):
 
 
 def step(nlp, st: IPState, tol) -> IPState:
-    """One interior-point iteration (or, where converged, the state marked done)."""
-    layout = nlp.layout
-    N, n = layout.N, nlp.problem.robot.n
+    """One interior-point iteration (or, where converged, the state marked done).
+    ``tol``: :class:`Tolerances`, or a number (the overall tolerance alone)."""
     dt = st.z.dtype
     model, Jg, dgT, p, Ex = _model(nlp, st)
     g_lag = model.g
