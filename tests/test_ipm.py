@@ -170,6 +170,10 @@ def test_ip_options_are_checked_before_tracing():
     with pytest.raises(ValueError, match="ip_tol"):
         SolverOptions(method="ip", ip_tol=0.0)
     problem = jtraj.Problem(robot, Q0, Q1, N=N, weights=W)
+    with pytest.raises(ValueError, match="options must be a jtraj.SolverOptions"):
+        jtraj.solve(problem, options={"method": "ip"})
+    with pytest.raises(ValueError, match="options must be a jtraj.SolverOptions"):
+        jtraj.solve_batch(robot, Q0[None], Q1[None], N=N, weights=W, options={"method": "ip"})
     with pytest.raises(ValueError, match="transcription='decoupled'"):
         jtraj.solve(problem, options=IP, transcription="coupled")
     with pytest.raises(ValueError, match="transcription='decoupled'"):
