@@ -233,29 +233,20 @@ def _model(nlp, st: IPState):
     z = st.z
     W = nlp.W(z)
     lag = dataclasses.replace(nlp, ineq_penalty="lagrangian")
-    mult, zero = multipliers(nlp, st), jnp.asarray(0.0, z.dtype)
-    if lag.split_derivatives:
-        # the inequalities' Jacobians by the chain rule through the efforts, whose
-        # values and Jacobians the stage derivatives computed (the inverse dynamics'
-        # derivatives once per iteration instead of twice)
-        _, c, Hk, tau, Jtau = lag.stage_derivatives(W, mult, zero, efforts=True)
+    # the inequalities' Jacobians by the chain rule through the efforts, whose values and
+    # Jacobians the stage derivatives computed (the inverse dynamics' derivatives once per
+    # iteration instead of twice; the decoupled transcription's derivatives are split)
+    _, c, Hk, tau, Jtau = lag.stage_derivatives(W, multipliers(nlp, st), jnp.asarray(0.0, z.dtype), efforts=True)
 
-        def stage_ineq(w, t, sdk):
-            a = tr.split_stage(problem, w)[2]
-            return _flat(jax.tree.map(lambda x: x[None], tr.stage_constraints(problem, w, sdk, (a, t))[1]))[0]
+    def stage_ineq(w, t, sdk):
+        a = tr.split_stage(problem, w)[2]
+        return _flat(jax.tree.map(lambda x: x[None], tr.stage_constraints(problem, w, sdk, (a, t))[1]))[0]
 
-        def value_and_jac(w, t, sdk, J):
-            Jw, Jt = jax.jacfwd(stage_ineq, argnums=(0, 1))(w, t, sdk)
-            return stage_ineq(w, t, sdk), Jw + Jt @ J
+    def value_and_jac(w, t, sdk, J):
+        (Jw, Jt), g = jax.jacfwd(lambda w_, t_: (stage_ineq(w_, t_, sdk),) * 2, argnums=(0, 1), has_aux=True)(w, t)
+        return g, Jw + Jt @ J
 
-        G, Jg = jax.vmap(value_and_jac)(W, tau, nlp.sd, Jtau)
-    else:
-        _, c, Hk = lag.stage_derivatives(W, mult, zero)
-
-        def stage_ineq(w, sdk):
-            return _flat(jax.tree.map(lambda x: x[None], tr.stage_constraints(problem, w, sdk)[1]))[0]
-
-        G, Jg = jax.vmap(lambda w, sdk: (stage_ineq(w, sdk), jax.jacfwd(stage_ineq)(w, sdk)))(W, nlp.sd)
+    G, Jg = jax.vmap(value_and_jac)(W, tau, nlp.sd, Jtau)
     Sig = st.y / st.s
     Hk = Hk + jnp.einsum("kim,ki,kin->kmn", Jg, Sig, Jg)
     T = jnp.sum(W[:-1, -1])
