@@ -14,6 +14,18 @@ as its own compiled, vmapped program:
 * ``grad``: the gradient and constraints after the step (the loop's test);
 * ``iter``: one whole loop iteration (``solver._segment_jit`` with one step).
 
+With ``--method ip`` the pieces are those of the interior-point method (:mod:`jtraj.ipm`,
+the default method), from a batch run ``--warm`` interior-point iterations in:
+
+* ``ip_model``: the primal-dual Newton model (``ipm._model``: stage derivatives with the
+  efforts' Jacobians, the inequalities' Jacobians by the chain rule, the stage model);
+* ``ip_stage_derivs``: the per-stage values, gradients and Hessians alone (part of it);
+* ``ip_kkt``: the barrier right-hand side and the Riccati KKT solves for the shift ladder
+  (``ipm._ladder_directions``, all shifts at once under vmap);
+* ``ip_kkt1``: one shift's KKT solve alone (``jtraj.lq.kkt_directions``);
+* ``ip_trials``: the cost and constraints at the line search's step lengths;
+* ``ip_iter``: one whole interior-point iteration (``ipm.step``).
+
 Each piece includes one program call's overhead, so the pieces add up to more than
 ``iter``: a no-op program on the same arguments takes about 90 us per call through
 ``eqx.filter_jit`` (the pieces) and about 210 us through the solver's ``_options_jit``
@@ -24,7 +36,7 @@ runs it, costs 0.21 ms per iteration on one lane and 0.15 ms per lane-iteration 
 Two measures:
 
 * wall clock (default): the median over ``--rounds`` of ``--calls`` calls, in us per
-  problem;
+  problem, in a process pinned to one core (as the batch workers run);
 * ``--instructions``: the instructions executed, counted by valgrind's callgrind (the
   script re-runs itself under valgrind with instrumentation off, switches it on only
   around the timed calls and dumps the counts after each piece; Debian's ``valgrind``
@@ -32,11 +44,15 @@ Two measures:
   they compare two versions of the code on a machine whose timings swing by 20 %
   (2026-12-02: one iteration 470-780 us per problem in repeated wall-clock runs, the
   same 184.0-184.2 M instructions for 10 iterations of 8 lanes in every run). They
-  do not see cache misses or vectorisation width: confirm a gain in time too.
+  do not see cache misses or vectorisation width: confirm a gain in time too. Since
+  2026-12-03 (thirty-fourth session) valgrind runs pinned to one CPU; the counts quoted
+  before that date include the spinning of XLA's idle pool threads (the interior-point
+  KKT piece: 1.12 M per problem unpinned against 0.97 M pinned).
 
     python benchmarks/iteration_cost.py                  # wall clock
     python benchmarks/iteration_cost.py --instructions   # callgrind counts (~6 min)
     python benchmarks/iteration_cost.py --pbm --option penalty_init=30   # other options
+    python benchmarks/iteration_cost.py --method ip --warm 8   # the interior-point method's pieces
 
 The pieces at one mid-run state are not the cost of a whole batch: on 2026-12-03 the PBM
 term's iteration counted 1.21x PHR's instructions here (the logarithm at every trial
@@ -57,9 +73,10 @@ import time
 from pathlib import Path
 
 PIECES = ("model", "stage_derivs", "bounds", "dirs", "trials", "grad", "iter")
+IP_PIECES = ("ip_model", "ip_stage_derivs", "ip_kkt", "ip_kkt1", "ip_trials", "ip_iter")
 
 
-def _programs(pairs: int, seed: int, warm: int, pbm: bool = False, options=()):
+def _programs(pairs: int, seed: int, warm: int, pbm: bool = False, options=(), method: str = "al"):
     """{piece name: a thunk calling it on the mid-run state}, each compiled and run once."""
     import equinox as eqx
     import jax
@@ -83,8 +100,10 @@ def _programs(pairs: int, seed: int, warm: int, pbm: bool = False, options=()):
         jnp.asarray(q0), jnp.asarray(q1))
     init = S._guess_batch_jit(problems, opts, "decoupled")
     nlps, states, _ = S._prepare_batch_jit(problems, opts, "decoupled", init, jnp.asarray(False))
-    mid = jax.block_until_ready(S._segment_jit(nlps, states, opts, warm))
     jit, vmap = cpu_jit(SOLVER_XLA_OPTIONS), eqx.filter_vmap
+    if method == "ip":
+        return _ip_programs(nlps, states, opts, warm, jit, vmap)
+    mid = jax.block_until_ready(S._segment_jit(nlps, states, opts, warm))
     kink = jnp.zeros(pairs)  # the kink margin as traced, at zero (its value does not change the cost)
 
     model_f = jit(lambda n, s, k: vmap(lambda n, s, k: n.stage_newton_model(s.z, s.mult, s.mu, k))(n, s, k))
@@ -127,14 +146,71 @@ def _programs(pairs: int, seed: int, warm: int, pbm: bool = False, options=()):
     return calls
 
 
+def _ip_programs(nlps, states, opts, warm, jit, vmap):
+    """The interior-point method's pieces (see the module doc) at a state ``warm``
+    iterations into a batch run from ``states``' starting points."""
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from jtraj import ipm, lq
+    from jtraj import solver as S
+
+    tol = S._ip_tolerances(opts)
+    tol = ipm.Tolerances(*(float(x) for x in tol))
+    max_iter = S._static(opts).ip_max_iter
+    ips = S._ip_init_batch_jit(nlps, states, opts)
+    mid = jax.block_until_ready(jit(lambda n, s: vmap(lambda n, s: ipm.loop(n, s, max_iter, tol, warm))(n, s))(nlps, ips))
+    if bool(jnp.any(ipm.finished(mid, max_iter))):
+        print(f"note: some lanes finished within {warm} iterations (their pieces still run)")
+
+    def stage_derivs(n, s):
+        lag = dataclasses.replace(n, ineq_penalty="lagrangian")
+        return lag.stage_derivatives(n.W(s.z), ipm.multipliers(n, s), jnp.zeros((), s.z.dtype), efforts=True)
+
+    def kkt(n, s, m):
+        model, Jg, dgT, p, Ex = m
+        model = ipm._with_rhs(n, s, model, Jg, dgT, p, s.mu)
+        return ipm._ladder_directions(model, s.delta * jnp.asarray(ipm._SHIFT_LADDER, s.z.dtype), Ex.T)
+
+    def kkt1(s, m):
+        model, _, _, _, Ex = m
+        return lq.kkt_directions(model, s.delta[None], Ex.T)
+
+    def trials(n, s):
+        g = jax.grad(lambda z: ipm._parts(n, z).f)(s.z)  # a direction of the right scale
+        d = -g / jnp.maximum(1.0, jnp.max(jnp.abs(g)))
+        return jax.vmap(lambda a: ipm._parts(n, s.z + 1e-3 * a * d))(jnp.asarray(ipm._ALPHAS, s.z.dtype))
+
+    model_f = jit(lambda n, s: vmap(ipm._model)(n, s))
+    m = model_f(nlps, mid)
+    stage_f = jit(lambda n, s: vmap(stage_derivs)(n, s))
+    kkt_f = jit(lambda n, s, m: vmap(kkt)(n, s, m))
+    kkt1_f = jit(lambda s, m: vmap(kkt1)(s, m))
+    trials_f = jit(lambda n, s: vmap(trials)(n, s))
+    step_f = jit(lambda n, s: vmap(lambda n, s: ipm.step(n, s, tol))(n, s))
+    calls = {
+        "ip_model": lambda: model_f(nlps, mid),
+        "ip_stage_derivs": lambda: stage_f(nlps, mid),
+        "ip_kkt": lambda: kkt_f(nlps, mid, m),
+        "ip_kkt1": lambda: kkt1_f(mid, m),
+        "ip_trials": lambda: trials_f(nlps, mid),
+        "ip_iter": lambda: step_f(nlps, mid),
+    }
+    for f in calls.values():
+        jax.block_until_ready(f())
+    return calls
+
+
 def _wall(args) -> None:
     import jax
     import numpy as np
 
-    calls = _programs(args.pairs, args.seed, args.warm, args.pbm, args.option)
+    calls = _programs(args.pairs, args.seed, args.warm, args.pbm, args.option, args.method)
     print(f"serial3, N = 20, {args.pairs} lanes, {args.warm} iterations in; us per problem "
           f"(median / min of {args.rounds} x {args.calls} calls)")
-    for name in PIECES:
+    for name in calls:
         f = calls[name]
         per = []
         for _ in range(args.rounds):
@@ -152,7 +228,7 @@ def _counted_child(args) -> None:
     counts after each piece."""
     import jax
 
-    calls = _programs(args.pairs, args.seed, args.warm, args.pbm, args.option)
+    calls = _programs(args.pairs, args.seed, args.warm, args.pbm, args.option, args.method)
     pid = str(os.getpid())
 
     def control(*flags):
@@ -162,13 +238,16 @@ def _counted_child(args) -> None:
 
     control("-z")
     control("-i", "on")
-    for name in PIECES:
-        f = calls[name]
+    for name, f in calls.items():
         for _ in range(args.calls):
             out = f()
         jax.block_until_ready(out)
         control("-d", name)
     control("-i", "off")
+
+
+def _one_cpu() -> None:
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
 
 def _instructions(args) -> None:
@@ -178,9 +257,12 @@ def _instructions(args) -> None:
         out = Path(tmp) / "callgrind.out"
         cmd = ["valgrind", "--tool=callgrind", "--instr-atstart=no", f"--callgrind-out-file={out}",
                sys.executable, __file__, "--counted-child", "--pairs", str(args.pairs), "--seed", str(args.seed),
-               "--warm", str(args.warm), "--calls", str(args.calls),
+               "--warm", str(args.warm), "--calls", str(args.calls), "--method", args.method,
                *(["--pbm"] if args.pbm else []), *(f"--option={o}" for o in args.option)]
-        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        # on one CPU, as the batch workers run (unpinned, XLA's idle pool threads spin and
+        # are counted too; see the module doc)
+        pin = _one_cpu if hasattr(os, "sched_setaffinity") else None
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=pin)
         counts = {}
         for f in Path(tmp).glob("callgrind.out.*"):
             text = f.read_text(errors="replace")
@@ -188,11 +270,11 @@ def _instructions(args) -> None:
                             if ln.startswith("desc: Trigger:") and "dump " in ln), None)
             total = next((int(ln.split()[1]) for ln in text.splitlines()
                           if ln.startswith(("summary:", "totals:"))), None)
-            if trigger in PIECES and total is not None:
+            if trigger in PIECES + IP_PIECES and total is not None:
                 counts[trigger] = total
     print(f"serial3, N = 20, {args.pairs} lanes, {args.warm} iterations in; instructions per problem "
           f"and call (callgrind, {args.calls} calls)")
-    for name in PIECES:
+    for name in IP_PIECES if args.method == "ip" else PIECES:
         if name in counts:
             print(f"  {name:13s} {counts[name] / args.calls / args.pairs:12,.0f}")
         else:
@@ -207,6 +289,8 @@ def main(argv=None) -> None:
     ap.add_argument("--calls", type=int, default=10, help="calls of each piece per round")
     ap.add_argument("--rounds", type=int, default=9, help="wall clock: rounds per piece")
     ap.add_argument("--pbm", action="store_true", help="the PBM inequality term (SolverOptions.pbm())")
+    ap.add_argument("--method", choices=("al", "ip"), default="al",
+                    help="the AL loop's pieces (default) or the interior-point method's (see the module doc)")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="another jtraj.SolverOptions field, as in bench_solver.py, e.g. --option penalty_init=30 (repeatable)")
     ap.add_argument("--instructions", action="store_true", help="count instructions with callgrind instead")
@@ -223,6 +307,9 @@ def main(argv=None) -> None:
     elif args.instructions:
         _instructions(args)
     else:
+        import jtraj
+
+        jtraj.pin_to_one_cpu()  # one core, as the batch workers run
         _wall(args)
 
 
