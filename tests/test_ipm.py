@@ -140,7 +140,9 @@ def test_split_tolerances_stop_early_near_the_strict_optimum(batch):
     """A run also ends where the dual, primal and complementarity errors are each within
     their own tolerance (the defaults), before the barrier parameter's last fall: fewer
     iterations than the strict test alone (``ip_dual_tol = ip_compl_tol = 0``), feasible
-    to half ``verify_tol`` without a polish, and the cost within 2e-4 of the strict one."""
+    to half ``verify_tol`` without a polish, and the cost within 2e-4 of the strict one.
+    With the AL loop's targets set tighter than the parts' tolerances the run is the
+    strict one."""
     q0, q1, sol = batch
     problem = jtraj.Problem(jtraj.robots.get("serial3"), Q0, Q1, N=N, weights=W)
     strict = jtraj.solve(problem, options=SolverOptions(method="ip", ip_dual_tol=0.0, ip_compl_tol=0.0))
@@ -148,6 +150,11 @@ def test_split_tolerances_stop_early_near_the_strict_optimum(batch):
     assert int(sol.iterations[0]) < int(strict.iterations)
     assert float(sol.max_violation["overall"][0]) <= 0.5 * IP.verify_tol
     assert float(sol.cost[0]) == pytest.approx(float(strict.cost), rel=2e-4)
+    # the parts' tolerances are capped by the AL loop's targets: asking for a tight solve
+    # runs on to the overall test, the strict run's iterates
+    tight = jtraj.solve(problem, options=SolverOptions(method="ip", tol_feasibility=1e-10, tol_optimality=1e-10))
+    assert bool(tight.converged) and int(tight.iterations) == int(strict.iterations)
+    assert float(tight.cost) == pytest.approx(float(strict.cost), rel=1e-12)
     with pytest.raises(ValueError, match="ip_dual_tol"):
         SolverOptions(ip_dual_tol=-1.0)
 
