@@ -651,7 +651,7 @@ def test_polish_releases_rows_when_holding_them_leaves_a_violation():
     assert V.verify(q0[16], q1[16], np.asarray(sol.v), np.asarray(sol.h), tol=1e-6)["ok"]
     # the precondition: the holding polish alone leaves the loop's point unverified
     tr = Transcription("decoupled")
-    init = S._guess_jit(problem, opts, "decoupled")
+    init = eqx.filter_jit(lambda p: S.initial_guess(p, opts, tr))(problem)
     nlp, state, _ = eqx.filter_jit(lambda p, i: S._prepare(p, opts, tr, i))(problem, init)
     state = eqx.filter_jit(lambda n, s: S._run_with_restart(n, s, opts))(nlp, state)
     held = eqx.filter_jit(lambda n, z: S._violation(*n.constraints(S._polish(n, z))))(nlp, state.z)
