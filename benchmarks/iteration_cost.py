@@ -158,7 +158,6 @@ def _ip_programs(nlps, states, opts, warm, jit, vmap):
     from jtraj import solver as S
 
     tol = S._ip_tolerances(opts)
-    tol = ipm.Tolerances(*(float(x) for x in tol))
     max_iter = S._static(opts).ip_max_iter
     ips = S._ip_init_batch_jit(nlps, states, opts)
     mid = jax.block_until_ready(jit(lambda n, s: vmap(lambda n, s: ipm.loop(n, s, max_iter, tol, warm))(n, s))(nlps, ips))
