@@ -10,7 +10,8 @@ Where the persistent compilation cache is on (``jax_compilation_cache_dir`` set:
 lowered form (a serialised :class:`jax.export.Exported` of the program on its arguments'
 array leaves, with a pickled skeleton of its output's structure) next to it, keyed by
 everything its trace depends on: jtraj's source (a hash of its ``.py`` files), the JAX
-and jaxlib versions, the backend, the JAX settings that change a trace (x64, precision,
+and jaxlib versions, the backend, the native KKT kernel's build or its absence
+(:mod:`jtraj._kkt_native`), the JAX settings that change a trace (x64, precision,
 promotion), the caller's static key, the arguments' tree structure and plain values, and
 their arrays' shapes, dtypes and weak types. A later process deserialises it instead of tracing (a
 fraction of a second). The program is always run from its deserialised form, also right
@@ -37,6 +38,8 @@ from typing import Any, Callable
 import equinox as eqx
 import jax
 import numpy as np
+
+from . import _kkt_native
 
 #: the folder, inside the compilation cache directory, holding the exported programs
 FOLDER = "jtraj-traces"
@@ -87,6 +90,8 @@ def _foreign_node(tree) -> bool:
     return walk(jax.tree.structure(tree))
 
 
+_NATIVE_CALLS = [jax.export.DisabledSafetyCheck.custom_call(_kkt_native.TARGET)]
+
 #: JAX settings that change what a trace produces
 _FLAGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion",
           "jax_numpy_rank_promotion", "jax_default_prng_impl", "jax_enable_checks", "jax_debug_nans")
@@ -119,6 +124,7 @@ def key(name: str, static: str, args: tuple, compiler_options: dict | None) -> s
         name, static, repr(tree), repr(tuple(map(_sig, leaves))),
         repr(sorted((compiler_options or {}).items())), _source_hash_once(), jax.__version__,
         jaxlib.__version__, jax.default_backend(), repr([getattr(jax.config, f) for f in _FLAGS]),
+        f"native KKT kernel {_kkt_native.identity()}",
     ])
     if re.search(r" at 0x[0-9a-fA-F]+", text):
         return None
@@ -155,7 +161,10 @@ def program(name: str, fn: Callable, args: tuple, static: str,
             kept["skeleton"] = jax.tree.unflatten(out_tree, [_Slot() if eqx.is_array(x) else x for x in out_leaves])
             return [x for x in out_leaves if eqx.is_array(x)]
 
-        exported = jax.export.export(jax.jit(flat))(*[x for x, a in zip(leaves, is_array) if a])
+        # the native kernel's FFI call (jtraj._kkt_native) is registered by every process
+        # whose key names it
+        exported = jax.export.export(jax.jit(flat), disabled_checks=_NATIVE_CALLS)(
+            *[x for x, a in zip(leaves, is_array) if a])
         try:
             blob = exported.serialize()
         except ImportError:  # jax.export's serialisation needs the flatbuffers package

@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import lq
+from . import _kkt_native, lq
 
 #: step lengths tried at once (fractions of the largest step the fraction-to-the-boundary
 #: rule allows)
@@ -341,10 +341,19 @@ def _errors(nlp, st: IPState, g_lag, p: _Pieces, mu, parts=False):
     return jnp.maximum(jnp.maximum(jnp.max(jnp.abs(rd)) / s_d, prim), comp / s_d)
 
 
-@jax.custom_batching.custom_vmap
 def _ladder_directions(model, shifts, terminal):
     """:func:`jtraj.lq.kkt_directions` for the shift ladder, of which the caller takes the
-    least shifted positive definite one. For one problem the unshifted factorisation
+    least shifted positive definite one: by the native kernel where it is available
+    (:mod:`jtraj._kkt_native`: all shifts at once, one call for a batch), else by XLA
+    (:func:`_ladder_directions_xla`)."""
+    if _kkt_native.active(model.B.dtype, model.B.shape[-1] - 1, terminal.shape[-1]):
+        return _kkt_native.kkt_directions(model, shifts, terminal)
+    return _ladder_directions_xla(model, shifts, terminal)
+
+
+@jax.custom_batching.custom_vmap
+def _ladder_directions_xla(model, shifts, terminal):
+    """:func:`jtraj.lq.kkt_directions` for the shift ladder in XLA. For one problem the unshifted factorisation
     comes first and the shifted ones only where it fails (a ``lax.cond``; their slots are
     zeros and not positive definite otherwise): the same choice and the same numbers.
     Under vmap a ``cond`` would run both branches, so there all shifts are factorised at
@@ -367,7 +376,7 @@ def _ladder_directions(model, shifts, terminal):
     return jax.lax.cond(first[2][0], alone, ladder, None)
 
 
-@_ladder_directions.def_vmap
+@_ladder_directions_xla.def_vmap
 def _ladder_directions_vmap(axis_size, in_batched, model, shifts, terminal):
     axes = jax.tree.map(lambda b: 0 if b else None, tuple(in_batched))
     out = jax.vmap(lq.kkt_directions, in_axes=axes, axis_size=axis_size)(model, shifts, terminal)

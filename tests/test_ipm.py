@@ -37,8 +37,9 @@ def _nlp(q0=Q0, q1=Q1):
 
 
 def test_shift_ladder_for_one_problem_takes_the_batch_choice():
-    """One problem factorises the unshifted matrix first and the shifted ones only where
-    that fails (``ipm._ladder_directions``, a cond); a batch factorises all at once. The
+    """In XLA (no native kernel), one problem factorises the unshifted matrix first and
+    the shifted ones only where that fails (``ipm._ladder_directions_xla``, a cond); a
+    batch factorises all at once. The
     least shifted positive definite direction is the same number for number, whether
     shift 0 is positive definite or not."""
     nlp, z0 = _nlp()
@@ -52,8 +53,8 @@ def test_shift_ladder_for_one_problem_takes_the_batch_choice():
     taken = []
     for mdl in cases:
         full = lq.kkt_directions(mdl, shifts, Ex.T)
-        one = jax.jit(ipm._ladder_directions)(mdl, shifts, Ex.T)
-        batch = jax.vmap(ipm._ladder_directions, in_axes=(None, 0, None))(mdl, shifts[None], Ex.T)
+        one = jax.jit(ipm._ladder_directions_xla)(mdl, shifts, Ex.T)
+        batch = jax.vmap(ipm._ladder_directions_xla, in_axes=(None, 0, None))(mdl, shifts[None], Ex.T)
         k = int(jnp.argmax(full[2]))
         assert bool(full[2][k]) and int(jnp.argmax(one[2])) == k
         for a, b, c in zip(full[:2], one[:2], batch[:2]):
@@ -61,6 +62,51 @@ def test_shift_ladder_for_one_problem_takes_the_batch_choice():
             np.testing.assert_array_equal(np.asarray(a), np.asarray(c[0]))
         taken.append(k)
     assert taken[0] == 0 and taken[1] > 0
+
+
+def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
+    """The native KKT kernel (:mod:`jtraj._kkt_native`, what the solver uses on a CPU in
+    float64) against :func:`jtraj.lq.kkt_directions`: one problem and a batch of three
+    different problems, each with its own shifts, at interior-point states as they are
+    (shift 0 positive definite) and with R made indefinite (some shifts not): the same
+    positive-definiteness flags, directions within 1e-10 relative where positive
+    definite, NaN where not (as XLA's). Skipped only where the machine has no C++
+    compiler; a compiler that fails to build it fails the test."""
+    from jtraj import _kkt_native
+
+    if _kkt_native._compiler() is None:
+        pytest.skip(_kkt_native.status())
+    assert _kkt_native.identity() is not None, _kkt_native.status()
+    models, terms = [], []
+    for q1 in (Q1, Q1 + 0.3, Q1 - 0.4):
+        nlp, z0 = _nlp(q1=q1)
+        st = ipm.init(nlp, z0)
+        model, Jg, dgT, p, Ex = ipm._model(nlp, st)
+        models.append(ipm._with_rhs(nlp, st, model, Jg, dgT, p, st.mu))
+        terms.append(Ex.T)
+    m = models[0].R.shape[1]
+    for indefinite in (False, True):
+        batch = jax.tree.map(lambda *x: jnp.stack(x), *models)
+        if indefinite:
+            batch = batch._replace(R=batch.R - 30.0 * jnp.eye(m))
+        term = jnp.stack(terms)
+        shifts = jnp.asarray([[40.0], [10.0], [1.0]]) * jnp.asarray(ipm._SHIFT_LADDER)
+        ref = jax.jit(jax.vmap(lq.kkt_directions))(batch, shifts, term)
+        nat = jax.jit(jax.vmap(_kkt_native.kkt_directions))(batch, shifts, term)
+        one = jax.jit(_kkt_native.kkt_directions)(jax.tree.map(lambda x: x[1], batch), shifts[1], term[1])
+        ok = np.asarray(ref[2])
+        np.testing.assert_array_equal(np.asarray(nat[2]), ok)
+        np.testing.assert_array_equal(np.asarray(one[2]), ok[1])
+        assert ok.any() and (ok.all() != indefinite)
+        for a, b, c in zip(nat[:2], ref[:2], one[:2]):
+            a, b, c = np.asarray(a), np.asarray(b), np.asarray(c)
+            good = np.broadcast_to(ok.reshape((3,) + (1,) * (b.ndim - 2) + (4,)), b.shape)
+            scale = np.max(np.abs(b[good]))
+            assert np.max(np.abs(a - b)[good]) <= 1e-10 * scale
+            assert np.max(np.abs(c - b[1])[good[1]]) <= 1e-10 * scale
+        assert np.isnan(np.asarray(nat[0])[~np.broadcast_to(ok[:, None, None, :], nat[0].shape)]).all()
+    # and it is the solver's choice here (float64 on the CPU)
+    assert _kkt_native.active(jnp.float64, m - 1, 2 * (m - 1)) and not _kkt_native.active(jnp.float32, m - 1, 2 * (m - 1))
 
 
 def test_newton_step_equals_the_dense_kkt_solve():
