@@ -21,8 +21,10 @@ the default method), from a batch run ``--warm`` interior-point iterations in:
   efforts' Jacobians, the inequalities' Jacobians by the chain rule, the stage model);
 * ``ip_stage_derivs``: the per-stage values, gradients and Hessians alone (part of it);
 * ``ip_kkt``: the barrier right-hand side and the Riccati KKT solves for the shift ladder
-  (``ipm._ladder_directions``, all shifts at once under vmap);
-* ``ip_kkt1``: one shift's KKT solve alone (``jtraj.lq.kkt_directions``);
+  (``ipm._ladder_directions``, all shifts at once under vmap: the native kernel of
+  :mod:`jtraj._kkt_native` where it is in use, as in the solver);
+* ``ip_kkt_xla``: the same in XLA (``ipm._ladder_directions_xla``, the fallback);
+* ``ip_kkt1``: one shift's KKT solve alone in XLA (``jtraj.lq.kkt_directions``);
 * ``ip_trials``: the cost and constraints at the line search's step lengths;
 * ``ip_iter``: one whole interior-point iteration (``ipm.step``).
 
@@ -73,7 +75,7 @@ import time
 from pathlib import Path
 
 PIECES = ("model", "stage_derivs", "bounds", "dirs", "trials", "grad", "iter")
-IP_PIECES = ("ip_model", "ip_stage_derivs", "ip_kkt", "ip_kkt1", "ip_trials", "ip_iter")
+IP_PIECES = ("ip_model", "ip_stage_derivs", "ip_kkt", "ip_kkt_xla", "ip_kkt1", "ip_trials", "ip_iter")
 
 
 def _programs(pairs: int, seed: int, warm: int, pbm: bool = False, options=(), method: str = "al"):
@@ -168,10 +170,10 @@ def _ip_programs(nlps, states, opts, warm, jit, vmap):
         lag = dataclasses.replace(n, ineq_penalty="lagrangian")
         return lag.stage_derivatives(n.W(s.z), ipm.multipliers(n, s), jnp.zeros((), s.z.dtype), efforts=True)
 
-    def kkt(n, s, m):
+    def kkt(n, s, m, ladder=ipm._ladder_directions):
         model, Jg, dgT, p, Ex = m
         model = ipm._with_rhs(n, s, model, Jg, dgT, p, s.mu)
-        return ipm._ladder_directions(model, s.delta * jnp.asarray(ipm._SHIFT_LADDER, s.z.dtype), Ex.T)
+        return ladder(model, s.delta * jnp.asarray(ipm._SHIFT_LADDER, s.z.dtype), Ex.T)
 
     def kkt1(s, m):
         model, _, _, _, Ex = m
@@ -186,6 +188,7 @@ def _ip_programs(nlps, states, opts, warm, jit, vmap):
     m = model_f(nlps, mid)
     stage_f = jit(lambda n, s: vmap(stage_derivs)(n, s))
     kkt_f = jit(lambda n, s, m: vmap(kkt)(n, s, m))
+    kkt_xla_f = jit(lambda n, s, m: vmap(lambda *a: kkt(*a, ladder=ipm._ladder_directions_xla))(n, s, m))
     kkt1_f = jit(lambda s, m: vmap(kkt1)(s, m))
     trials_f = jit(lambda n, s: vmap(trials)(n, s))
     step_f = jit(lambda n, s: vmap(lambda n, s: ipm.step(n, s, tol))(n, s))
@@ -193,6 +196,7 @@ def _ip_programs(nlps, states, opts, warm, jit, vmap):
         "ip_model": lambda: model_f(nlps, mid),
         "ip_stage_derivs": lambda: stage_f(nlps, mid),
         "ip_kkt": lambda: kkt_f(nlps, mid, m),
+        "ip_kkt_xla": lambda: kkt_xla_f(nlps, mid, m),
         "ip_kkt1": lambda: kkt1_f(mid, m),
         "ip_trials": lambda: trials_f(nlps, mid),
         "ip_iter": lambda: step_f(nlps, mid),
@@ -207,8 +211,10 @@ def _wall(args) -> None:
     import numpy as np
 
     calls = _programs(args.pairs, args.seed, args.warm, args.pbm, args.option, args.method)
+    from jtraj import _kkt_native
+
     print(f"serial3, N = 20, {args.pairs} lanes, {args.warm} iterations in; us per problem "
-          f"(median / min of {args.rounds} x {args.calls} calls)")
+          f"(median / min of {args.rounds} x {args.calls} calls); {_kkt_native.status()}")
     for name in calls:
         f = calls[name]
         per = []
@@ -261,7 +267,10 @@ def _instructions(args) -> None:
         # on one CPU, as the batch workers run (unpinned, XLA's idle pool threads spin and
         # are counted too; see the module doc)
         pin = _one_cpu if hasattr(os, "sched_setaffinity") else None
-        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=pin)
+        # valgrind knows no AVX-512: the native KKT kernel built for AVX2 under it
+        env = {**os.environ, "JTRAJ_NATIVE_MARCH": os.environ.get("JTRAJ_NATIVE_MARCH", "x86-64-v3")}
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=pin,
+                       env=env)
         counts = {}
         for f in Path(tmp).glob("callgrind.out.*"):
             text = f.read_text(errors="replace")
@@ -271,8 +280,10 @@ def _instructions(args) -> None:
                           if ln.startswith(("summary:", "totals:"))), None)
             if trigger in PIECES + IP_PIECES and total is not None:
                 counts[trigger] = total
+    from jtraj import _kkt_native
+
     print(f"serial3, N = 20, {args.pairs} lanes, {args.warm} iterations in; instructions per problem "
-          f"and call (callgrind, {args.calls} calls)")
+          f"and call (callgrind, {args.calls} calls); {_kkt_native.status()}")
     for name in IP_PIECES if args.method == "ip" else PIECES:
         if name in counts:
             print(f"  {name:13s} {counts[name] / args.calls / args.pairs:12,.0f}")

@@ -10,7 +10,8 @@ agree to about 1e-13 relative) with the lanes (problem x shift) innermost in blo
 ``W`` (8), so that each operation is one vector instruction over the lanes.
 
 The kernel is compiled on first use with the machine's C++ compiler (``$CXX``, else
-``g++`` or ``c++``: ``-O3 -march=native``, about 12 s, once per machine) into
+``g++`` or ``c++``: ``-O3 -march=native``, about 12 s, once per machine;
+``JTRAJ_NATIVE_MARCH`` sets another ``-march``) into
 ``$JTRAJ_NATIVE_DIR`` (default ``~/.cache/jtraj/native``), under a name that hashes the
 source, the flags, the compiler's and jaxlib's versions and the CPU's model and flags,
 so that a cache shared between machines never hands one a build for another. It is
@@ -40,7 +41,12 @@ import jax.numpy as jnp
 #: the FFI target's name
 TARGET = "jtraj_kkt"
 _SOURCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_native", "kkt.cc")
-_FLAGS = ("-O3", "-march=native", "-std=c++17", "-shared", "-fPIC")
+
+
+def _flags() -> tuple[str, ...]:
+    # JTRAJ_NATIVE_MARCH: another -march (valgrind, for one, knows no AVX-512: x86-64-v3)
+    return ("-O3", f"-march={os.environ.get('JTRAJ_NATIVE_MARCH', 'native')}", "-std=c++17", "-shared", "-fPIC")
+
 _state: dict = {}
 
 
@@ -80,7 +86,7 @@ def _build() -> str:
     with open(_SOURCE, "rb") as fh:
         source = fh.read()
     h = hashlib.sha256()
-    for part in (source, repr(_FLAGS).encode(), version.encode(), jaxlib.__version__.encode(), _cpu_text().encode()):
+    for part in (source, repr(_flags()).encode(), version.encode(), jaxlib.__version__.encode(), _cpu_text().encode()):
         h.update(part)
         h.update(b"\0")
     ident = h.hexdigest()[:16]
@@ -91,7 +97,7 @@ def _build() -> str:
         fd, tmp = tempfile.mkstemp(dir=folder, suffix=".so.tmp")
         os.close(fd)
         try:
-            proc = subprocess.run([cxx, *_FLAGS, "-I", jax.ffi.include_dir(), _SOURCE, "-o", tmp],
+            proc = subprocess.run([cxx, *_flags(), "-I", jax.ffi.include_dir(), _SOURCE, "-o", tmp],
                                   capture_output=True, text=True)
             if proc.returncode != 0:
                 raise RuntimeError(f"{os.path.basename(cxx)} failed on {_SOURCE}:\n{proc.stderr[-2000:]}")
@@ -139,9 +145,15 @@ def active(dtype, n: int, r: int) -> bool:
             and identity() is not None)
 
 
-def kkt_directions(model, shifts, terminal):
+def kkt_directions(model, shifts, terminal, ladder: bool = False):
     """:func:`jtraj.lq.kkt_directions` (all shifts at once) by the native kernel: the same
-    arguments and results. Vmaps (a batch is one call), does not differentiate."""
+    arguments and results. Vmaps (a batch is one call), does not differentiate.
+
+    ``ladder``: the first shift for every problem, the others only where it is not
+    positive definite (elsewhere their slots are zeros and not positive definite, as in
+    :func:`jtraj.ipm._ladder_directions_xla` for one problem): the least shifted positive
+    definite direction is the same, at about half the work (on the benchmark family
+    shift 0 is positive definite in about 60 % of the iterations)."""
     N, nx, m = model.B.shape[-3:]
     r = terminal.shape[-1]
     L = shifts.shape[-1]
@@ -149,4 +161,5 @@ def kkt_directions(model, shifts, terminal):
     out = (jax.ShapeDtypeStruct((N * m, 1 + r, L), f64), jax.ShapeDtypeStruct((N + 1, nx, 1 + r, L), f64),
            jax.ShapeDtypeStruct((L,), jnp.bool_))
     call = jax.ffi.ffi_call(TARGET, out, vmap_method="broadcast_all")
-    return call(model.A, model.B, model.Q, model.S, model.R, model.cx, model.cu, model.PN, shifts, terminal)
+    return call(model.A, model.B, model.Q, model.S, model.R, model.cx, model.cu, model.PN, shifts, terminal,
+                ladder=bool(ladder))

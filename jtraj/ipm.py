@@ -347,7 +347,7 @@ def _ladder_directions(model, shifts, terminal):
     (:mod:`jtraj._kkt_native`: all shifts at once, one call for a batch), else by XLA
     (:func:`_ladder_directions_xla`)."""
     if _kkt_native.active(model.B.dtype, model.B.shape[-1] - 1, terminal.shape[-1]):
-        return _kkt_native.kkt_directions(model, shifts, terminal)
+        return _kkt_native.kkt_directions(model, shifts, terminal, ladder=True)
     return _ladder_directions_xla(model, shifts, terminal)
 
 

@@ -70,7 +70,8 @@ def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
     different problems, each with its own shifts, at interior-point states as they are
     (shift 0 positive definite) and with R made indefinite (some shifts not): the same
     positive-definiteness flags, directions within 1e-10 relative where positive
-    definite, NaN where not (as XLA's). Skipped only where the machine has no C++
+    definite, NaN where not (as XLA's); with ``ladder`` (the solver's call) the same least
+    shifted positive definite direction. Skipped only where the machine has no C++
     compiler; a compiler that fails to build it fails the test."""
     from jtraj import _kkt_native
 
@@ -105,6 +106,19 @@ def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
             assert np.max(np.abs(a - b)[good]) <= 1e-10 * scale
             assert np.max(np.abs(c - b[1])[good[1]]) <= 1e-10 * scale
         assert np.isnan(np.asarray(nat[0])[~np.broadcast_to(ok[:, None, None, :], nat[0].shape)]).all()
+        # as the solver calls it: shift 0 first, the others only where it fails (zeros and
+        # not positive definite elsewhere); the least shifted positive definite one the same
+        lad = jax.jit(jax.vmap(lambda *a: _kkt_native.kkt_directions(*a, ladder=True)))(batch, shifts, term)
+        first = ok[:, 0]
+        np.testing.assert_array_equal(np.asarray(lad[2]), np.where(first[:, None], np.arange(4) == 0, ok))
+        for a, b in zip(lad[:2], ref[:2]):
+            a, b = np.asarray(a), np.asarray(b)
+            for i in np.flatnonzero(ok.any(axis=1)):
+                k = int(np.argmax(ok[i]))
+                assert np.max(np.abs(a[i][..., k] - b[i][..., k])) <= 1e-10 * np.max(np.abs(b[i][..., k]))
+                if first[i]:
+                    assert not a[i][..., 1:].any()
+        assert first.any() != indefinite and (~first).any() == indefinite
     # and it is the solver's choice here (float64 on the CPU)
     assert _kkt_native.active(jnp.float64, m - 1, 2 * (m - 1)) and not _kkt_native.active(jnp.float32, m - 1, 2 * (m - 1))
 

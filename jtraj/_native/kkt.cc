@@ -11,8 +11,12 @@
 // Outputs per problem: d (N m, 1 + r, Ls) (z's layout: all v, then all h),
 //   dX (N+1, nx, 1 + r, Ls), ok (Ls): whether every stage factorisation was positive
 //   definite (d and dX are then finite, NaN otherwise).
+// Attribute `ladder`: shift 0 first, the other shifts only for the problems where it is
+//   not positive definite; elsewhere their slots are zeros, not positive definite (the
+//   caller takes the least shifted positive definite direction: the same one).
 
 #include <cmath>
+#include <algorithm>
 #include <cstdint>
 #include <limits>
 #include <vector>
@@ -28,21 +32,20 @@ struct Dims {
   int64_t N, n, m, nx, r, R1, Ls;
 };
 
-// one block of W lanes (8 or 16: see KktImpl), starting at global lane g0 (lane g: problem g / Ls, shift g % Ls);
+// one block of W lanes (8 or 16: see KktImpl): lane j < cnt solves problem lp[j] with its shift ls[j];
 // the dimensions are compile-time (n joints, R1 = 1 + r right-hand sides) and every scratch
 // array is a distinct local, so the compiler unrolls the small loops and knows nothing aliases
 template <int n, int R1, int W>
-void block(const Dims& D, int64_t nlanes, int64_t g0, const double* A, const double* Bm, const double* Q,
+void block(const Dims& D, const int64_t* lp, const int64_t* ls, int64_t cnt, const double* A, const double* Bm, const double* Q,
            const double* S, const double* R, const double* cx, const double* cu, const double* PN,
            const double* shifts, const double* term, double* __restrict__ d, double* __restrict__ dX, bool* okout, double* __restrict__ K,
            double* __restrict__ kff) {
   constexpr int m = n + 1, nx = 2 * n + 1, r = R1 - 1;
   const int64_t N = D.N, Ls = D.Ls;
   int64_t prob[W], sh[W];
-  for (int j = 0; j < W; ++j) {
-    int64_t g = g0 + j < nlanes ? g0 + j : nlanes - 1;  // a short block repeats its last lane
-    prob[j] = g / Ls;
-    sh[j] = g % Ls;
+  for (int j = 0; j < W; ++j) {  // a short block repeats its last lane
+    prob[j] = lp[j < cnt ? j : cnt - 1];
+    sh[j] = ls[j < cnt ? j : cnt - 1];
   }
   alignas(64) double P[nx * nx * W], p[nx * R1 * W], PA[nx * nx * W], PB[nx * m * W], Quu[m * m * W],
       Qux[m * nx * W], Qxx[nx * nx * W], qu[m * R1 * W], qx[nx * R1 * W], Lc[m * m * W], inv[m * W],
@@ -199,7 +202,7 @@ void block(const Dims& D, int64_t nlanes, int64_t g0, const double* A, const dou
   // forward: du = K dx + kff, dx <- A dx + B du
   for (int i = 0; i < nx * R1 * W; ++i) dx[i] = 0.0;
   const int64_t nz = N * m;
-  int64_t jmax = nlanes - g0 < W ? nlanes - g0 : W;
+  const int64_t jmax = cnt;
   auto put_dX = [&](int64_t k) {
     for (int64_t a = 0; a < nx; ++a)
       for (int64_t c = 0; c < R1; ++c)
@@ -251,7 +254,7 @@ ffi::Error KktImpl(ffi::Buffer<ffi::F64> A, ffi::Buffer<ffi::F64> Bm, ffi::Buffe
                    ffi::Buffer<ffi::F64> S, ffi::Buffer<ffi::F64> R, ffi::Buffer<ffi::F64> cx,
                    ffi::Buffer<ffi::F64> cu, ffi::Buffer<ffi::F64> PN, ffi::Buffer<ffi::F64> shifts,
                    ffi::Buffer<ffi::F64> term, ffi::ResultBuffer<ffi::F64> d, ffi::ResultBuffer<ffi::F64> dX,
-                   ffi::ResultBuffer<ffi::PRED> ok) {
+                   ffi::ResultBuffer<ffi::PRED> ok, bool ladder) {
   auto bd = Bm.dimensions();
   auto td = term.dimensions();
   auto sd = shifts.dimensions();
@@ -270,28 +273,60 @@ ffi::Error KktImpl(ffi::Buffer<ffi::F64> A, ffi::Buffer<ffi::F64> Bm, ffi::Buffe
   const int64_t nb = static_cast<int64_t>(shifts.element_count()) / D.Ls;  // problems
   if (static_cast<int64_t>(Bm.element_count()) != nb * D.N * D.nx * D.m)
     return ffi::Error::InvalidArgument("jtraj_kkt: batch sizes differ");
-  const int64_t nlanes = nb * D.Ls;
+  // the lanes: every (problem, shift), or with `ladder` shift 0 of every problem first and
+  // the others only for the problems where it is not positive definite (the rest: zeros,
+  // not positive definite; the caller takes the least shifted positive definite one)
+  std::vector<int64_t> lp, ls;
+  for (int64_t b = 0; b < nb; ++b)
+    for (int64_t s = 0; s < (ladder ? 1 : D.Ls); ++s) {
+      lp.push_back(b);
+      ls.push_back(s);
+    }
   // blocks of 16 lanes, or 8 for a small call (one problem's 4 shifts: half the work wasted, not 3/4)
-  const int W = nlanes <= 8 ? 8 : 16;
+  const int W = (ladder ? nb : nb * D.Ls) <= 8 ? 8 : 16;
   std::vector<double> work(static_cast<size_t>(W * D.N * D.m * (D.nx + D.R1)));
   double* K = work.data();
   double* kff = K + W * D.N * D.m * D.nx;
   auto run = [&](auto fn) {
-    for (int64_t g0 = 0; g0 < nlanes; g0 += W)
-      fn(D, nlanes, g0, A.typed_data(), Bm.typed_data(), Q.typed_data(), S.typed_data(), R.typed_data(),
-         cx.typed_data(), cu.typed_data(), PN.typed_data(), shifts.typed_data(), term.typed_data(),
-         d->typed_data(), dX->typed_data(), ok->typed_data(), K, kff);
+    for (size_t g0 = 0; g0 < lp.size(); g0 += W)
+      fn(D, lp.data() + g0, ls.data() + g0, std::min<int64_t>(W, lp.size() - g0), A.typed_data(), Bm.typed_data(),
+         Q.typed_data(), S.typed_data(), R.typed_data(), cx.typed_data(), cu.typed_data(), PN.typed_data(),
+         shifts.typed_data(), term.typed_data(), d->typed_data(), dX->typed_data(), ok->typed_data(), K, kff);
+  };
+  auto solve = [&]() -> bool {
+    switch (D.n) {
+      case 1: W == 8 ? run(block<1, 3, 8>) : run(block<1, 3, 16>); break;
+      case 2: W == 8 ? run(block<2, 5, 8>) : run(block<2, 5, 16>); break;
+      case 3: W == 8 ? run(block<3, 7, 8>) : run(block<3, 7, 16>); break;
+      case 4: W == 8 ? run(block<4, 9, 8>) : run(block<4, 9, 16>); break;
+      case 5: W == 8 ? run(block<5, 11, 8>) : run(block<5, 11, 16>); break;
+      case 6: W == 8 ? run(block<6, 13, 8>) : run(block<6, 13, 16>); break;
+      case 7: W == 8 ? run(block<7, 15, 8>) : run(block<7, 15, 16>); break;
+      default: return false;
+    }
+    return true;
   };
   if (D.R1 != D.nx) return ffi::Error::InvalidArgument("jtraj_kkt: expects 2n terminal rows");
-  switch (D.n) {
-    case 1: W == 8 ? run(block<1, 3, 8>) : run(block<1, 3, 16>); break;
-    case 2: W == 8 ? run(block<2, 5, 8>) : run(block<2, 5, 16>); break;
-    case 3: W == 8 ? run(block<3, 7, 8>) : run(block<3, 7, 16>); break;
-    case 4: W == 8 ? run(block<4, 9, 8>) : run(block<4, 9, 16>); break;
-    case 5: W == 8 ? run(block<5, 11, 8>) : run(block<5, 11, 16>); break;
-    case 6: W == 8 ? run(block<6, 13, 8>) : run(block<6, 13, 16>); break;
-    case 7: W == 8 ? run(block<7, 15, 8>) : run(block<7, 15, 16>); break;
-    default: return ffi::Error::InvalidArgument("jtraj_kkt: 1 to 7 joints");
+  if (!solve()) return ffi::Error::InvalidArgument("jtraj_kkt: 1 to 7 joints");
+  if (ladder && D.Ls > 1) {
+    const int64_t nz = D.N * D.m, R1 = D.R1, Ls = D.Ls, nx = D.nx, N = D.N;
+    bool* okp = ok->typed_data();
+    double* dp = d->typed_data();
+    double* dXp = dX->typed_data();
+    lp.clear();
+    ls.clear();
+    for (int64_t b = 0; b < nb; ++b)
+      for (int64_t s = 1; s < Ls; ++s) {
+        if (okp[b * Ls]) {  // not needed: zeros, not positive definite
+          okp[b * Ls + s] = false;
+          for (int64_t i = 0; i < nz * R1; ++i) dp[(b * nz * R1 + i) * Ls + s] = 0.0;
+          for (int64_t i = 0; i < (N + 1) * nx * R1; ++i) dXp[(b * (N + 1) * nx * R1 + i) * Ls + s] = 0.0;
+        } else {
+          lp.push_back(b);
+          ls.push_back(s);
+        }
+      }
+    if (!lp.empty()) solve();
   }
   return ffi::Error::Success();
 }
@@ -312,4 +347,5 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JtrajKkt, KktImpl,
                                   .Arg<ffi::Buffer<ffi::F64>>()
                                   .Ret<ffi::Buffer<ffi::F64>>()
                                   .Ret<ffi::Buffer<ffi::F64>>()
-                                  .Ret<ffi::Buffer<ffi::PRED>>());
+                                  .Ret<ffi::Buffer<ffi::PRED>>()
+                                  .Attr<bool>("ladder"));
