@@ -146,6 +146,9 @@ def main(argv=None) -> dict:
 
     options = dict(PBM_SETTINGS) if args.inequalities == "pbm" else {}
     options["method"] = args.method
+    from jtraj import _kkt_native
+
+    print(_kkt_native.status(), flush=True)  # (the workers' own, on this machine)
     results, pairs = [], None
     for B in batches:
         chunks = args.chunks or (1 if args.quick else max(2, 2048 // B))

@@ -337,6 +337,9 @@ def main(argv=None):
     q0, q1 = benchmark_pairs(args.pairs, args.seed)
     print(f"serial3, N = {args.N}, weights time=1 energy=0.1, {args.pairs} pairs (seed {args.seed}), "
           f"os.cpu_count() = {os.cpu_count()}")
+    from jtraj import _kkt_native
+
+    print(f"  {_kkt_native.status()}")
 
     opts = {"linear_solver": args.linear_solver, **dict(_option(o) for o in args.option)}
     starts = peer_starts(q0, q1, args.N, args.peer_init, opts)

@@ -284,7 +284,11 @@ ffi::Error KktImpl(ffi::Buffer<ffi::F64> A, ffi::Buffer<ffi::F64> Bm, ffi::Buffe
     }
   // blocks of 16 lanes, or 8 for a small call (one problem's 4 shifts: half the work wasted, not 3/4)
   const int W = (ladder ? nb : nb * D.Ls) <= 8 ? 8 : 16;
-  std::vector<double> work(static_cast<size_t>(W * D.N * D.m * (D.nx + D.R1)));
+  // the gains of one block, kept between calls (a fresh vector of this size, ~140 kB,
+  // was zeroed and, above malloc's mmap threshold, page-faulted in on every call)
+  static thread_local std::vector<double> work;
+  const size_t need = static_cast<size_t>(W * D.N * D.m * (D.nx + D.R1));
+  if (work.size() < need) work.resize(need);
   double* K = work.data();
   double* kff = K + W * D.N * D.m * D.nx;
   auto run = [&](auto fn) {
