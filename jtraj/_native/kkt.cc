@@ -55,6 +55,19 @@ void block(const Dims& D, const int64_t* lp, const int64_t* ls, int64_t cnt, con
   const int64_t szA = N * nx * nx, szB = N * nx * m, szS = N * m * nx, szR = N * m * m;
   const int64_t szcx = (N + 1) * nx, szcu = N * m, szT = nx * r;
 #define IX2(a, b, nb) (((a) * (nb) + (b)) * W)
+  // stage k's recursion Jacobians by their nonzeros (see the top of the file) into h, bq, bqd, bh
+  auto recursion = [&](int64_t k) {
+    for (int j = 0; j < W; ++j) {
+        const double* Ak = A + prob[j] * szA + k * nx * nx;
+        const double* Bk = Bm + prob[j] * szB + k * nx * m;
+        h[j] = Ak[0 * nx + n];
+        for (int64_t i = 0; i < n; ++i) {
+          bq[i * W + j] = Bk[i * m + i];
+          bqd[i * W + j] = Bk[(n + i) * m + i];
+        }
+        for (int64_t a = 0; a < nx; ++a) bh[a * W + j] = Bk[a * m + n];
+    }
+  };
   for (int j = 0; j < W; ++j) ok[j] = true;
   for (int64_t a = 0; a < nx; ++a) {
     for (int64_t b = 0; b < nx; ++b)
@@ -64,17 +77,7 @@ void block(const Dims& D, const int64_t* lp, const int64_t* ls, int64_t cnt, con
       for (int j = 0; j < W; ++j) p[IX2(a, c, R1) + j] = term[prob[j] * szT + a * r + (c - 1)];
   }
   for (int64_t k = N - 1; k >= 0; --k) {
-    // the recursion's Jacobians by their nonzeros
-    for (int j = 0; j < W; ++j) {
-      const double* Ak = A + prob[j] * szA + k * nx * nx;
-      const double* Bk = Bm + prob[j] * szB + k * nx * m;
-      h[j] = Ak[0 * nx + n];
-      for (int64_t i = 0; i < n; ++i) {
-        bq[i * W + j] = Bk[i * m + i];
-        bqd[i * W + j] = Bk[(n + i) * m + i];
-      }
-      for (int64_t a = 0; a < nx; ++a) bh[a * W + j] = Bk[a * m + n];
-    }
+    recursion(k);
     // PA = P A
     for (int64_t a = 0; a < nx; ++a) {
       for (int64_t b = 0; b < n; ++b)
@@ -219,16 +222,7 @@ void block(const Dims& D, const int64_t* lp, const int64_t* ls, int64_t cnt, con
         for (int64_t b = 0; b < nx; ++b)
           for (int j = 0; j < W; ++j) du[IX2(i, c, R1) + j] += Kk[IX2(i, b, nx) + j] * dx[IX2(b, c, R1) + j];
       }
-    for (int j = 0; j < W; ++j) {
-      const double* Ak = A + prob[j] * szA + k * nx * nx;
-      const double* Bk = Bm + prob[j] * szB + k * nx * m;
-      h[j] = Ak[0 * nx + n];
-      for (int64_t i = 0; i < n; ++i) {
-        bq[i * W + j] = Bk[i * m + i];
-        bqd[i * W + j] = Bk[(n + i) * m + i];
-      }
-      for (int64_t a = 0; a < nx; ++a) bh[a * W + j] = Bk[a * m + n];
-    }
+    recursion(k);
     for (int64_t c = 0; c < R1; ++c) {
       for (int64_t i = 0; i < n; ++i) {
         for (int j = 0; j < W; ++j)
