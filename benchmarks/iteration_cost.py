@@ -283,7 +283,8 @@ def _instructions(args) -> None:
     from jtraj import _kkt_native
 
     print(f"serial3, N = 20, {args.pairs} lanes, {args.warm} iterations in; instructions per problem "
-          f"and call (callgrind, {args.calls} calls); {_kkt_native.status()}")
+          f"and call (callgrind, {args.calls} calls); {_kkt_native.status()}, built for "
+          f"-march={env['JTRAJ_NATIVE_MARCH']} under valgrind")
     for name in IP_PIECES if args.method == "ip" else PIECES:
         if name in counts:
             print(f"  {name:13s} {counts[name] / args.calls / args.pairs:12,.0f}")

@@ -344,8 +344,9 @@ def _errors(nlp, st: IPState, g_lag, p: _Pieces, mu, parts=False):
 def _ladder_directions(model, shifts, terminal):
     """:func:`jtraj.lq.kkt_directions` for the shift ladder, of which the caller takes the
     least shifted positive definite one: by the native kernel where it is available
-    (:mod:`jtraj._kkt_native`: all shifts at once, one call for a batch), else by XLA
-    (:func:`_ladder_directions_xla`)."""
+    (:mod:`jtraj._kkt_native` in its ladder mode, the shifted systems only where the
+    unshifted one is not positive definite; one call for a batch), else by XLA
+    (:func:`_ladder_directions_xla`): the same choice, the same numbers up to rounding."""
     if _kkt_native.active(model.B.dtype, model.B.shape[-1] - 1, terminal.shape[-1]):
         return _kkt_native.kkt_directions(model, shifts, terminal, ladder=True)
     return _ladder_directions_xla(model, shifts, terminal)
@@ -353,8 +354,8 @@ def _ladder_directions(model, shifts, terminal):
 
 @jax.custom_batching.custom_vmap
 def _ladder_directions_xla(model, shifts, terminal):
-    """:func:`jtraj.lq.kkt_directions` for the shift ladder in XLA. For one problem the unshifted factorisation
-    comes first and the shifted ones only where it fails (a ``lax.cond``; their slots are
+    """:func:`jtraj.lq.kkt_directions` for the shift ladder in XLA. For one problem the
+    unshifted factorisation comes first and the shifted ones only where it fails (a ``lax.cond``; their slots are
     zeros and not positive definite otherwise): the same choice and the same numbers.
     Under vmap a ``cond`` would run both branches, so there all shifts are factorised at
     once (:func:`_ladder_directions_vmap`). Shift 0 is positive definite in about half
