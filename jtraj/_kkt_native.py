@@ -7,7 +7,7 @@ ip``). XLA compiles its per-stage 4x4 to 7x7 operations into many small loops, e
 scalar over a few elements. ``_native/kkt.cc`` computes the same recursion (the same
 operations in the same order, up to the summation order within a product: results
 agree to about 1e-12 relative) with the lanes (problem x shift) innermost in blocks of
-8 or 16, the dimensions fixed at compile time (1 to 7 joints), so that each operation is
+16 (8 or 4 for a small call), the dimensions fixed at compile time (1 to 7 joints), so that each operation is
 a few vector instructions over the lanes. The solver calls it in its ``ladder`` mode: the
 unshifted system for every problem first, the shifted ones only where that is not
 positive definite (about 40 % of the iterations on the benchmark family).

@@ -276,8 +276,9 @@ ffi::Error KktImpl(ffi::Buffer<ffi::F64> A, ffi::Buffer<ffi::F64> Bm, ffi::Buffe
       lp.push_back(b);
       ls.push_back(s);
     }
-  // blocks of 16 lanes, or 8 for a small call (one problem's 4 shifts: half the work wasted, not 3/4)
-  const int W = (ladder ? nb : nb * D.Ls) <= 8 ? 8 : 16;
+  // blocks of 16 lanes, or 8 or 4 for a small call (one problem: 1 lane, then at most 3)
+  const int64_t first = ladder ? nb : nb * D.Ls;
+  const int W = first <= 4 ? 4 : first <= 8 ? 8 : 16;
   // the gains of one block, kept between calls (a fresh vector of this size, ~140 kB,
   // was zeroed and, above malloc's mmap threshold, page-faulted in on every call)
   static thread_local std::vector<double> work;
@@ -293,13 +294,13 @@ ffi::Error KktImpl(ffi::Buffer<ffi::F64> A, ffi::Buffer<ffi::F64> Bm, ffi::Buffe
   };
   auto solve = [&]() -> bool {
     switch (D.n) {
-      case 1: W == 8 ? run(block<1, 3, 8>) : run(block<1, 3, 16>); break;
-      case 2: W == 8 ? run(block<2, 5, 8>) : run(block<2, 5, 16>); break;
-      case 3: W == 8 ? run(block<3, 7, 8>) : run(block<3, 7, 16>); break;
-      case 4: W == 8 ? run(block<4, 9, 8>) : run(block<4, 9, 16>); break;
-      case 5: W == 8 ? run(block<5, 11, 8>) : run(block<5, 11, 16>); break;
-      case 6: W == 8 ? run(block<6, 13, 8>) : run(block<6, 13, 16>); break;
-      case 7: W == 8 ? run(block<7, 15, 8>) : run(block<7, 15, 16>); break;
+      case 1: W == 4 ? run(block<1, 3, 4>) : W == 8 ? run(block<1, 3, 8>) : run(block<1, 3, 16>); break;
+      case 2: W == 4 ? run(block<2, 5, 4>) : W == 8 ? run(block<2, 5, 8>) : run(block<2, 5, 16>); break;
+      case 3: W == 4 ? run(block<3, 7, 4>) : W == 8 ? run(block<3, 7, 8>) : run(block<3, 7, 16>); break;
+      case 4: W == 4 ? run(block<4, 9, 4>) : W == 8 ? run(block<4, 9, 8>) : run(block<4, 9, 16>); break;
+      case 5: W == 4 ? run(block<5, 11, 4>) : W == 8 ? run(block<5, 11, 8>) : run(block<5, 11, 16>); break;
+      case 6: W == 4 ? run(block<6, 13, 4>) : W == 8 ? run(block<6, 13, 8>) : run(block<6, 13, 16>); break;
+      case 7: W == 4 ? run(block<7, 15, 4>) : W == 8 ? run(block<7, 15, 8>) : run(block<7, 15, 16>); break;
       default: return false;
     }
     return true;
