@@ -61,10 +61,8 @@ _state: dict = {}
 
 
 def _compiler() -> str | None:
-    for cand in (os.environ.get("CXX"), "g++", "c++"):
-        if cand and shutil.which(cand):
-            return shutil.which(cand)
-    return None
+    found = (shutil.which(c) for c in (os.environ.get("CXX"), "g++", "c++") if c)
+    return next((f for f in found if f), None)
 
 
 def _cpu_text() -> str:
