@@ -26,7 +26,9 @@ IPOPT (Waechter and Biegler 2006):
 A run ends as solved where the overall scaled error is within the tolerance, or where
 its dual, primal and complementarity parts are each within their own (:class:`Tolerances`:
 the solver stops at the barrier parameter ~2e-6 instead of going on to tol / 10; see
-``SolverOptions.ip_dual_tol``).
+``SolverOptions.ip_dual_tol``). Where only the residuals are still above theirs (within
+``Tolerances.project``), a closing step, unlike IPOPT, goes for feasibility at once
+(:data:`_PROJECT_SHIFT`).
 
 Everything is branch-free with fixed shapes: the loop is a bounded ``while_loop`` and a
 problem's iterations end with a status, so it vmaps. No restoration phase: a problem the
@@ -76,6 +78,21 @@ _MU0 = 0.1
 _STALL_THETA = 1.0  # the stall test applies above this violation (or above _INFEASIBLE_THETA at mu0)
 #: a stalled run with mu never lowered and theta above this is reported likely infeasible
 _INFEASIBLE_THETA = 0.1
+#: the closing step. Where the dual and complementarity errors are within their
+#: tolerances and the residuals within ``Tolerances.project`` (but not the strict
+#: ``primal``), the run is optimal to its tolerances but not yet feasible enough, and
+#: the normal iterations often wandered on for many more along the nearly flat cost (the
+#: barrier parameter falling, the reduced Hessian indefinite, the filter accepting
+#: steps that raised the violation 100x for a cost 1e-4 lower). A closing step instead
+#: keeps the barrier parameter, adds this shift to the Hessian's diagonal and takes the
+#: largest step the fraction-to-the-boundary rule allows, without the filter (multipliers
+#: as usual); the next iteration's test decides, at most _PROJECT_MAX per run, normal
+#: iterations otherwise. Shifts tried (96 benchmark pairs of seed 1, Newton iterations
+#: in all against 2,491 without; the same pairs solved): 0 2,291, 0.01 1,885, 0.1 1,699,
+#: 0.3 1,784, 1 1,859; 1 and 100 with the multipliers kept: 2,138 and more (the dual
+#: error rose 100x: they no longer match the moved point)
+_PROJECT_SHIFT = 0.1
+_PROJECT_MAX = 2
 
 
 class Tolerances(NamedTuple):
@@ -89,6 +106,7 @@ class Tolerances(NamedTuple):
     dual: float = 0.0
     primal: float = 0.0
     compl: float = 0.0
+    project: float = 0.0  # see _PROJECT_SHIFT
 
 
 class IPState(NamedTuple):
@@ -112,6 +130,7 @@ class IPState(NamedTuple):
     failed: Array
     stalled: Array  # the violation stopped shrinking (see _STALL_WINDOW)
     infeasible: Array  # ... at the first barrier parameter, far from feasible
+    projections: Array  # projection steps taken (see _PROJECT_SHIFT)
 
 
 def _flat(tree):
@@ -191,7 +210,8 @@ def init(nlp, z0, mu0=_MU0) -> IPState:
         filt=jnp.full((_FILTER, 2), jnp.inf, dt), fi=jnp.asarray(0),
         th_min=1e-4 * jnp.maximum(1.0, th0), th_max=1e4 * jnp.maximum(1.0, th0),
         delta=jnp.asarray(1.0, dt), th_ref=jnp.asarray(jnp.inf, dt), it=jnp.asarray(0), done=jnp.asarray(False),
-        failed=jnp.asarray(False), stalled=jnp.asarray(False), infeasible=jnp.asarray(False))
+        failed=jnp.asarray(False), stalled=jnp.asarray(False), infeasible=jnp.asarray(False),
+        projections=jnp.asarray(0))
 
 
 def _z_to_stages(v, N, n):
@@ -395,23 +415,27 @@ def step(nlp, st: IPState, tol) -> IPState:
     e_d, e_p, e_c = _errors(nlp, st, g_lag, p, 0.0, parts=True)  # g_lag: the Lagrangian's gradient
     converged = (jnp.maximum(jnp.maximum(e_d, e_p), e_c) <= tol) | (
         (e_d <= tols.dual) & (e_p <= tols.primal) & (e_c <= tols.compl))
+    project = ((e_d <= tols.dual) & (e_p <= tols.project) & (e_c <= tols.compl) & ~converged
+               & (st.projections < _PROJECT_MAX))
     # barrier update (up to two decreases per iteration), the filter reset with it
     mu, reset = st.mu, jnp.asarray(False)
     for _ in range(2):
         fall = (_errors(nlp, st, g_lag, p, mu) <= _KAPPA_EPS * mu) & (mu > tol / 10)
         mu = jnp.where(fall, jnp.maximum(tol / 10, jnp.minimum(_KAPPA_MU * mu, mu**_THETA_MU)), mu)
         reset = reset | fall
+    mu, reset = jnp.where(project, st.mu, mu), reset & ~project
     model = _with_rhs(nlp, st, model, Jg, dgT, p, mu)
     filt = jnp.where(reset, jnp.inf, st.filt)
     fi = jnp.where(reset, 0, st.fi)
     # Newton directions for a few shifts (at once in a batch); the least shifted positive
     # definite one
-    shifts = st.delta * jnp.asarray(_SHIFT_LADDER, dt)
+    shifts = st.delta * jnp.asarray(_SHIFT_LADDER, dt) + jnp.where(project, _PROJECT_SHIFT, 0.0)
     d, dX, ok = _ladder_directions(model, shifts, Ex.T)
     k = jnp.argmax(ok)
     any_pd = jnp.any(ok)
     # the next reference shift: the one taken (kept after an unshifted step), x 128 after none
     delta = jnp.clip(jnp.where(any_pd, jnp.where(k == 0, st.delta, shifts[k]), 128.0 * st.delta), *_DELTA_RANGE)
+    delta = jnp.where(project & any_pd, st.delta, delta)
     stuck = ~any_pd & (st.delta >= _DELTA_RANGE[1])
     d, dX = jnp.where(any_pd, d[..., k], 0.0), jnp.where(any_pd, dX[..., k], 0.0)  # (nz, 1 + 2n), (N+1, nx, 1 + 2n)
     dz, dlam, ds, dsT, dy, dyT, dzl, dzu = _direction(nlp, st, p, Jg, dgT, Ex, d, dX, mu, any_pd)
@@ -450,9 +474,10 @@ def step(nlp, st: IPState, tol) -> IPState:
     blocked = jnp.any((ths[:, None] >= filt[None, :, 0]) & (phs[:, None] >= filt[None, :, 1]), axis=1)
     accept = finite & (ths <= st.th_max) & ~blocked & jnp.where(f_type, armijo, suff) & any_pd
     j = jnp.argmax(accept)
-    moved = jnp.any(accept)
-    a = jnp.where(moved, alphas[j], 0.0)
-    add = moved & ~(f_type[j] & armijo[j])
+    leap = project & any_pd & finite[0]  # the projection step (alphas[0] is ap)
+    moved = jnp.where(project, leap, jnp.any(accept))
+    a = jnp.where(project, jnp.where(leap, ap, 0.0), jnp.where(moved, alphas[j], 0.0))
+    add = moved & ~(f_type[j] & armijo[j]) & ~project
     filt = jnp.where(add, filt.at[fi].set(jnp.stack([(1 - 1e-5) * th0, ph0 - 1e-8 * th0])), filt)
     fi = jnp.where(add, (fi + 1) % _FILTER, fi)
     ad = jnp.where(moved, ad, 0.0)
@@ -469,7 +494,8 @@ def step(nlp, st: IPState, tol) -> IPState:
         lam=st.lam + a * dlam, zl=jnp.where(has_lo, guard(st.zl + ad * dzl, dl1), 0.0),
         zu=jnp.where(has_hi, guard(st.zu + ad * dzu, du1), 0.0), mu=mu, filt=filt, fi=fi,
         th_min=st.th_min, th_max=st.th_max, delta=delta, th_ref=st.th_ref,
-        it=st.it + 1, done=st.done, failed=st.failed, stalled=st.stalled, infeasible=st.infeasible)
+        it=st.it + 1, done=st.done, failed=st.failed, stalled=st.stalled, infeasible=st.infeasible,
+        projections=st.projections + project)
     failed = ~(jnp.all(jnp.isfinite(new.z)) & jnp.all(jnp.isfinite(new.y)) & jnp.all(jnp.isfinite(new.lam)))
     new = new._replace(failed=failed)
     checkpoint = (st.it % _STALL_WINDOW == 0) & (st.it > 0)
