@@ -153,14 +153,7 @@ def program(name: str, fn: Callable, args: tuple, static: str,
     except (OSError, ValueError, EOFError, ImportError, pickle.UnpicklingError, TypeError, AttributeError):
         # missing (or unreadable: written by another version): export it now
         kept = {}
-
-        def flat(*arrays):
-            it = iter(arrays)
-            out = fn(*jax.tree.unflatten(tree, [next(it) if a else x for a, x in zip(is_array, fixed)]))
-            out_leaves, out_tree = jax.tree.flatten(out)
-            kept["skeleton"] = jax.tree.unflatten(out_tree, [_Slot() if eqx.is_array(x) else x for x in out_leaves])
-            return [x for x in out_leaves if eqx.is_array(x)]
-
+        flat = _flat(fn, tree, is_array, fixed, kept)
         # the native kernel's FFI call (jtraj._kkt_native) is registered by every process
         # whose key names it
         exported = jax.export.export(jax.jit(flat), disabled_checks=_NATIVE_CALLS)(
@@ -185,22 +178,65 @@ def program(name: str, fn: Callable, args: tuple, static: str,
             pass  # an unwritable cache: run it from memory
         exported = jax.export.deserialize(blob)
     compiled = jax.jit(exported.call, compiler_options=compiler_options)
-    out_leaves, out_tree = jax.tree.flatten(skeleton)
-    slots = [isinstance(x, _Slot) for x in out_leaves]
+    return _runner(compiled, is_array, lambda: skeleton)
 
-    def run(leaves):  # the arguments' leaves, as jax.tree.leaves(args) gives them
-        it = iter(compiled(*[x for x, a in zip(leaves, is_array) if a]))
+
+def _flat(fn, tree, is_array, fixed, kept):
+    """``fn`` as a function of its arguments' array leaves (the other leaves ``fixed``)
+    returning its output's array leaves; ``kept["skeleton"]``: the output with a
+    :class:`_Slot` for each array, set when it is traced."""
+    def flat(*arrays):
+        it = iter(arrays)
+        out = fn(*jax.tree.unflatten(tree, [next(it) if a else x for a, x in zip(is_array, fixed)]))
+        out_leaves, out_tree = jax.tree.flatten(out)
+        kept["skeleton"] = jax.tree.unflatten(out_tree, [_Slot() if eqx.is_array(x) else x for x in out_leaves])
+        return [x for x in out_leaves if eqx.is_array(x)]
+
+    return flat
+
+
+def _runner(compiled, is_array, skeleton):
+    """A callable of the arguments' leaves (as ``jax.tree.leaves(args)`` gives them)
+    running ``compiled`` on their arrays and returning the output rebuilt from
+    ``skeleton()`` (read at the first call, after ``compiled`` has traced)."""
+    layout = []
+
+    def run(leaves):
+        arrays = compiled(*[x for x, a in zip(leaves, is_array) if a])
+        if not layout:
+            out_leaves, out_tree = jax.tree.flatten(skeleton())
+            layout.append((out_tree, out_leaves, [isinstance(x, _Slot) for x in out_leaves]))
+        out_tree, out_leaves, slots = layout[0]
+        it = iter(arrays)
         return jax.tree.unflatten(out_tree, [next(it) if s else x for s, x in zip(slots, out_leaves)])
 
     return run
+
+
+def in_memory(fn: Callable, args: tuple, compiler_options: dict | None = None) -> Callable:
+    """``fn(*args)`` as :func:`program` gives it, traced and compiled in this process
+    only (a plain ``jax.jit`` of the array leaves, the other leaves fixed): for the
+    solver's entry points where the cache is off, one flattening and JAX's own dispatch
+    per call instead of ``eqx.filter_jit``'s partitioning of the arguments and the
+    output (one warm ``jtraj.solve`` of serial3 at N = 20, pinned to one core: about
+    0.2 of 3-5 ms)."""
+    leaves, tree = jax.tree.flatten(args)
+    is_array = [eqx.is_array(x) for x in leaves]
+    fixed = [None if a else x for x, a in zip(leaves, is_array)]
+    kept = {}
+    compiled = jax.jit(_flat(fn, tree, is_array, fixed, kept), compiler_options=compiler_options)
+    return _runner(compiled, is_array, lambda: kept["skeleton"])
 
 
 def cached(name: str, fn: Callable, static: str, compiler_options: dict | None = None,
            fallback: Callable | None = None) -> Callable:
     """``fn`` as a callable that takes each argument signature's program from
     :func:`program` (after the first call: one flattening and one dictionary lookup), or
-    calls ``fallback`` (default ``eqx.filter_jit(fn)``: the same treatment of non-array
-    leaves, as static values) where the cache is off or has no key."""
+    where the cache is off or has no key calls ``fallback``, or without one
+    :func:`in_memory`'s program (the same treatment of non-array leaves as
+    ``eqx.filter_jit``: static values). Called inside another trace it calls ``fallback``
+    (default ``eqx.filter_jit(fn)``)."""
+    lean = fallback is None
     if fallback is None:
         fallback = eqx.filter_jit(fn, compiler_options=compiler_options)
     loaded: dict[Any, Callable | None] = {}
@@ -211,7 +247,10 @@ def cached(name: str, fn: Callable, static: str, compiler_options: dict | None =
         traced = any(isinstance(x, jax.core.Tracer) for x in leaves)
         sig = (tree, tuple(map(_sig, leaves)), traced)
         if sig not in loaded:
-            loaded[sig] = None if traced else program(name, fn, args, static, compiler_options)
+            run = None if traced else program(name, fn, args, static, compiler_options)
+            if run is None and lean and not traced:
+                run = in_memory(fn, args, compiler_options)
+            loaded[sig] = run
         run = loaded[sig]
         if run is None:
             return fallback(*args)

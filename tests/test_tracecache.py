@@ -164,3 +164,37 @@ def test_without_flatbuffers_the_program_is_traced(cache_dir, monkeypatch):
     monkeypatch.setattr(jax.export.Exported, "serialize", no_flatbuffers)
     assert _tracecache.program("f", lambda x: 2 * x, (jnp.ones(2),), "s") is None
     np.testing.assert_array_equal(_tracecache.cached("f", lambda x: 2 * x, "s")(jnp.ones(2)), [2.0, 2.0])
+
+
+def test_with_the_cache_off_a_program_runs_from_memory_as_eqx_filter_jit_would(monkeypatch):
+    """Where the cache is off (or has no key) and no fallback is given, ``cached`` runs an
+    in-memory program of the array leaves (:func:`_tracecache.in_memory`): traced once
+    per signature, the non-array leaves of arguments and output passed through, the same
+    numbers as ``eqx.filter_jit``. A fallback, or a call inside another trace, goes to
+    it instead."""
+    monkeypatch.setenv("JTRAJ_TRACE_CACHE", "0")
+    traces = []
+
+    def fn(x, iters, label):
+        traces.append(label)
+        y, aux = _newton_sqrt(x, iters)
+        return y, {**aux, "label": label}
+
+    wrapped = _tracecache.cached("sqrt", fn, "test")
+    args = (jnp.asarray(2.0), jnp.asarray(7), "a")
+    out = wrapped(*args)
+    again = wrapped(jnp.asarray(5.0), jnp.asarray(7), "a")
+    assert traces == ["a"]  # one trace for the signature
+    assert out[1]["label"] == "a" and isinstance(out[1]["label"], str)
+    ref = eqx.filter_jit(fn)(*args)
+    for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(ref)):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(again[0], jax.jit(_newton_sqrt)(jnp.asarray(5.0), 7)[0])
+    wrapped(jnp.asarray(2.0), jnp.asarray(7), "b")  # another static value: another program
+    assert traces[-1] == "b"
+    calls = []
+    with_fallback = _tracecache.cached("sqrt", fn, "test", fallback=lambda *a: calls.append(a) or "fallback")
+    assert with_fallback(*args) == "fallback" and len(calls) == 1
+    # inside another trace: the default fallback (eqx.filter_jit), which traces into it
+    inner = jax.jit(lambda x: wrapped(x, jnp.asarray(7), "a")[0])(jnp.asarray(2.0))
+    np.testing.assert_array_equal(inner, out[0])
