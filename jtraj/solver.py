@@ -1925,13 +1925,18 @@ def _lane_counts(slots: int) -> list[int]:
 
 
 def _cpu_lanes(nz: int) -> int:
-    """The default lane count on a CPU for problems of about ``nz`` unknowns: 8 at
-    serial3's N = 20 (nz = 80), fewer for larger problems, at least 4. Above a dozen lanes
-    at N = 20 each lane costs more (the working set outgrows the core's cache), and the
-    threshold falls as N grows. Measured on one core (2026-11-29, benchmark pairs, T <= 2
-    s): N = 40, 64 pairs: 2 / 4 / 8 lanes 10.14 / 10.12 / 12.99 s; N = 80, 32 pairs:
-    16.11 / 14.86 / 17.71 s (see :func:`solve_batch` for N = 20)."""
-    return int(min(8, max(4, 640 // max(nz, 1))))
+    """The default lane count on a CPU for problems of about ``nz`` unknowns: 16 at
+    serial3's N = 20 (nz = 80), fewer for larger problems (8 at N = 40), at least 4.
+    Beyond that each lane costs more (the working set outgrows the core's cache), and the
+    threshold falls as N grows. Measured on one core with the interior-point method and
+    its native KKT kernel (2026-12-04, warm, interleaved in one process, best / median of
+    6-8): N = 20, 256 benchmark pairs of seed 1, 8 / 12 / 16 / 24 / 32 lanes 0.813 /
+    0.807 / 0.773 / 0.868 / 0.876 s and 0.862 / 0.834 / 0.801 / 0.916 / 0.907 s; 256
+    dataset-family pairs 8 / 12 / 16 lanes 1.364 / 1.415 / 1.307 and 1.517 / 1.471 / 1.400
+    s; N = 40 (h_max 0.05 s), 64 pairs, 4 / 8 lanes 1.010 / 1.056 and 1.157 / 1.187 s.
+    With the AL loop (2026-11-29): N = 40, 64 pairs, 2 / 4 / 8 lanes 10.14 / 10.12 / 12.99
+    s; N = 80, 32 pairs: 16.11 / 14.86 / 17.71 s (then 8 at N = 20)."""
+    return int(min(16, max(4, 1280 // max(nz, 1))))
 
 
 def _solve_compacted(problems, opts, transcription, init, warm, slots: int, steps: int):
