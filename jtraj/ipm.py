@@ -130,7 +130,7 @@ class IPState(NamedTuple):
     failed: Array
     stalled: Array  # the violation stopped shrinking (see _STALL_WINDOW)
     infeasible: Array  # ... at the first barrier parameter, far from feasible
-    projections: Array  # projection steps taken (see _PROJECT_SHIFT)
+    projections: Array  # closing steps taken (see _PROJECT_SHIFT)
 
 
 def _flat(tree):
@@ -474,7 +474,7 @@ def step(nlp, st: IPState, tol) -> IPState:
     blocked = jnp.any((ths[:, None] >= filt[None, :, 0]) & (phs[:, None] >= filt[None, :, 1]), axis=1)
     accept = finite & (ths <= st.th_max) & ~blocked & jnp.where(f_type, armijo, suff) & any_pd
     j = jnp.argmax(accept)
-    leap = project & any_pd & finite[0]  # the projection step (alphas[0] is ap)
+    leap = project & any_pd & finite[0]  # the closing step (alphas[0] is ap)
     moved = jnp.where(project, leap, jnp.any(accept))
     a = jnp.where(project, jnp.where(leap, ap, 0.0), jnp.where(moved, alphas[j], 0.0))
     add = moved & ~(f_type[j] & armijo[j]) & ~project
