@@ -14,15 +14,16 @@ paths its problems take (the AL loop for the few the interior-point method leave
 restart, the narrower lanes of the stragglers), and with one warm-up chunk per worker a
 later chunk's compilation (16.7 s for the AL loop's programs, one core) fell inside the
 timed part (thirty-sixth session, ``--batches 256 --chunks 24``: 211.70 pairs/s that
-way, 246.99 with the whole first build untimed). The second build: first one chunk per worker process (worker start-up,
-programs loaded from the cache: ``first_chunk_s``), then the remaining ``--chunks``
-chunks by *resuming* the same dataset (new worker processes: their start-up included;
-by default about 2048 pairs, so that it weighs little); the resumed part gives the
-steady-state pairs/s, end to end including sampling and storage. jtraj runs ``--workers`` pinned worker
-processes (default one per core, as ``jtraj dataset``). The IPOPT peer
-(:func:`benchmarks.peers.ipopt_peer.solve_many`, one process per core, NLP built once
-per process) solves the first ``--ipopt-pairs`` pairs of the same dataset; its pairs/s is
-the solve phase (pool start and NLP builds excluded, which favours IPOPT).
+way, 246.99 with the whole first build untimed). The second build: first one chunk per
+worker process (worker start-up, programs loaded from the cache: ``first_chunk_s``),
+then the remaining ``--chunks`` chunks by *resuming* the same dataset (new worker
+processes: their start-up included; by default about 2048 pairs, so that it weighs
+little); the resumed part gives the steady-state pairs/s, end to end including sampling
+and storage. jtraj runs ``--workers`` pinned worker processes (default one per core, as
+``jtraj dataset``). The IPOPT peer (:func:`benchmarks.peers.ipopt_peer.solve_many`, one
+process per core, NLP built once per process) solves the first ``--ipopt-pairs`` pairs
+of the same dataset; its pairs/s is the solve phase (pool start and NLP builds excluded,
+which favours IPOPT).
 
 Projected CPU-hours for a million pairs = 1e6 / (pairs/s) / 3600 x cores used (JAX uses
 all cores, one worker process per core; the peer one process per core).

@@ -229,14 +229,13 @@ def in_memory(fn: Callable, args: tuple, compiler_options: dict | None = None) -
 
 
 def cached(name: str, fn: Callable, static: str, compiler_options: dict | None = None,
-           fallback: Callable | None = None) -> Callable:
+           fallback: Callable | None = None, lean: bool = False) -> Callable:
     """``fn`` as a callable that takes each argument signature's program from
     :func:`program` (after the first call: one flattening and one dictionary lookup), or
-    where the cache is off or has no key calls ``fallback``, or without one
-    :func:`in_memory`'s program (the same treatment of non-array leaves as
-    ``eqx.filter_jit``: static values). Called inside another trace it calls ``fallback``
-    (default ``eqx.filter_jit(fn)``)."""
-    lean = fallback is None
+    where the cache is off or has no key calls ``fallback`` (default
+    ``eqx.filter_jit(fn)``: the same treatment of non-array leaves, as static values);
+    with ``lean``, :func:`in_memory`'s program there instead. Called inside another
+    trace it always calls ``fallback``."""
     if fallback is None:
         fallback = eqx.filter_jit(fn, compiler_options=compiler_options)
     loaded: dict[Any, Callable | None] = {}

@@ -536,7 +536,7 @@ def _options_jit():
         def kept():
             # the solver's programs kept across processes (jtraj._tracecache), on a CPU
             return _tracecache.cached(fn.__qualname__, unsplit, f"{fn.__module__}.{fn.__qualname__}",
-                                      supported_options(SOLVER_XLA_OPTIONS))
+                                      supported_options(SOLVER_XLA_OPTIONS), fallback=inner, lean=True)
 
         @functools.wraps(fn)
         def call(*args):

@@ -167,11 +167,11 @@ def test_without_flatbuffers_the_program_is_traced(cache_dir, monkeypatch):
 
 
 def test_with_the_cache_off_a_program_runs_from_memory_as_eqx_filter_jit_would(monkeypatch):
-    """Where the cache is off (or has no key) and no fallback is given, ``cached`` runs an
-    in-memory program of the array leaves (:func:`_tracecache.in_memory`): traced once
-    per signature, the non-array leaves of arguments and output passed through, the same
-    numbers as ``eqx.filter_jit``. A fallback, or a call inside another trace, goes to
-    it instead."""
+    """Where the cache is off (or has no key), ``cached(..., lean=True)`` (the solver's
+    entry points) runs an in-memory program of the array leaves
+    (:func:`_tracecache.in_memory`): traced once per signature, the non-array leaves of
+    arguments and output passed through, the same numbers as ``eqx.filter_jit``. Without
+    ``lean``, or inside another trace, the fallback runs instead."""
     monkeypatch.setenv("JTRAJ_TRACE_CACHE", "0")
     traces = []
 
@@ -180,7 +180,7 @@ def test_with_the_cache_off_a_program_runs_from_memory_as_eqx_filter_jit_would(m
         y, aux = _newton_sqrt(x, iters)
         return y, {**aux, "label": label}
 
-    wrapped = _tracecache.cached("sqrt", fn, "test")
+    wrapped = _tracecache.cached("sqrt", fn, "test", lean=True)
     args = (jnp.asarray(2.0), jnp.asarray(7), "a")
     out = wrapped(*args)
     again = wrapped(jnp.asarray(5.0), jnp.asarray(7), "a")
