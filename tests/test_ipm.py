@@ -227,16 +227,18 @@ def test_closing_step_ends_the_wandering_near_the_optimum():
     runs 57 iterations, wandering on along a nearly flat cost. With it: converged, fewer
     iterations (at most half for the second), feasible to half ``verify_tol`` without a
     polish, re-simulated by the independent verifier, the cost within 1e-3 of IPOPT's and
-    of the run without the step."""
+    of the run without the step (the damping shift off in both)."""
     from peers.pairs import benchmark_pairs
 
     q0, q1 = benchmark_pairs(32, seed=3)
     pick = [0, 21]
     q0, q1 = q0[pick], q0[pick] + 0.5 * (q1[pick] - q0[pick])
     robot = jtraj.robots.get("serial3")
-    sol = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=IP, slots=2)
-    off = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=SolverOptions(method="ip", ip_project_tol=0.0),
-                            slots=2)
+    # the damping shift (test below) also ends that wandering (17 iterations for both
+    # pairs without the step): off in both runs here
+    sol = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, options=SolverOptions(method="ip", ip_damping=0.0), slots=2)
+    off = jtraj.solve_batch(robot, q0, q1, N=N, weights=W,
+                            options=SolverOptions(method="ip", ip_project_tol=0.0, ip_damping=0.0), slots=2)
     assert np.all(np.asarray(sol.converged)) and np.all(np.asarray(off.converged))
     its, its_off = np.asarray(sol.iterations), np.asarray(off.iterations)
     assert np.all(its < its_off) and 2 * its[1] <= its_off[1], (its, its_off)
@@ -246,6 +248,39 @@ def test_closing_step_ends_the_wandering_near_the_optimum():
     assert ref * (1 - 1e-3) <= float(sol.cost[1]) <= ref * (1 + 1e-3)
     with pytest.raises(ValueError, match="ip_project_tol"):
         SolverOptions(ip_project_tol=float("nan"))
+
+
+def test_damping_ends_the_short_steps_along_a_flat_cost():
+    """Two dataset-family problems (serial3 with h_max = 0.2 s, pairs 49 and 78 of seed 0,
+    N = 20) where, without the damping shift (``ip_damping=0``), a nearly flat direction
+    of the cost made the Newton step long late in the run, the violation rose 10x at its
+    full length and the line search took a few % of it for tens of iterations (75 and
+    110 iterations). With the default damping: converged, at most half the iterations,
+    each trajectory re-simulated by the independent verifier and its cost within 1e-3 of
+    IPOPT's (and of the undamped run's)."""
+    V = pytest.importorskip("peers.verify")
+    P = pytest.importorskip("peers.ipopt_peer")
+    from jtraj.dataset import sampling
+
+    robot = jtraj.robots.get("serial3", h_max=0.2)
+    q0, q1 = sampling.sample_pairs(robot, sampling.Distribution(), 0, 0, 80)
+    q0, q1 = q0[[49, 78]], q1[[49, 78]]
+    sol = jtraj.solve_batch(robot, q0, q1, N=20, weights=W, options=IP, slots=2)
+    off = jtraj.solve_batch(robot, q0, q1, N=20, weights=W, options=SolverOptions(method="ip", ip_damping=0.0),
+                            slots=2)
+    assert np.all(np.asarray(sol.converged)) and np.all(np.asarray(off.converged))
+    its, its_off = np.asarray(sol.iterations), np.asarray(off.iterations)
+    assert np.all(2 * its <= its_off) and np.all(its_off >= 60), (its, its_off)
+    np.testing.assert_allclose(np.asarray(sol.cost), np.asarray(off.cost), rtol=1e-3)
+    for i in range(2):
+        chk = V.verify(q0[i], q1[i], np.asarray(sol.v[i]), np.asarray(sol.h[i]), h_max=0.2, tol=1e-6)
+        assert chk["ok"] and chk["goal_error"] <= 1e-6, (chk["max_rel_violation"], chk["goal_error"])
+        assert chk["cost"] == pytest.approx(float(sol.cost[i]), rel=1e-9)
+        ref = P.solve_pair(q0[i], q1[i], N=20, h_max=0.2)
+        assert ref["success"]
+        assert ref["cost"] * (1 - 1e-3) <= float(sol.cost[i]) <= ref["cost"] * (1 + 1e-3)
+    with pytest.raises(ValueError, match="ip_damping"):
+        SolverOptions(ip_damping=-1.0)
 
 
 def test_ip_run_cut_short_hands_over_to_the_al_loop(batch):
