@@ -11,7 +11,8 @@ U(-1.2, 1.2)^3, q_goal = q_start + U(-0.8, 0.8)^3 (``peers.ipopt_peer.benchmark_
 Both solvers see the same pairs in the same run. Every trajectory either side calls a
 success is re-simulated from its own (v, h) by the independent NumPy + Pinocchio
 verifier (tolerance 1e-6). Printed: verified success rates, false "converged" counts,
-cost gaps where both succeed, warm single-solve latency (median over pairs), batch
+cost gaps where both succeed, warm single-solve latency (median over pairs, best of 3
+per pair, both solvers in one process pinned to one core, alternating), batch
 throughput on all cores (IPOPT: one process per core; jtraj: vmapped batches, one
 process pinned to each core, ``--workers``), compile time, and, with ``--scaling``,
 time per problem against N = 10..80 for both solvers on all cores (T <= 2 s throughout)
@@ -138,14 +139,19 @@ def _jtraj_batch(q0, q1, N, B, weights, workers=1, options=None, h_max=None):
     return res
 
 
-def _jtraj_single_latency(q0, q1, N, weights, repeats=3, options=None):
-    """Warm single-solve times (best of ``repeats`` per pair) and the first call's time.
-    Run by :func:`_pinned_single_latency` in a process pinned to one core, like an IPOPT
-    solve (one problem runs faster there, see ``jtraj._cpu``)."""
+def _single_latencies(q0, q1, N, weights, repeats=3, options=None, formulation="lifted", starts=None):
+    """Warm single-solve times of both solvers (best of ``repeats`` per pair, each) and
+    jtraj's first call's time: (jtraj (L,), IPOPT (L,), compile s). Run by
+    :func:`_pinned_single_latency` in one process pinned to one core, like an IPOPT solve
+    (one problem runs faster there, see ``jtraj._cpu``), the two solvers alternating pair
+    by pair: measured apart (IPOPT in the unpinned main process afterwards), a core's
+    noise of the minute fell on one side only (2026-12-04: the same jtraj solves 4.0 and
+    7.6 ms in two processes pinned to core 0 one minute apart; core 1 was quieter)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import jtraj
+    from peers.ipopt_peer import solve_pair
 
     robot = jtraj.robots.get("serial3")
     weights = jtraj.Weights(**weights)
@@ -154,22 +160,25 @@ def _jtraj_single_latency(q0, q1, N, weights, repeats=3, options=None):
     t0 = time.perf_counter()
     jax.block_until_ready(jtraj.solve(problems[0], options=opts).status)
     compile_s = time.perf_counter() - t0
-    times = []
-    for p in problems:
+    solve_pair(q0[0], q1[0], N=N, formulation=formulation, init=None if starts is None else starts[0])  # its build
+    ours, peer = [], []
+    for i, p in enumerate(problems):
         best = np.inf
         for _ in range(repeats):
             t0 = time.perf_counter()
             jax.block_until_ready(jtraj.solve(p, options=opts).status)
             best = min(best, time.perf_counter() - t0)
-        times.append(best)
-    return np.array(times), compile_s
+        ours.append(best)
+        peer.append(min(solve_pair(q0[i], q1[i], N=N, formulation=formulation,
+                                   init=None if starts is None else starts[i])["seconds"] for _ in range(repeats)))
+    return np.array(ours), np.array(peer), compile_s
 
 
-def _pinned_single_latency(q0, q1, N, weights, options=None):
+def _pinned_single_latency(q0, q1, N, weights, options=None, formulation="lifted", starts=None):
     from jtraj.dataset._local import worker_pool
 
     with worker_pool(1) as pool:  # a spawned process pinned to one core before JAX starts
-        return pool.submit(_jtraj_single_latency, q0, q1, N, weights, 3, options).result()
+        return pool.submit(_single_latencies, q0, q1, N, weights, 3, options, formulation, starts).result()
 
 
 #: the scaling study (``--scaling``): numbers of samples, and batch sizes in one process
@@ -331,7 +340,7 @@ def main(argv=None):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from peers.ipopt_peer import benchmark_pairs, solve_many, solve_pair
+    from peers.ipopt_peer import benchmark_pairs, solve_many
     from peers.verify import verify
 
     q0, q1 = benchmark_pairs(args.pairs, args.seed)
@@ -363,10 +372,8 @@ def main(argv=None):
     gap = (jt["cost"] - ip_cost) / ip_cost
 
     L = min(args.latency_pairs, args.pairs)
-    lat, compile_single = _pinned_single_latency(q0[:L], q1[:L], args.N, WEIGHTS, opts)
-    ip_lat = np.array([solve_pair(a, b, N=args.N, formulation=args.peer_formulation,
-                                  init=None if starts is None else starts[i])["seconds"]
-                       for i, (a, b) in enumerate(zip(q0[:L], q1[:L]))])
+    lat, ip_lat, compile_single = _pinned_single_latency(q0[:L], q1[:L], args.N, WEIGHTS, opts,
+                                                         args.peer_formulation, None if starts is None else starts[:L])
 
     report = {
         "pairs": args.pairs, "N": args.N, "batch": args.batch, "jtraj_workers": args.workers,
