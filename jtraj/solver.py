@@ -354,11 +354,11 @@ class SolverOptions(eqx.Module):
             after each full step; ``jtraj.ipm._DAMP_FLOOR``). 0 switches it off. Why:
             late in a run a nearly flat direction of the cost made the Newton step long,
             the constraints' curvature raised the violation 10x at its full length, and
-            the line search took 3 % of it for tens of iterations. One core, warm,
-            interleaved: the dataset family (256 pairs of seed 0) 7,045 instead of 8,132
+            the line search took 3 % of it for tens of iterations. ``solve_batch`` in
+            one process: the dataset family (256 pairs of seed 0) 7,045 instead of 8,132
             Newton iterations (the longest run 73 instead of 381: none left to the AL
-            loop), bench_solver's 256 pairs of seed 1 4,549 instead of 4,750; the same
-            pairs converged.
+            loop; 1.14-1.19 instead of 1.39-1.42 s on one core), bench_solver's 256
+            pairs of seed 1 4,549 instead of 4,750; the same pairs converged.
         kink_margin, kink_after: from the ``kink_after``-th Newton iteration of an AL
             subproblem on, its Newton model adds the penalty's curvature ``mu grad g grad
             g^T`` of the inequalities just short of their PHR kink
