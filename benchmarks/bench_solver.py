@@ -160,7 +160,12 @@ def _single_latencies(q0, q1, N, weights, repeats=3, options=None, formulation="
     t0 = time.perf_counter()
     jax.block_until_ready(jtraj.solve(problems[0], options=opts).status)
     compile_s = time.perf_counter() - t0
-    solve_pair(q0[0], q1[0], N=N, formulation=formulation, init=None if starts is None else starts[0])  # its build
+
+    def peer_seconds(i):
+        return solve_pair(q0[i], q1[i], N=N, formulation=formulation,
+                          init=None if starts is None else starts[i])["seconds"]
+
+    peer_seconds(0)  # the peer's NLP build
     ours, peer = [], []
     for i, p in enumerate(problems):
         best = np.inf
@@ -169,8 +174,7 @@ def _single_latencies(q0, q1, N, weights, repeats=3, options=None, formulation="
             jax.block_until_ready(jtraj.solve(p, options=opts).status)
             best = min(best, time.perf_counter() - t0)
         ours.append(best)
-        peer.append(min(solve_pair(q0[i], q1[i], N=N, formulation=formulation,
-                                   init=None if starts is None else starts[i])["seconds"] for _ in range(repeats)))
+        peer.append(min(peer_seconds(i) for _ in range(repeats)))
     return np.array(ours), np.array(peer), compile_s
 
 

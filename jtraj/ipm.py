@@ -501,8 +501,10 @@ def step(nlp, st: IPState, tol) -> IPState:
     filt = jnp.where(add, filt.at[fi].set(jnp.stack([(1 - 1e-5) * th0, ph0 - 1e-8 * th0])), filt)
     fi = jnp.where(add, (fi + 1) % _FILTER, fi)
     ad = jnp.where(moved, ad, 0.0)
-    damping = jnp.where(moved & ~project & (j >= _DAMP_CUT), jnp.maximum(_DAMP_UP * st.damping, tols.damping),
-                        jnp.where(moved & (j == 0), st.damping / _DAMP_DOWN, st.damping))
+    # the damping shift (_DAMP_FLOOR): up after a short step, down after a full one
+    cut_short, full = moved & ~project & (j >= _DAMP_CUT), moved & (j == 0)
+    damping = jnp.where(cut_short, jnp.maximum(_DAMP_UP * st.damping, tols.damping),
+                        jnp.where(full, st.damping / _DAMP_DOWN, st.damping))
     damping = jnp.where(damping < tols.damping / 2, 0.0, jnp.minimum(damping, _DELTA_RANGE[1]))
     z1, s1, sT1 = st.z + a * dz, st.s + a * ds, st.sT + a * dsT
     # IPOPT's safeguard keeps each bound multiplier within a factor 1e10 of mu / slack
