@@ -12,6 +12,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
 from .._checks import as_vector
@@ -125,8 +126,9 @@ def serial_planar(lengths, masses, inertias, *, com=None, gravity: float = 0.0,
         raise ValueError("lengths must have at least one link")
     masses = as_vector(masses, "masses", n, positive=True)
     inertias = as_vector(inertias, "inertias", n, nonnegative=True)
-    com = lengths / 2 if com is None else as_vector(com, "com", n, nonnegative=True)
-    if bool(jnp.any(com > lengths)):
+    # (checked on the host: no programs dispatched for a robot's construction)
+    com = jnp.asarray(np.asarray(lengths) / 2) if com is None else as_vector(com, "com", n, nonnegative=True)
+    if (np.asarray(com) > np.asarray(lengths)).any():
         raise ValueError(f"com must lie on the link (0 <= com <= lengths), got {com}")
     if limits is None:
         limits = Limits.make(n)
