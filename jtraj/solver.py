@@ -2014,11 +2014,11 @@ def _ip_merge_jit(nlps, states, ips):
 
 def _solve_batch_ip(problems, opts, transcription, init, warm, slots: int, steps: int):
     """``solve_batch`` with ``method="ip"``: the interior-point method on every problem
-    through ``slots`` lanes (:func:`_run_lanes`), then the AL loop on the problems it left
-    unsolved (the same lanes), then the finish."""
+    through ``slots`` lanes (:func:`_run_pool`), then the AL loop on the problems it left
+    unsolved (the same lanes, :func:`_run_lanes`), then the finish."""
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
     ips = _ip_init_batch_jit(nlps, states, opts)
-    ips = _run_lanes(nlps, ips, np.flatnonzero(~np.asarray(ips.done)), opts, slots, steps, kind="ip")
+    ips = _run_pool(nlps, ips, np.flatnonzero(~np.asarray(ips.done)), opts, slots)
     states, solved = _ip_merge_jit(nlps, states, ips)
     solved = np.asarray(solved)
     todo = np.flatnonzero(~solved & ~np.asarray(states.done) & np.asarray(valid))
@@ -2033,7 +2033,53 @@ def _add_ip_iterations(iterations, solved, ip_iterations):
     return iterations + jnp.where(solved, 0, ip_iterations)
 
 
-def _run_lanes(nlps, states, todo, opts, slots: int, steps: int, kind: str = "al"):
+def _run_pool(nlps, states, todo, opts, slots: int):
+    """The interior-point method on the problems ``todo`` (indices into the batch) through
+    ``slots`` vmapped lanes, refilled inside one compiled loop (``_LanePrograms.pool``);
+    returns the states.
+
+    A lane whose problem finishes takes the next pending one at once, in the same loop:
+    the AL loop's segments (:func:`_run_lanes`) hand lanes over only between segments of
+    ``segment`` iterations, and a problem finishing within one left its lane idle for the
+    rest of it, about half a segment per problem (serial3, N = 20, 16 lanes: a
+    simulation of the segments on the measured iteration counts put the lane-iterations
+    run at 1.19x the useful ones on the dataset family and 1.29x on bench_solver's
+    pairs, where a problem takes 27 and 18 iterations). Once nothing is pending and at most
+    the next smaller lane count (:func:`_lane_counts`) of problems is left, the loop
+    returns and the rest goes on through that many lanes."""
+    B = todo.size
+    if B == 0:
+        return states
+    counts = _lane_counts(slots)
+    while len(counts) > 1 and counts[1] >= B:  # few problems: fewer lanes
+        counts = counts[1:]
+    progs = _lane_programs(_packing.packing(nlps), _packing.packing(states), 0, jax.default_backend())
+    split = _split_options(opts)
+    total = int(jax.tree.leaves(states)[0].shape[0])
+    # the batch padded to a power of two, at least 64 (the pool takes it whole: one
+    # program per lane count and size, not per batch size)
+    size = max(_POOL_MIN, counts[0], 1 << (total - 1).bit_length())
+    all_nlps, all_states = progs.pack(_packing.arrays(nlps), _packing.arrays(states), size)
+    queue = todo
+    for i, lanes in enumerate(counts):
+        q = np.zeros(size, np.int64)  # the queue (problem indices), padded
+        q[:queue.size] = queue
+        first = np.zeros(lanes, np.int64)
+        first[:min(lanes, queue.size)] = queue[:lanes]
+        stop_at = counts[i + 1] if i + 1 < len(counts) else 0
+        all_states, lane_ids, open_ = progs.pool(all_nlps, all_states, q, np.asarray(queue.size), first,
+                                                 np.arange(lanes) < queue.size, np.asarray(stop_at), split)
+        queue = np.asarray(lane_ids)[np.asarray(open_)]
+        if queue.size == 0:
+            break
+    return _packing.from_arrays(progs.unpack(all_states, total), progs.states)
+
+
+#: the smallest batch size the interior-point pool's programs are compiled for (see _run_pool)
+_POOL_MIN = 64
+
+
+def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
     """Run the problems ``todo`` (indices into the batch) to the end of their loop through
     ``slots`` vmapped lanes (see :func:`_solve_compacted`); returns the states.
 
@@ -2057,9 +2103,9 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int, kind: str = "al
     done = np.zeros(B, bool)
     if todo.size == 0:
         return states
-    progs = _lane_programs(_packing.packing(nlps), _packing.packing(states), steps, jax.default_backend(), kind)
+    progs = _lane_programs(_packing.packing(nlps), _packing.packing(states), steps, jax.default_backend())
     split = _split_options(opts)
-    all_nlps, all_states = progs.pack(_packing.arrays(nlps), _packing.arrays(states))
+    all_nlps, all_states = progs.pack(_packing.arrays(nlps), _packing.arrays(states), None)
     lanes = todo[idx]  # NumPy index arrays: the compiled calls take them without jnp's dispatch
     sub_nlps, sub_states = progs.take(all_nlps, all_states, lanes)
     while True:
@@ -2092,22 +2138,28 @@ class _LanePrograms(NamedTuple):
     """The compiled programs of :func:`_run_lanes` on packed batches (tuples of
     ``(B, width)`` arrays, see :mod:`jtraj._packing`)."""
 
-    pack: Any  # (nlps' arrays, states' arrays) -> packed nlps, packed states
+    pack: Any  # (nlps' arrays, states' arrays, rows or None) -> packed nlps, packed states (padded to rows)
     take: Any  # (nlps, states, lanes) -> the lanes' nlps and states
     segment: Any  # (lane nlps, lane states, split options) -> (lane states, finished, to restart)
     restart: Any  # (lane nlps, lane states, which, split options) -> (lane states, finished)
     exchange: Any  # (nlps, states, lane states, lanes, next lanes) -> lanes written back, next taken
     result: Any  # (states, lane states, lanes) -> the states' arrays, lanes written back (_packing.from_arrays)
+    pool: Any  # (nlps, states, queue, count, lanes, live, stop_at, split options) -> (states, lanes, unfinished)
+    unpack: Any  # (states, rows) -> the first rows' states' arrays (_packing.from_arrays)
     states: _packing.Packing  # how the states are packed
 
 
+def _pad_rows(packed: tuple, rows: int | None) -> tuple:
+    """Packed arrays with rows of zeros added up to ``rows`` (None: as they are)."""
+    return packed if rows is None else tuple(jnp.pad(a, ((0, rows - a.shape[0]), (0, 0))) for a in packed)
+
+
 @functools.lru_cache(maxsize=32)
-def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backend: str,
-                   kind: str = "al") -> _LanePrograms:
-    """The programs for problems packed as ``pn`` and states as ``ps`` (``kind``: "al"
-    for the AL loop's states, "ip" for the interior-point method's, which never restart) (plain ``jax.jit``
-    on packed arrays: no pytree partitioning per call), compiled with the solver's XLA
-    options on a CPU (see :mod:`jtraj._compile`)."""
+def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backend: str) -> _LanePrograms:
+    """The programs for problems packed as ``pn`` and states as ``ps`` (the AL loop's
+    states for ``segment`` and ``restart``, the interior-point method's for ``pool``;
+    plain ``jax.jit`` on packed arrays: no pytree partitioning per call), compiled with
+    the solver's XLA options on a CPU (see :mod:`jtraj._compile`)."""
     options = supported_options(SOLVER_XLA_OPTIONS) if backend == "cpu" else None
     jit = functools.partial(jax.jit, compiler_options=options)
 
@@ -2120,11 +2172,6 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
     def segment(nlps, states, split):
         opts = _TracedOptions(split)
         nlps, before = _packing.unpack(nlps, pn), _packing.unpack(states, ps)
-        if kind == "ip":
-            max_iter, tol = _static(opts).ip_max_iter, _ip_tolerances(opts)
-            out = eqx.filter_vmap(lambda n, s: ipm.loop(n, s, max_iter, tol, s.it + steps))(nlps, before)
-            fin = ipm.finished(out, max_iter)
-            return _packing.pack(_packing.arrays(out), ps), fin, jnp.zeros_like(fin)
         out = _segment(nlps, before, opts, steps)
         fin = _finished(out, opts)
         # the lanes whose run ended in this segment uncertified, to restart (_restart)
@@ -2140,16 +2187,78 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
         states = put(states, sub, lanes)
         return (states, *take(nlps, states, new_lanes))
 
+    def pool(nlps, states, queue, count, lanes, live, stop_at, split):
+        # (the interior-point method, see _run_pool) the problems queue[:count] through the lanes (their
+        # first problems `lanes`, those `live`), each lane taking the next queued problem
+        # as its own finishes, until nothing is queued and at most `stop_at` are unfinished;
+        # returns the states with every lane's written back, the lanes' problems and which
+        # of them are unfinished. The loop carries the lanes' array leaves (a loop's or a
+        # cond's carry turns a static leaf into an array)
+        opts = _TracedOptions(split)
+        max_iter, tol = _static(opts).ip_max_iter, _ip_tolerances(opts)
+        B = states[0].shape[0]
+        step = eqx.filter_vmap(lambda n, s: ipm.step(n, s, tol))
+
+        def finished(ls):
+            return ipm.finished(_packing.from_arrays(ls, ps), max_iter)
+
+        def select(mask, a, b):
+            return [jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y) for x, y in zip(a, b)]
+
+        def write_back(states, ls, rows):  # rows B (out of bounds): not written
+            return tuple(a.at[rows].set(b, mode="drop") for a, b in zip(states, _packing.pack(ls, ps)))
+
+        def gather(states, rows):
+            return (_packing.arrays(_packing.unpack(tuple(a[rows] for a in nlps), pn)),
+                    _packing.arrays(_packing.unpack(tuple(a[rows] for a in states), ps)))
+
+        def refill(c):
+            ln, ls, states, lanes, live, nxt = c
+            fin = finished(ls)
+            states = write_back(states, ls, jnp.where(live & fin, lanes, B))
+            free = ~live | fin
+            pos = nxt + jnp.cumsum(free) - 1
+            take = free & (pos < count)
+            lanes = jnp.where(take, queue[jnp.clip(pos, 0, queue.shape[0] - 1)], lanes)
+            new_n, new_s = gather(states, lanes)
+            return (select(take, new_n, ln), select(take, new_s, ls), states, lanes, (live & ~fin) | take,
+                    nxt + jnp.sum(take))
+
+        def handover(c):  # only where a lane is free: a real branch (the loop is not vmapped)
+            _, ls, _, _, live, nxt = c
+            free = jnp.any(live & finished(ls)) | (jnp.any(~live) & (nxt < count))
+            return jax.lax.cond(free, refill, lambda c: c, c)
+
+        def body(c):
+            # the lanes whose problem finished (in the last iteration, or before its
+            # first) handed over, then one iteration
+            ln, ls, states, lanes, live, nxt = handover(c)
+            new = step(_packing.from_arrays(ln, pn), _packing.from_arrays(ls, ps))
+            return ln, select(finished(ls), ls, _packing.arrays(new)), states, lanes, live, nxt
+
+        def cond(c):
+            _, ls, _, _, live, nxt = c
+            return (nxt < count) | (jnp.sum(live & ~finished(ls)) > stop_at)
+
+        ln, ls = gather(states, lanes)
+        _, ls, states, lanes, live, _ = jax.lax.while_loop(cond, body, (ln, ls, states, lanes, live, jnp.sum(live)))
+        states = write_back(states, ls, jnp.where(live, lanes, B))
+        return states, lanes, live & ~finished(ls)
+
     return _LanePrograms(
-        pack=jit(lambda nlps, states: (_packing.pack(nlps, pn), _packing.pack(states, ps))),
+        pack=jit(lambda nlps, states, rows: (_pad_rows(_packing.pack(nlps, pn), rows),
+                                             _pad_rows(_packing.pack(states, ps), rows)), static_argnums=2),
         # the segment program kept across processes where the compilation cache is on
         # (jtraj._tracecache; plain jit where it is off: eqx.filter_jit's per-call work is
         # what the packing saves)
-        segment=_tracecache.cached("segment", segment, repr((pn, ps, steps, kind)), options, fallback=jit(segment)),
+        segment=_tracecache.cached("segment", segment, repr((pn, ps, steps)), options, fallback=jit(segment)),
         restart=_tracecache.cached("restart", restart, repr((pn, ps)), options, fallback=jit(restart)),
         take=jit(take), exchange=jit(exchange, donate_argnums=1),
         # (no donation: the unpacked arrays cannot reuse the packed buffers; called once)
         result=jit(lambda states, sub, lanes: _packing.arrays(_packing.unpack(put(states, sub, lanes), ps))),
+        pool=_tracecache.cached("pool", pool, repr((pn, ps)), options, fallback=jit(pool)),
+        unpack=jit(lambda states, rows: _packing.arrays(_packing.unpack(tuple(a[:rows] for a in states), ps)),
+                   static_argnums=1),
         states=ps)
 
 
@@ -2186,16 +2295,17 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         T_max: optional scalar or (B,) bound on the total time.
         init: optional warm start (u (B, N, m_u), h (B, N)).
         efforts: "samples" or "intervals" (see :class:`jtraj.Problem`).
-        slots, segment: the batch is solved by ``slots`` vmapped lanes in segments of
-            ``segment`` iterations, each lane taking the next pending problem when its
-            own finishes, and on a CPU the last unfinished problems move to slots / 4 and
-            slots / 16 lanes (same results up to rounding, cost ~ mean instead of max
+        slots, segment: the batch is solved by ``slots`` vmapped lanes, each lane
+            taking the next pending problem when its own finishes (the interior-point
+            method at once, inside its compiled loop; the AL loop, which the default
+            method falls back on, after segments of ``segment`` iterations), and on a
+            CPU the last unfinished problems move to slots / 4 and slots / 16 lanes (same results up to rounding, cost ~ mean instead of max
             iterations; compiled once per lane count). This applies when B exceeds the
             smallest lane count: on a CPU a batch smaller than ``slots`` steps down too
             (64 benchmark pairs in batches of 32, one core: 4.05 s against 9.62 s solved
             at once, whose cost is the slowest problem's iterations on every lane); on an
             accelerator when B > slots. ``slots=None`` solves all B at once. "auto"
-            (default) is 1024 on an accelerator and, on a CPU, 8 for serial3 at N = 20,
+            (default) is 1024 on an accelerator and, on a CPU, 16 for serial3 at N = 20,
             down to 4 for larger problems (:func:`_cpu_lanes`). On a CPU a vmapped
             iteration costs about its lane count, and more per lane above ~12 lanes:
             2026-11-29, 128 benchmark pairs, one process per core, seeds 0 / 1, best of

@@ -60,9 +60,10 @@ def batch(robot):
     q1[3] = np.nan  # one bad sample must not poison the others
     # and one that jtraj.Problem refuses (the move needs 2 s, N h_max = 1 s)
     q0, q1 = np.vstack([q0, q0[2]]), np.vstack([q1, q0[2] + 3.0])
-    # the default path on a CPU: 8 lanes refilled as problems finish, the last ones on 2
-    # (single solves and the one-shot batch check it below; test_dataset.py's real-solver
-    # chunk of 8 pairs runs the same programs)
+    # the default path on a CPU: the interior-point method's lanes (4 for the three valid
+    # problems), the last ones on 2 (single solves, 2 lanes refilled and the one-shot batch
+    # check it below; test_dataset.py's real-solver chunk of 8 pairs runs the same programs
+    # and 16 lanes)
     return q0, q1, jtraj.solve_batch(robot, q0, q1, N=N, weights=W)
 
 
@@ -413,13 +414,14 @@ def test_compacted_batch_equals_single_solves(robot, batch):
         jtraj.solve_batch(robot, q0, q1, N=N, slots=0)
 
 
-# a program of its own each (a minute or more of compilation on a slow 2-core machine)
-@pytest.mark.slow
-@pytest.mark.parametrize("slots", [None, 2])
+# slots=None: a program of its own (a minute or more of compilation on a slow 2-core
+# machine); slots=2 runs the interior-point pool's program that ``batch`` ends on (2 lanes),
+# here with a queue: three problems through two lanes, a lane refilled inside the loop
+@pytest.mark.parametrize("slots", [pytest.param(None, marks=pytest.mark.slow), 2])
 def test_one_shot_and_two_lane_batches_equal_the_compacted_batch(robot, batch, slots):
     """All problems solved at once (slots=None), or through 2 lanes throughout: every
     problem must take the same iterations and reach the same point as in the default
-    compacted batch (8 lanes stepping down to 2)."""
+    compacted batch (4 lanes stepping down to 2 for its three valid problems)."""
     q0, q1, sol = batch
     other = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, slots=slots, segment=7)
     np.testing.assert_array_equal(np.asarray(other.status), np.asarray(sol.status))
