@@ -13,8 +13,9 @@ success is re-simulated from its own (v, h) by the independent NumPy + Pinocchio
 verifier (tolerance 1e-6). Printed: verified success rates, false "converged" counts,
 cost gaps where both succeed, warm single-solve latency (median over pairs, best of 3
 per pair, both solvers in one process pinned to one core, alternating), batch
-throughput on all cores (IPOPT: one process per core; jtraj: vmapped batches, one
-process pinned to each core, ``--workers``), compile time, and, with ``--scaling``,
+throughput on all cores (IPOPT: one process per core, one pass over the pairs; jtraj:
+vmapped batches, one process pinned to each core, ``--workers``, the median of three
+timed passes after an untimed one), compile time, and, with ``--scaling``,
 time per problem against N = 10..80 for both solvers on all cores (T <= 2 s throughout)
 and against the batch size B = 64..4096 for jtraj on one core (``_scaling``; ``--plot``
 draws both). ``--json`` also holds every pair's
@@ -130,9 +131,15 @@ def _jtraj_batch(q0, q1, N, B, weights, workers=1, options=None, h_max=None):
             for c in chunks:
                 list(pool.map(_solve_chunk, *zip(*[c] * workers)))
             first = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            parts = list(pool.map(_solve_chunk, *zip(*chunks)))
-            wall = time.perf_counter() - t0
+            # the timed pass three times, its median: one pass of two chunks of 256 takes
+            # about a second, and this machine's speed swings within seconds (two
+            # single-pass runs a few minutes apart: 609.58 and 526.76 pairs/s, 2026-12-04)
+            walls = []
+            for _ in range(3):
+                t0 = time.perf_counter()
+                parts = list(pool.map(_solve_chunk, *zip(*chunks)))
+                walls.append(time.perf_counter() - t0)
+            wall = float(np.median(walls))
     res = {k: np.concatenate([p[k] for p in parts])[:P] for k in KEYS}
     res["wall"] = wall
     res["compile_and_first_batch"] = first
