@@ -2167,8 +2167,8 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
     options = supported_options(SOLVER_XLA_OPTIONS) if backend == "cpu" else None
     jit = functools.partial(jax.jit, compiler_options=options)
 
-    def put(states, sub, lanes):
-        return tuple(a.at[lanes].set(b) for a, b in zip(states, sub))
+    def put(states, sub, lanes):  # (a lane index out of bounds: that lane not written)
+        return tuple(a.at[lanes].set(b, mode="drop") for a, b in zip(states, sub))
 
     def take(nlps, states, lanes):
         return tuple(a[lanes] for a in nlps), tuple(a[lanes] for a in states)
@@ -2210,11 +2210,11 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
             return [jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y) for x, y in zip(a, b)]
 
         def write_back(states, ls, rows):  # rows B (out of bounds): not written
-            return tuple(a.at[rows].set(b, mode="drop") for a, b in zip(states, _packing.pack(ls, ps)))
+            return put(states, _packing.pack(ls, ps), rows)
 
         def gather(states, rows):
-            return (_packing.arrays(_packing.unpack(tuple(a[rows] for a in nlps), pn)),
-                    _packing.arrays(_packing.unpack(tuple(a[rows] for a in states), ps)))
+            n, s = take(nlps, states, rows)
+            return _packing.arrays(_packing.unpack(n, pn)), _packing.arrays(_packing.unpack(s, ps))
 
         def refill(c):
             ln, ls, states, lanes, live, nxt = c
