@@ -12,6 +12,7 @@
 import os
 import sys
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,11 +30,24 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(
 IP = SolverOptions(method="ip")
 
 
+# the NLP, the starting point and the interior-point model built in one compiled program
+# each, not op by op (eagerly they cost the file about a minute of single-op compilations)
 def _nlp(q0=Q0, q1=Q1):
-    problem = jtraj.Problem(jtraj.robots.get("serial3"), q0, q1, N=N, weights=W)
+    return _prepared(jtraj.Problem(jtraj.robots.get("serial3"), q0, q1, N=N, weights=W))
+
+
+@eqx.filter_jit
+def _prepared(problem):
     tr = Transcription("decoupled")
     nlp, state, _ = S._prepare(problem, SolverOptions(), tr, S.initial_guess(problem, SolverOptions(), tr))
     return nlp, state.z
+
+
+@eqx.filter_jit
+def _ip_model(nlp, st):
+    """(model with its right-hand side, Ex, p) of ``ipm._model`` at state ``st``."""
+    model, Jg, dgT, p, Ex = ipm._model(nlp, st)
+    return ipm._with_rhs(nlp, st, model, Jg, dgT, p, st.mu), Ex, p
 
 
 def test_shift_ladder_for_one_problem_takes_the_batch_choice():
@@ -43,9 +57,7 @@ def test_shift_ladder_for_one_problem_takes_the_batch_choice():
     least shifted positive definite direction is the same number for number, whether
     shift 0 is positive definite or not."""
     nlp, z0 = _nlp()
-    st = ipm.init(nlp, z0)
-    model, Jg, dgT, p, Ex = ipm._model(nlp, st)
-    model = ipm._with_rhs(nlp, st, model, Jg, dgT, p, st.mu)
+    model, Ex, _ = _ip_model(nlp, eqx.filter_jit(ipm.init)(nlp, z0))
     m = model.R.shape[1]
     # as it is (shift 0 positive definite) and with R made indefinite (it is not)
     cases = [model, model._replace(R=model.R - 30.0 * jnp.eye(m))]
@@ -81,9 +93,8 @@ def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
     models, terms = [], []
     for q1 in (Q1, Q1 + 0.3, Q1 - 0.4):
         nlp, z0 = _nlp(q1=q1)
-        st = ipm.init(nlp, z0)
-        model, Jg, dgT, p, Ex = ipm._model(nlp, st)
-        models.append(ipm._with_rhs(nlp, st, model, Jg, dgT, p, st.mu))
+        model, Ex, _ = _ip_model(nlp, eqx.filter_jit(ipm.init)(nlp, z0))
+        models.append(model)
         terms.append(Ex.T)
     m = models[0].R.shape[1]
     for indefinite in (False, True):
@@ -129,13 +140,12 @@ def test_newton_step_equals_the_dense_kkt_solve():
     [[H + J^T S J + Z + rho E^T E + d I, E^T], [E, 0]] with H = jax.hessian of
     f + lam . e + y . g in z (no stage machinery), to 1e-9 relative."""
     nlp, z0 = _nlp()
-    st = ipm.init(nlp, z0)
+    st = eqx.filter_jit(ipm.init)(nlp, z0)
     rng = np.random.default_rng(0)
     st = st._replace(y=jnp.asarray(rng.uniform(0.01, 2.0, st.y.shape)), s=jnp.asarray(rng.uniform(0.05, 1.0, st.s.shape)),
                      lam=jnp.asarray(rng.normal(size=st.lam.shape)), zl=jnp.asarray(rng.uniform(0.1, 1.0, st.z.shape)),
                      zu=jnp.asarray(rng.uniform(0.1, 1.0, st.z.shape)), mu=jnp.asarray(0.02))
-    model, Jg, dgT, p, Ex = ipm._model(nlp, st)
-    model = ipm._with_rhs(nlp, st, model, Jg, dgT, p, st.mu)
+    model, Ex, p = _ip_model(nlp, st)
     delta = 3.0  # enough to make the matrix positive definite at this point
     d, dX, ok = lq.kkt_directions(model, jnp.array([delta]), Ex.T)
     assert bool(ok[0])
@@ -144,26 +154,31 @@ def test_newton_step_equals_the_dense_kkt_solve():
     dlam = -jnp.linalg.solve(ED[:, 1:], p.e + ED[:, 0])
     dz = d[:, 0] + d[:, 1:] @ dlam
 
-    def f(z):
-        return sum(nlp.cost_terms(z).values())
+    @eqx.filter_jit  # (one program, not op by op)
+    def dense_solution(nlp, st):
+        def f(z):
+            return sum(nlp.cost_terms(z).values())
 
-    def e(z):
-        return nlp.constraints(z)[0]["goal"][N]
+        def e(z):
+            return nlp.constraints(z)[0]["goal"][N]
 
-    def g(z):
-        return ipm._flat(nlp.constraints(z)[1]).ravel()
+        def g(z):
+            return ipm._flat(nlp.constraints(z)[1]).ravel()
+
+        z = st.z
+        H = jax.hessian(lambda zz: f(zz) + st.lam @ e(zz) + st.y.ravel() @ g(zz))(z)
+        J, E = jax.jacfwd(g)(z), jax.jacfwd(e)(z)
+        lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
+        s, sig = st.s.ravel(), (st.y / st.s).ravel()
+        Wd = (H + J.T @ (sig[:, None] * J) + jnp.diag(st.zl / (z - lo) + st.zu / (hi - z)) + ipm._RHO_E * E.T @ E
+              + delta * jnp.eye(z.size))
+        r = -(jax.grad(f)(z) - st.mu / (z - lo) + st.mu / (hi - z) + J.T @ (st.mu / s + sig * (g(z) + s))) \
+            - ipm._RHO_E * E.T @ e(z)
+        K = jnp.block([[Wd, E.T], [E, jnp.zeros((E.shape[0], E.shape[0]))]])
+        return jnp.linalg.solve(K, jnp.concatenate([r, -e(z)]))
 
     z = st.z
-    H = jax.hessian(lambda zz: f(zz) + st.lam @ e(zz) + st.y.ravel() @ g(zz))(z)
-    J, E = jax.jacfwd(g)(z), jax.jacfwd(e)(z)
-    lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
-    s, sig = st.s.ravel(), (st.y / st.s).ravel()
-    Wd = (H + J.T @ (sig[:, None] * J) + jnp.diag(st.zl / (z - lo) + st.zu / (hi - z)) + ipm._RHO_E * E.T @ E
-          + delta * jnp.eye(z.size))
-    r = -(jax.grad(f)(z) - st.mu / (z - lo) + st.mu / (hi - z) + J.T @ (st.mu / s + sig * (g(z) + s))) \
-        - ipm._RHO_E * E.T @ e(z)
-    K = jnp.block([[Wd, E.T], [E, jnp.zeros((E.shape[0], E.shape[0]))]])
-    ref = jnp.linalg.solve(K, jnp.concatenate([r, -e(z)]))
+    ref = dense_solution(nlp, st)
     np.testing.assert_allclose(np.asarray(dz), np.asarray(ref[:z.size]), rtol=1e-9, atol=1e-9 * float(jnp.max(jnp.abs(ref))))
     np.testing.assert_allclose(np.asarray(st.lam + dlam), np.asarray(ref[z.size:]), rtol=1e-9, atol=1e-9)
 
