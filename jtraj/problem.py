@@ -217,8 +217,11 @@ class Problem(eqx.Module):
         self.weights = Weights() if weights is None else weights
         if not isinstance(self.weights, Weights):
             raise ValueError(f"weights must be a jtraj.Weights, got {type(weights).__name__}")
-        d = jax.eval_shape(robot.forward_kinematics, self.q_start).shape[0]
-        self.via_points = tuple(_as_via(p, i, d) for i, p in enumerate(via_points))
+        if via_points:  # (the task space's dimension, by tracing the kinematics: ~3 ms)
+            d = jax.eval_shape(robot.forward_kinematics, self.q_start).shape[0]
+            self.via_points = tuple(_as_via(p, i, d) for i, p in enumerate(via_points))
+        else:
+            self.via_points = ()
         if T_max is None:
             self.T_max = jnp.asarray(jnp.inf)
         else:

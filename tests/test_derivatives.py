@@ -37,19 +37,21 @@ def test_structured_hessian_matches_differences_of_the_gradient(name, transcript
     # knots, get a spread of 1 in their scaled units)
     from jtraj.solver import SolverOptions, initial_guess
 
-    z0 = lay.pack(*initial_guess(p, SolverOptions(), tr))
-    spread = jnp.minimum(lay.z_hi - lay.z_lo, 2.0)
-    z = jnp.clip(z0 + spread * (jax.random.uniform(jax.random.PRNGKey(0), z0.shape) - 0.5), lay.z_lo, lay.z_hi)
-    mult = jax.tree.map(lambda x: x + 0.3, _init_multipliers(nlp, z))
     import equinox as eqx
 
+    # (the point, the multipliers and the value each in one compiled program, not op by op)
+    z0 = lay.pack(*eqx.filter_jit(initial_guess)(p, SolverOptions(), tr))
+    spread = jnp.minimum(lay.z_hi - lay.z_lo, 2.0)
+    z = jnp.clip(z0 + spread * (jax.random.uniform(jax.random.PRNGKey(0), z0.shape) - 0.5), lay.z_lo, lay.z_hi)
+    mult = jax.tree.map(lambda x: x + 0.3, eqx.filter_jit(_init_multipliers)(nlp, z))
     val, g, H = eqx.filter_jit(lambda n, zz, m: n.al_derivatives(zz, m, 7.0))(nlp, z, mult)
     grad_jit = eqx.filter_jit(lambda n, zz, m: jax.grad(n.al_value)(zz, m, 7.0))
 
     def grad(zz, m, mu):
         return np.asarray(grad_jit(nlp, zz, m))
 
-    assert float(val) == pytest.approx(float(nlp.al_value(z, mult, 7.0)), rel=1e-12)
+    al_value = eqx.filter_jit(lambda n, zz, m: n.al_value(zz, m, 7.0))
+    assert float(val) == pytest.approx(float(al_value(nlp, z, mult)), rel=1e-12)
     np.testing.assert_allclose(g, grad(z, mult, 7.0), rtol=1e-11, atol=1e-11)
     eps = 1e-5
     E = np.eye(z.shape[0]) * eps
@@ -99,7 +101,8 @@ def test_split_stage_derivatives_match_one_pass(name, transcription):
     split = _NLP(problem=problem, tr=tr, layout=lay, sd=tr.stage_data(problem))
     plain = _NLP(problem=problem, tr=tr, layout=lay, sd=split.sd, generic_hessian=True)
     z = lay.pack(tr.initial_controls(problem, v, h), h)
-    mult = jax.tree.map(lambda x: x + jnp.asarray(rng.uniform(0, 2, x.shape)), _init_multipliers(split, z))
+    mult = jax.tree.map(lambda x: x + jnp.asarray(rng.uniform(0, 2, x.shape)),
+                        eqx.filter_jit(_init_multipliers)(split, z))
     derivs = eqx.filter_jit(lambda n, zz, m: n.stage_derivatives(n.W(zz), m, mu, jnp.asarray(0.5)))
     for got, want, what in zip(derivs(split, z, mult), derivs(plain, z, mult), ("value", "gradient", "Hessian")):
         assert np.all(np.isfinite(np.asarray(got))), what
