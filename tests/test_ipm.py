@@ -43,6 +43,9 @@ def _prepared(problem):
     return nlp, state.z
 
 
+_ip_init = eqx.filter_jit(ipm.init)
+
+
 @eqx.filter_jit
 def _ip_model(nlp, st):
     """(model with its right-hand side, Ex, p) of ``ipm._model`` at state ``st``."""
@@ -57,7 +60,7 @@ def test_shift_ladder_for_one_problem_takes_the_batch_choice():
     least shifted positive definite direction is the same number for number, whether
     shift 0 is positive definite or not."""
     nlp, z0 = _nlp()
-    model, Ex, _ = _ip_model(nlp, eqx.filter_jit(ipm.init)(nlp, z0))
+    model, Ex, _ = _ip_model(nlp, _ip_init(nlp, z0))
     m = model.R.shape[1]
     # as it is (shift 0 positive definite) and with R made indefinite (it is not)
     cases = [model, model._replace(R=model.R - 30.0 * jnp.eye(m))]
@@ -93,7 +96,7 @@ def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
     models, terms = [], []
     for q1 in (Q1, Q1 + 0.3, Q1 - 0.4):
         nlp, z0 = _nlp(q1=q1)
-        model, Ex, _ = _ip_model(nlp, eqx.filter_jit(ipm.init)(nlp, z0))
+        model, Ex, _ = _ip_model(nlp, _ip_init(nlp, z0))
         models.append(model)
         terms.append(Ex.T)
     m = models[0].R.shape[1]
@@ -140,7 +143,7 @@ def test_newton_step_equals_the_dense_kkt_solve():
     [[H + J^T S J + Z + rho E^T E + d I, E^T], [E, 0]] with H = jax.hessian of
     f + lam . e + y . g in z (no stage machinery), to 1e-9 relative."""
     nlp, z0 = _nlp()
-    st = eqx.filter_jit(ipm.init)(nlp, z0)
+    st = _ip_init(nlp, z0)
     rng = np.random.default_rng(0)
     st = st._replace(y=jnp.asarray(rng.uniform(0.01, 2.0, st.y.shape)), s=jnp.asarray(rng.uniform(0.05, 1.0, st.s.shape)),
                      lam=jnp.asarray(rng.normal(size=st.lam.shape)), zl=jnp.asarray(rng.uniform(0.1, 1.0, st.z.shape)),
