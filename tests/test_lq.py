@@ -24,9 +24,10 @@ def point():
     tr = Transcription("decoupled")
     lay = tr.layout(p)
     nlp = _NLP(problem=p, tr=tr, layout=lay, sd=tr.stage_data(p))
-    z0 = lay.pack(*initial_guess(p, SolverOptions(), tr))
+    # (the guess and the multipliers each in one compiled program, not op by op)
+    z0 = lay.pack(*eqx.filter_jit(initial_guess)(p, SolverOptions(), tr))
     z = jnp.clip(z0 + 0.5 * (jax.random.uniform(jax.random.PRNGKey(1), z0.shape) - 0.5), lay.z_lo, lay.z_hi)
-    mult = jax.tree.map(lambda x: x + 0.3, _init_multipliers(nlp, z))
+    mult = jax.tree.map(lambda x: x + 0.3, eqx.filter_jit(_init_multipliers)(nlp, z))
     free = jnp.asarray(np.random.default_rng(0).random(z.shape[0]) > 0.25)
     _, g, H = eqx.filter_jit(lambda n, zz, m: n.al_derivatives(zz, m, 7.0))(nlp, z, mult)
     val, model, pieces = eqx.filter_jit(lambda n, zz, m: n.stage_newton_model(zz, m, 7.0))(nlp, z, mult)
@@ -68,8 +69,9 @@ def test_riccati_under_vmap_equals_one_by_one(point):
     frees = jnp.stack([free, ~free, jnp.ones_like(free)])
     shifts = jnp.stack([jnp.array([1.0, 10.0, 1e3])] * k) * scale[:, None]
     d, ok = jax.jit(jax.vmap(lq.newton_directions))(models, frees, shifts)
+    one = jax.jit(lq.newton_directions)
     for i in range(k):
-        di, oki = lq.newton_directions(jax.tree.map(lambda x: x[i], models), frees[i], shifts[i])
+        di, oki = one(jax.tree.map(lambda x: x[i], models), frees[i], shifts[i])
         np.testing.assert_array_equal(ok[i], oki)
         np.testing.assert_allclose(np.nan_to_num(d[i]), np.nan_to_num(di), rtol=1e-12, atol=1e-14)
 
@@ -78,8 +80,13 @@ def test_hessian_bounds_diag_exact_rows_bound(point):
     """diag(H) exactly, and sum over free j of |H_ij| <= bound_i (the Gershgorin shift of
     the stage-wise path is then also always positive definite)."""
     nlp, z, mult, free, g, H, model, pieces = point
-    hdiag, rows = nlp.hessian_bounds(pieces)
-    rows = rows(free)
+
+    @eqx.filter_jit  # (one program, not op by op; so is the assembly below)
+    def bounds(nlp, pieces, free):
+        hdiag, rows = nlp.hessian_bounds(pieces)
+        return hdiag, rows(free)
+
+    hdiag, rows = bounds(nlp, pieces, free)
     np.testing.assert_allclose(hdiag, jnp.diag(H), rtol=0, atol=1e-11 * float(jnp.max(jnp.abs(H))))
     exact = jnp.abs(H) @ free.astype(H.dtype)
     assert bool(jnp.all(rows >= exact * (1 - 1e-12)))
@@ -89,8 +96,9 @@ def test_hessian_bounds_diag_exact_rows_bound(point):
     assert float(jnp.min(jnp.linalg.eigvalsh(Hf + shift * jnp.diag(free.astype(H.dtype))))) > 0
     # the assembled Hessian and the bounds share the recursion's derivatives
     W, c, Hk, _ = pieces
-    d2, _ = decoupled_hessian_bounds(nlp.layout, W, c, Hk)
-    np.testing.assert_allclose(jnp.diag(decoupled_hessian(nlp.layout, W, c, Hk)), d2, rtol=1e-12, atol=1e-12)
+    d2 = eqx.filter_jit(lambda lay, *a: decoupled_hessian_bounds(lay, *a)[0])(nlp.layout, W, c, Hk)
+    H2 = eqx.filter_jit(decoupled_hessian)(nlp.layout, W, c, Hk)
+    np.testing.assert_allclose(jnp.diag(H2), d2, rtol=1e-12, atol=1e-12)
 
 
 def _dense_row_bounds(layout, W, c, Hk, free):
