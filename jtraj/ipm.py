@@ -424,9 +424,12 @@ def _ladder_directions_vmap(axis_size, in_batched, model, shifts, terminal):
     return out, (True, True, True)
 
 
-def step(nlp, st: IPState, tol) -> IPState:
+def step(nlp, st: IPState, tol, lazy_trials: bool = False) -> IPState:
     """One interior-point iteration (or, where converged, the state marked done).
-    ``tol``: :class:`Tolerances`, or a number (the overall tolerance alone)."""
+    ``tol``: :class:`Tolerances`, or a number (the overall tolerance alone).
+    ``lazy_trials`` (static; for one problem, not under vmap, where both sides of a
+    branch run): the line search evaluates the shorter step lengths only where the full
+    step is rejected, instead of all of them at once (the same step taken)."""
     dt = st.z.dtype
     model, Jg, dgT, p, Ex = _model(nlp, st)
     g_lag = model.g
@@ -484,15 +487,29 @@ def step(nlp, st: IPState, tol) -> IPState:
         pt = _parts(nlp, zt)
         return _theta(pt, stt, sTt), _barrier_phi(nlp, zt, stt, sTt, pt.f, mu)
 
-    ths, phs = jax.vmap(trial)(alphas)
-    finite = jnp.isfinite(ths) & jnp.isfinite(phs)
-    m = alphas * gphi
-    switch = (m < 0) & ((-m) ** 2.3 * alphas ** (1 - 2.3) > th0 ** 1.1)
-    armijo = phs <= ph0 + 1e-8 * m
-    f_type = (th0 <= st.th_min) & switch
-    suff = (ths <= (1 - 1e-5) * th0) | (phs <= ph0 - 1e-8 * th0)
-    blocked = jnp.any((ths[:, None] >= filt[None, :, 0]) & (phs[:, None] >= filt[None, :, 1]), axis=1)
-    accept = finite & (ths <= st.th_max) & ~blocked & jnp.where(f_type, armijo, suff) & any_pd
+    def acceptance(alphas, ths, phs):
+        finite = jnp.isfinite(ths) & jnp.isfinite(phs)
+        m = alphas * gphi
+        switch = (m < 0) & ((-m) ** 2.3 * alphas ** (1 - 2.3) > th0 ** 1.1)
+        armijo = phs <= ph0 + 1e-8 * m
+        f_type = (th0 <= st.th_min) & switch
+        suff = (ths <= (1 - 1e-5) * th0) | (phs <= ph0 - 1e-8 * th0)
+        blocked = jnp.any((ths[:, None] >= filt[None, :, 0]) & (phs[:, None] >= filt[None, :, 1]), axis=1)
+        accept = finite & (ths <= st.th_max) & ~blocked & jnp.where(f_type, armijo, suff) & any_pd
+        return accept, finite, armijo, f_type
+
+    if lazy_trials:
+        # the full step first, the shorter ones only where it is rejected (a real branch:
+        # one problem; the first accepted step is taken, so the choice is the same)
+        th1, ph1 = trial(alphas[0])
+        first_ok = acceptance(alphas[:1], th1[None], ph1[None])[0][0]
+        rest = len(_ALPHAS) - 1
+        thr, phr = jax.lax.cond(first_ok, lambda: (jnp.full(rest, jnp.inf, dt),) * 2,
+                                lambda: jax.vmap(trial)(alphas[1:]))
+        ths, phs = jnp.concatenate([th1[None], thr]), jnp.concatenate([ph1[None], phr])
+    else:
+        ths, phs = jax.vmap(trial)(alphas)
+    accept, finite, armijo, f_type = acceptance(alphas, ths, phs)
     j = jnp.argmax(accept)
     leap = project & any_pd & finite[0]  # the closing step (alphas[0] is ap)
     moved = jnp.where(project, leap, jnp.any(accept))
@@ -536,16 +553,16 @@ def finished(st: IPState, max_iter) -> Array:
     return st.done | st.failed | st.stalled | (st.it >= max_iter)
 
 
-def loop(nlp, st: IPState, max_iter, tol, limit=None) -> IPState:
+def loop(nlp, st: IPState, max_iter, tol, limit=None, lazy_trials: bool = False) -> IPState:
     """Iterate from st until finished (at most ``max_iter`` iterations in all) or until
     ``st.it`` reaches ``limit`` (resumable; a batch's lanes step instead in the loop of
-    ``jtraj.solver._run_pool``, which refills them)."""
+    ``jtraj.solver._run_pool``, which refills them). ``lazy_trials``: see :func:`step`."""
     def cond(s):
         return ~finished(s, max_iter) if limit is None else ~finished(s, max_iter) & (s.it < limit)
 
-    return jax.lax.while_loop(cond, lambda s: step(nlp, s, tol), st)
+    return jax.lax.while_loop(cond, lambda s: step(nlp, s, tol, lazy_trials), st)
 
 
-def run(nlp, z0, max_iter, tol) -> IPState:
+def run(nlp, z0, max_iter, tol, lazy_trials: bool = False) -> IPState:
     """The interior-point loop from z0: at most ``max_iter`` iterations."""
-    return loop(nlp, init(nlp, z0), max_iter, tol)
+    return loop(nlp, init(nlp, z0), max_iter, tol, lazy_trials=lazy_trials)
