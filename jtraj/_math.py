@@ -131,3 +131,14 @@ def log1p(x):
 def _log1p_jvp(primals, tangents):
     (x,), (dx,) = primals, tangents
     return log1p(x), dx / (1.0 + x)
+
+
+def small_matmul(a, b):
+    """``a @ b`` for small matrices (trailing two axes, leading axes broadcast) as an
+    elementwise product summed. XLA on a CPU turns a dot, batched or not, into an Eigen
+    contraction that packs its operands into freshly allocated buffers, a fixed cost far
+    above the arithmetic at these sizes (a few rows per stage); the product fuses with its
+    neighbours into one loop instead (callgrind, serial3 N = 20, 2026-12-04: the
+    interior-point Newton model's two per-stage products this way, -7.5 % instructions
+    for a single solve)."""
+    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)

@@ -52,6 +52,7 @@ import numpy as np
 from jaxtyping import Array
 
 from . import _kkt_native, lq
+from ._math import small_matmul
 
 #: step lengths tried at once (fractions of the largest step the fraction-to-the-boundary
 #: rule allows)
@@ -284,11 +285,11 @@ def _model(nlp, st: IPState):
 
     def value_and_jac(w, t, sdk, J):
         (Jw, Jt), g = jax.jacfwd(lambda w_, t_: (stage_ineq(w_, t_, sdk),) * 2, argnums=(0, 1), has_aux=True)(w, t)
-        return g, Jw + Jt @ J
+        return g, Jw + small_matmul(Jt, J)
 
     G, Jg = jax.vmap(value_and_jac)(W, tau, nlp.sd, Jtau)
     Sig = st.y / st.s
-    Hk = Hk + jnp.einsum("kim,ki,kin->kmn", Jg, Sig, Jg)
+    Hk = Hk + small_matmul(jnp.swapaxes(Sig[..., None] * Jg, -1, -2), Jg)  # J^T Sig J per stage
     T = jnp.sum(W[:-1, -1])
     gT_of = lambda t: tr.time_inequalities(problem, t)  # noqa: E731
     gT = gT_of(T)
