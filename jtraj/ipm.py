@@ -318,7 +318,7 @@ def _with_rhs(nlp, st: IPState, model, Jg, dgT, p: _Pieces, mu):
     only (the co-states of the curvature are the Lagrangian's, ``model.g``)."""
     layout = nlp.layout
     N, n = layout.N, nlp.problem.robot.n
-    corr = jnp.einsum("kim,ki->km", Jg, mu / st.s + (st.y / st.s) * (p.G + st.s) - st.y)
+    corr = jnp.sum(Jg * (mu / st.s + (st.y / st.s) * (p.G + st.s) - st.y)[..., None], axis=1)
     corrT = jnp.sum((mu / st.sT + (st.yT / st.sT) * (p.gT + st.sT) - st.yT) * dgT)
     sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
     dl, du, has_lo, has_hi = _bounds(nlp, st.z)
@@ -346,14 +346,15 @@ def _direction(nlp, st: IPState, p: _Pieces, Jg, dgT, Ex, d, dX, mu, any_pd) -> 
     layout = nlp.layout
     N, n = layout.N, nlp.problem.robot.n
     dt = st.z.dtype
-    ED = Ex @ dX[N]  # (2n, 1 + 2n)
+    ED = small_matmul(Ex, dX[N])  # (2n, 1 + 2n)
     dlam = -jnp.linalg.solve(jnp.where(any_pd, ED[:, 1:], -jnp.eye(ED.shape[0], dtype=dt)), p.e + ED[:, 0])
-    dz = d[:, 0] + d[:, 1:] @ dlam
-    dXz = dX[..., 0] + dX[..., 1:] @ dlam  # (N+1, nx)
+    # (the small products as elementwise sums: fewer, fused kernels than XLA's dots)
+    dz = d[:, 0] + jnp.sum(d[:, 1:] * dlam, axis=-1)
+    dXz = dX[..., 0] + jnp.sum(dX[..., 1:] * dlam, axis=-1)  # (N+1, nx)
     sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
     du_st = _z_to_stages(dz, N, n) * sy
     dW = jnp.concatenate([dXz[:, :2 * n], jnp.concatenate([du_st, jnp.zeros((1, n + 1), dt)])], axis=1)
-    Jdz = jnp.einsum("kim,km->ki", Jg, dW)
+    Jdz = jnp.sum(Jg * dW[:, None, :], axis=-1)
     dT = jnp.sum(du_st[:, -1])
     ds = -(p.G + st.s) - Jdz
     dsT = -(p.gT + st.sT) - dgT * dT
