@@ -46,6 +46,7 @@ from __future__ import annotations
 import dataclasses
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -57,6 +58,9 @@ from ._math import small_matmul
 #: step lengths tried at once (fractions of the largest step the fraction-to-the-boundary
 #: rule allows)
 _ALPHAS = np.array([1.0, 0.5, 0.25, 0.1, 0.03, 0.01])
+#: the share of a batch's lanes whose shorter step lengths are evaluated alone (see
+#: _shorter_trials)
+_TRIAL_SHARE = 0.25
 _FILTER = 16  # filter entries kept (the oldest is overwritten)
 #: the shifts tried at once, x the reference shift (which follows the one taken); the first is 0
 _SHIFT_LADDER = np.array([0.0, 0.25, 2.0, 16.0])
@@ -426,12 +430,68 @@ def _ladder_directions_vmap(axis_size, in_batched, model, shifts, terminal):
     return out, (True, True, True)
 
 
-def step(nlp, st: IPState, tol, lazy_trials: bool = False) -> IPState:
+def _trial(nlp, point, a):
+    """(theta, barrier phi) at step length a along the direction; ``point``: (z, s, sT,
+    dz, ds, dsT, mu)."""
+    z, s, sT, dz, ds, dsT, mu = point
+    zt, st_, sTt = z + a * dz, s + a * ds, sT + a * dsT
+    pt = _parts(nlp, zt)
+    return _theta(pt, st_, sTt), _barrier_phi(nlp, zt, st_, sTt, pt.f, mu)
+
+
+def _shorter_trials(nlp, point, alphas, need):
+    """:func:`_trial` at each of ``alphas`` where ``need`` (the full step was rejected),
+    else inf (not evaluated). For one problem a ``lax.cond``. Under vmap (a batch's lanes,
+    where a ``cond`` would run both sides) the lanes that need them are gathered, up to a
+    quarter of the lanes (:data:`_TRIAL_SHARE`), and evaluated alone; all lanes are
+    evaluated where more need them, none where none does. About 4 lane-iterations in 5
+    take the full step: 128 pairs of each family, 16 lanes, 84 % (benchmark) and 78 %
+    (dataset) of 2,271 and 3,471 lane-iterations."""
+    dyn, static = eqx.partition(nlp, eqx.is_array)
+
+    def evaluate(dyn, point, alphas):
+        nl = eqx.combine(dyn, static)
+        return jax.vmap(lambda a: _trial(nl, point, a))(alphas)
+
+    def skipped(shape, dtype):
+        inf = jnp.full(shape, jnp.inf, dtype)
+        return inf, inf
+
+    @jax.custom_batching.custom_vmap
+    def trials(dyn, point, alphas, need):
+        return jax.lax.cond(need, lambda: evaluate(dyn, point, alphas), lambda: skipped(alphas.shape, alphas.dtype))
+
+    @trials.def_vmap
+    def trials_batched(lanes, in_batched, dyn, point, alphas, need):
+        args, batched = (dyn, point, alphas), tuple(in_batched[:3])
+        axes = jax.tree.map(lambda b: 0 if b else None, batched)
+        need = jnp.broadcast_to(need, (lanes,))
+        shape, dtype = (lanes, alphas.shape[-1]), alphas.dtype
+        share = max(1, int(lanes * _TRIAL_SHARE))
+        idx = jnp.argsort(~need, stable=True)[:share]  # the lanes that need them first
+
+        def masked(th, ph, keep):
+            return jnp.where(keep[:, None], th, jnp.inf), jnp.where(keep[:, None], ph, jnp.inf)
+
+        def some():
+            sub = jax.tree.map(lambda x, b: x[idx] if b else x, args, batched)
+            th, ph = masked(*jax.vmap(evaluate, in_axes=axes)(*sub), need[idx])
+            inf = jnp.full(shape, jnp.inf, dtype)
+            return inf.at[idx].set(th), inf.at[idx].set(ph)
+
+        def every():
+            return masked(*jax.vmap(evaluate, in_axes=axes)(*args), need)
+
+        count = jnp.sum(need)
+        which = jnp.where(count == 0, 0, jnp.where(count <= share, 1, 2))
+        return jax.lax.switch(which, [lambda: skipped(shape, dtype), some, every]), (True, True)
+
+    return trials(dyn, point, alphas, need)
+
+
+def step(nlp, st: IPState, tol) -> IPState:
     """One interior-point iteration (or, where converged, the state marked done).
-    ``tol``: :class:`Tolerances`, or a number (the overall tolerance alone).
-    ``lazy_trials`` (static; for one problem, not under vmap, where both sides of a
-    branch run): the line search evaluates the shorter step lengths only where the full
-    step is rejected, instead of all of them at once (the same step taken)."""
+    ``tol``: :class:`Tolerances`, or a number (the overall tolerance alone)."""
     dt = st.z.dtype
     model, Jg, dgT, p, Ex = _model(nlp, st)
     g_lag = model.g
@@ -484,11 +544,6 @@ def step(nlp, st: IPState, tol, lazy_trials: bool = False) -> IPState:
     gphi = df - mu * dlog
     alphas = ap * jnp.asarray(_ALPHAS, dt)
 
-    def trial(a):
-        zt, stt, sTt = st.z + a * dz, st.s + a * ds, st.sT + a * dsT
-        pt = _parts(nlp, zt)
-        return _theta(pt, stt, sTt), _barrier_phi(nlp, zt, stt, sTt, pt.f, mu)
-
     def acceptance(alphas, ths, phs):
         finite = jnp.isfinite(ths) & jnp.isfinite(phs)
         m = alphas * gphi
@@ -500,17 +555,14 @@ def step(nlp, st: IPState, tol, lazy_trials: bool = False) -> IPState:
         accept = finite & (ths <= st.th_max) & ~blocked & jnp.where(f_type, armijo, suff) & any_pd
         return accept, finite, armijo, f_type
 
-    if lazy_trials:
-        # the full step first, the shorter ones only where it is rejected (a real branch:
-        # one problem; the first accepted step is taken, so the choice is the same)
-        th1, ph1 = trial(alphas[0])
-        first_ok = acceptance(alphas[:1], th1[None], ph1[None])[0][0]
-        rest = len(_ALPHAS) - 1
-        thr, phr = jax.lax.cond(first_ok, lambda: (jnp.full(rest, jnp.inf, dt),) * 2,
-                                lambda: jax.vmap(trial)(alphas[1:]))
-        ths, phs = jnp.concatenate([th1[None], thr]), jnp.concatenate([ph1[None], phr])
-    else:
-        ths, phs = jax.vmap(trial)(alphas)
+    # the full step first; the shorter ones only where it is rejected (the first accepted
+    # step is taken, so this is the choice of trying all at once)
+    point = (st.z, st.s, st.sT, dz, ds, dsT, mu)
+    th1, ph1 = _trial(nlp, point, alphas[0])
+    first_ok = acceptance(alphas[:1], th1[None], ph1[None])[0][0]
+    stop = converged | st.done | st.failed | st.stalled  # (its step is discarded)
+    thr, phr = _shorter_trials(nlp, point, alphas[1:], ~first_ok & any_pd & ~stop)
+    ths, phs = jnp.concatenate([th1[None], thr]), jnp.concatenate([ph1[None], phr])
     accept, finite, armijo, f_type = acceptance(alphas, ths, phs)
     j = jnp.argmax(accept)
     leap = project & any_pd & finite[0]  # the closing step (alphas[0] is ap)
@@ -547,7 +599,6 @@ def step(nlp, st: IPState, tol, lazy_trials: bool = False) -> IPState:
     stalled = (stuck | (checkpoint & (st.it >= 2 * _STALL_WINDOW) & (th0 > 0.99 * st.th_ref) & far)) & ~converged
     new = new._replace(th_ref=jnp.where(checkpoint, th0, st.th_ref), stalled=stalled,
                        infeasible=stalled & (st.mu >= _MU0) & (th0 > _INFEASIBLE_THETA))
-    stop = converged | st.done | st.failed | st.stalled
     return jax.tree.map(lambda old, nw: jnp.where(stop, old, nw), st._replace(done=st.done | converged), new)
 
 
@@ -555,16 +606,16 @@ def finished(st: IPState, max_iter) -> Array:
     return st.done | st.failed | st.stalled | (st.it >= max_iter)
 
 
-def loop(nlp, st: IPState, max_iter, tol, limit=None, lazy_trials: bool = False) -> IPState:
+def loop(nlp, st: IPState, max_iter, tol, limit=None) -> IPState:
     """Iterate from st until finished (at most ``max_iter`` iterations in all) or until
     ``st.it`` reaches ``limit`` (resumable; a batch's lanes step instead in the loop of
-    ``jtraj.solver._run_pool``, which refills them). ``lazy_trials``: see :func:`step`."""
+    ``jtraj.solver._run_pool``, which refills them)."""
     def cond(s):
         return ~finished(s, max_iter) if limit is None else ~finished(s, max_iter) & (s.it < limit)
 
-    return jax.lax.while_loop(cond, lambda s: step(nlp, s, tol, lazy_trials), st)
+    return jax.lax.while_loop(cond, lambda s: step(nlp, s, tol), st)
 
 
-def run(nlp, z0, max_iter, tol, lazy_trials: bool = False) -> IPState:
+def run(nlp, z0, max_iter, tol) -> IPState:
     """The interior-point loop from z0: at most ``max_iter`` iterations."""
-    return loop(nlp, init(nlp, z0), max_iter, tol, lazy_trials=lazy_trials)
+    return loop(nlp, init(nlp, z0), max_iter, tol)

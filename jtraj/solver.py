@@ -1660,8 +1660,7 @@ def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, 
 def _ip_run(nlp: _NLP, state: _State, opts: SolverOptions):
     """The interior-point method (:mod:`jtraj.ipm`) from the state's start; a state the
     AL loop would not run (a warm start already optimal) takes no iteration."""
-    return ipm.run(nlp, state.z, jnp.where(state.done, 0, _static(opts).ip_max_iter), _ip_tolerances(opts),
-                   lazy_trials=True)  # one problem (solve_batch steps its lanes in _run_pool)
+    return ipm.run(nlp, state.z, jnp.where(state.done, 0, _static(opts).ip_max_iter), _ip_tolerances(opts))
 
 
 def _ip_tolerances(opts) -> ipm.Tolerances:
