@@ -79,6 +79,41 @@ def test_shift_ladder_for_one_problem_takes_the_batch_choice():
     assert taken[0] == 0 and taken[1] > 0
 
 
+def test_shorter_step_lengths_are_evaluated_exactly_where_needed():
+    """``ipm._shorter_trials``: (theta, phi) at each step length where the lane needs them,
+    inf elsewhere, the numbers of evaluating every lane (to rounding), whether no lane, at most a
+    quarter of the lanes (gathered and evaluated alone) or more need them; one problem
+    (a cond) agrees."""
+    rng = np.random.default_rng(0)
+    lanes = 8
+    q0 = Q0 + rng.uniform(-0.1, 0.1, (lanes, 3))
+    nlps, points = [], []
+    for i in range(lanes):
+        nlp, z0 = _nlp(q0[i], Q1)
+        st = _ip_init(nlp, z0)
+        d = [jnp.asarray(rng.normal(0.0, 0.05, np.shape(x))) for x in (st.z, st.s, st.sT)]
+        nlps.append(nlp)
+        points.append((st.z, st.s, st.sT, *d, st.mu))
+    stack = lambda xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
+    nlp_b, point_b = stack(nlps), stack(points)
+    alphas = jnp.asarray(ipm._ALPHAS[1:])
+    every = jax.jit(jax.vmap(lambda nl, pt: jax.vmap(lambda a: ipm._trial(nl, pt, a))(alphas)))(nlp_b, point_b)
+    assert np.all(np.isfinite(np.asarray(every[0])))
+    lazy = jax.jit(jax.vmap(ipm._shorter_trials, in_axes=(0, 0, None, 0)))
+    assert int(lanes * ipm._TRIAL_SHARE) == 2
+    for need in ([], [5], [1, 6], [0, 2, 3, 7], list(range(lanes))):
+        mask = np.isin(np.arange(lanes), need)
+        got = lazy(nlp_b, point_b, alphas, jnp.asarray(mask))
+        for g, e in zip(got, every):  # (rounding: the gathered lanes are vectorised otherwise)
+            g = np.asarray(g)
+            np.testing.assert_array_equal(np.isinf(g), ~mask[:, None] | np.isinf(np.asarray(e)))
+            np.testing.assert_allclose(g[mask], np.asarray(e)[mask], rtol=1e-13)
+    one = jax.jit(ipm._shorter_trials)(nlps[3], points[3], alphas, jnp.asarray(True))
+    np.testing.assert_allclose(np.asarray(one[0]), np.asarray(every[0][3]), rtol=1e-12)
+    skipped = jax.jit(ipm._shorter_trials)(nlps[3], points[3], alphas, jnp.asarray(False))
+    assert np.all(np.isinf(np.asarray(skipped[0]))) and np.all(np.isinf(np.asarray(skipped[1])))
+
+
 def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
     """The native KKT kernel (:mod:`jtraj._kkt_native`, what the solver uses on a CPU in
     float64) against :func:`jtraj.lq.kkt_directions`: one problem and a batch of three
