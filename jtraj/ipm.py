@@ -22,8 +22,9 @@ IPOPT (Waechter and Biegler 2006):
   otherwise the smallest of a few shifts that is (all factorised at once) is taken;
   after steps the line search cut short, a damping shift stays on the diagonal, as a
   trust region's (:data:`_DAMP_FLOOR`);
-* a filter line search (IPOPT's, with its constants) over a few step lengths, evaluated
-  at once, after the fraction-to-the-boundary rule.
+* a filter line search (IPOPT's, with its constants) over a few step lengths after the
+  fraction-to-the-boundary rule: the full step first, the shorter ones (at once) only
+  where it is rejected (:func:`_shorter_trials`).
 
 A run ends as solved where the overall scaled error is within the tolerance, or where
 its dual, primal and complementarity parts are each within their own (:class:`Tolerances`:
