@@ -56,8 +56,8 @@ from jaxtyping import Array
 from . import _kkt_native, lq
 from ._math import small_matmul
 
-#: step lengths tried at once (fractions of the largest step the fraction-to-the-boundary
-#: rule allows)
+#: the line search's step lengths (fractions of the largest step the fraction-to-the-boundary
+#: rule allows): the first alone, the others at once where it is rejected (_shorter_trials)
 _ALPHAS = np.array([1.0, 0.5, 0.25, 0.1, 0.03, 0.01])
 #: the share of a batch's lanes whose shorter step lengths are evaluated alone (see
 #: _shorter_trials)
