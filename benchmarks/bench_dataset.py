@@ -12,9 +12,8 @@ twice. The first build, untimed (reported as ``cold_build_s``), compiles every p
 any of its chunks needs into the persistent compilation cache: a chunk compiles the
 paths its problems take (the AL loop for the few the interior-point method leaves, its
 restart, the narrower lanes of the stragglers), and with one warm-up chunk per worker a
-later chunk's compilation (16.7 s for the AL loop's programs, one core) fell inside the
-timed part (thirty-sixth session, ``--batches 256 --chunks 24``: 211.70 pairs/s that
-way, 246.99 with the whole first build untimed). The second build: first one chunk per
+later chunk's compilation (the AL loop's programs, about 17 s on one core) would fall
+inside the timed part. The second build: first one chunk per
 worker process (worker start-up, programs loaded from the cache: ``first_chunk_s``),
 then the remaining ``--chunks`` chunks by *resuming* the same dataset (new worker
 processes: their start-up included; by default about 2048 pairs, so that it weighs
@@ -141,8 +140,7 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
     batches = args.batches or ([64] if args.quick else [64, 256, 1024, 4096])
     # by default about 2048 timed pairs per batch size: the timed resume starts (and
-    # compiles in) fresh workers, which two chunks of 256 could not amortise (2026-11-27:
-    # 11.70 pairs/s with 2 chunks against 17.43 with 8, and 18.60 over a 10,000-pair run)
+    # loads programs in) fresh workers, which two chunks of 256 cannot amortise
     n_ipopt = args.ipopt_pairs or (16 if args.quick else 64)
 
     from jtraj.cli import setup_jax

@@ -21,10 +21,10 @@ and against the batch size B = 64..4096 for jtraj on one core (``_scaling``; ``-
 draws both). ``--json`` also holds every pair's
 statuses, costs and iterations (``per_pair``).
 Ratios are jtraj / IPOPT or IPOPT / jtraj as labelled; > 1 means jtraj is ahead.
-Both solvers start from jtraj's starting point (``--peer-init same``, the default since
-the thirty-second session, when jtraj's default became the torque-scaled cycloid: from
-it IPOPT too needs fewer iterations, median 30 instead of 54 on 256 pairs of seed 1);
-``--peer-init cycloidal`` gives IPOPT Khoukhi's kinematic cycloid as before.
+Both solvers start from jtraj's starting point (``--peer-init same``, the default:
+jtraj's torque-scaled cycloid, from which IPOPT too needs fewer iterations, median 30
+instead of 54 on 256 pairs of seed 1); ``--peer-init cycloidal`` gives IPOPT Khoukhi's
+kinematic cycloid.
 The peer is the "lifted" CasADi form by default (states as variables, sparse; the fast
 one); "condensed" (states eliminated) is 4-6x slower per IPOPT iteration.
 """
@@ -132,8 +132,8 @@ def _jtraj_batch(q0, q1, N, B, weights, workers=1, options=None, h_max=None):
                 list(pool.map(_solve_chunk, *zip(*[c] * workers)))
             first = time.perf_counter() - t0
             # the timed pass three times, its median: one pass of two chunks of 256 takes
-            # about a second, and this machine's speed swings within seconds (two
-            # single-pass runs a few minutes apart: 609.58 and 526.76 pairs/s, 2026-12-04)
+            # about a second, and a shared machine's speed swings within seconds (two
+            # single-pass runs a few minutes apart can differ by 15 %)
             walls = []
             for _ in range(3):
                 t0 = time.perf_counter()
@@ -152,8 +152,8 @@ def _single_latencies(q0, q1, N, weights, repeats=3, options=None, formulation="
     :func:`_pinned_single_latency` in one process pinned to one core, like an IPOPT solve
     (one problem runs faster there, see ``jtraj._cpu``), the two solvers alternating pair
     by pair: measured apart (IPOPT in the unpinned main process afterwards), a core's
-    noise of the minute fell on one side only (2026-12-04: the same jtraj solves 4.0 and
-    7.6 ms in two processes pinned to core 0 one minute apart; core 1 was quieter)."""
+    noise of the minute fell on one side only (the same jtraj solves can take 4.0 and
+    7.6 ms in two processes pinned to one core a minute apart)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)

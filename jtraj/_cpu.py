@@ -10,7 +10,7 @@ Batches gain from several cores only through several processes (one per core, se
 The same iterates, but not the same last bits: at N = 20 XLA splits some of the
 solver's larger products over its threads, which changes their rounding (serial3
 dataset pairs: trajectories 1e-12 apart, relative, between a pinned process and one on 2
-cores, 2026-12-03). Every process that solves dataset chunks therefore runs on one CPU
+cores). Every process that solves dataset chunks therefore runs on one CPU
 (:mod:`jtraj.dataset.build`), so that a dataset's values do not depend on where its
 chunks were solved.
 """

@@ -101,286 +101,110 @@ PBM_SETTINGS = dict(inequality_penalty="pbm", penalty_init=100.0, detect_min_vio
 
 
 class SolverOptions(eqx.Module):
-    """Hyperparameters of the AL solver (defaults tuned on the serial3 benchmark).
+    """Options of the solver; the defaults are tuned on the serial3 benchmark family.
 
     Options that differ only in numbers (tolerances, penalties, iteration limits, the
     stall and kink settings: ``_TRACED_OPTIONS``) share one compiled solver: those fields
     are traced. The others (``max_outer``, ``schedule``, ``guess``, ``linear_solver``,
-    ``inequality_penalty``, ``pbm_init``, ``pbm_ratio``), and whether ``pbm_fallback_iter``,
-    ``kink_margin``, ``inner_tol_ratio`` or ``pbm_inner_tol_ratio`` is 0, shape the
-    program: changing them compiles another.
+    ``inequality_penalty``, ``pbm_init``, ``pbm_ratio``, ``method``), and whether
+    ``pbm_fallback_iter``, ``kink_margin``, ``inner_tol_ratio`` or ``pbm_inner_tol_ratio``
+    is 0, shape the program: changing them compiles another. The measurements behind the
+    defaults are in the documentation's "Solver methods and options" guide.
 
     Attributes:
-        max_iter: total Newton iterations (inner iterations over all outer ones).
-        max_outer: maximum number of multiplier updates (history length).
+        max_iter: total Newton iterations of the AL loop, over all its subproblems
+            (default 500). Raise it for hard problems that end ``FEASIBLE_NOT_OPTIMAL``.
+        max_outer: maximum number of multiplier updates of the AL loop (default 30).
         max_inner: Newton iterations per AL subproblem before a forced outer update
-            (on 96 serial3 dataset pairs: 15 -> 57, 25 -> 70, 40 -> 76, 60 -> 82 of the
-            88 IPOPT-feasible pairs converged, same mean iterations for 40 and 60).
+            (default 60; fewer lose converged pairs, more gain nothing).
         tol_optimality: target on the projected gradient of the augmented Lagrangian in
-            the scaled variables z (accelerations / qdd_max, h / (h_max / 4)), and on the
-            certificate's KKT error (``Solution.kkt_error``). Measured (2 cores) on the 256
-            pairs of bench_solver (IPOPT verified 231), 1e-4 / 3e-4 / 1e-3: converged
-            228 / 231 / 230, Newton iterations 35,955 / 32,555 / 29,245, cost above
-            IPOPT's median +0.0054 / +0.012 / +0.021 %, 99th percentile +0.084 / +0.17 /
-            +0.23 %, max +0.13 / +0.21 / +0.24 %; on the 96 pairs of ``jtraj dataset
-            --pairs 96 --seed 5`` in one process: 93 / 96 / 96 converged, 10.8 / 13.5 /
-            17.5 pairs/s. Earlier, on 16 pairs, 1e-5 certified 10 of 14 within 500
-            iterations. Ask for 1e-4 or less where the last 0.01 % of cost matters.
-        inner_tol_ratio: the tolerance of each AL subproblem (after the first, 1e-2) is
-            ``max(tol_optimality, min(1e-2, inner_tol_ratio * violation))`` (the
-            complementarity-aware violation that steers the penalty): loose while the
-            multipliers are still far off, tight once the constraints are nearly met
-            (Conn-Gould-Toint's coupling of the two). 0 restores the geometric schedule
-            ``omega <- omega / 10`` (1e-4 from the third subproblem on). Measured (2 cores):
-            128 benchmark pairs in one process, best of two alternating runs, geometric vs
-            0.01: 10.45 vs 11.27 pairs/s (1.08x), 20,896 vs 19,412 iterations in all (median
-            138 vs 125), 110 vs 109 converged; 256 pairs of bench_solver: median 136 vs 115
-            iterations, 228 converged with both. 0.03 saved more iterations (mean 144 vs 163
-            on 128 pairs) but lost 1-2 converged pairs on both check sets.
-        tol_feasibility: the AL loop's target on the normalised violation; the final
-            feasibility polish then removes what remains, and ``verify_tol`` decides.
-        penalty_init, penalty_growth, penalty_max: PHR penalty mu schedule; mu grows
-            when the violation did not shrink by ``feasibility_ratio``.
+            the scaled variables and on the certificate's KKT error
+            (``Solution.kkt_error``) (default 3e-4). Ask for 1e-4 or less where the last
+            0.01 % of the cost matters; 1e-3 is faster and about 0.01 % costlier.
+        inner_tol_ratio: each AL subproblem after the first is solved to
+            ``max(tol_optimality, min(1e-2, inner_tol_ratio * violation))``
+            (Conn-Gould-Toint's coupling; default 0.01). 0 restores the geometric
+            schedule ``omega <- omega / 10``.
+        tol_feasibility: the AL loop's target on the normalised violation (default
+            1e-5); the final feasibility polish removes what remains and ``verify_tol``
+            decides.
+        penalty_init, penalty_growth, penalty_max: the PHR penalty mu starts at
+            ``penalty_init`` (10) and grows by ``penalty_growth`` (4) up to
+            ``penalty_max`` (1e6) whenever the violation did not shrink by
+            ``feasibility_ratio``.
+        feasibility_ratio: the factor by which the violation must shrink per outer
+            iteration for the penalty to stay (default 0.5).
         schedule: "default" (multipliers updated at every outer iteration, ALGENCAN
             style) or "thesis" (Conn-Gould-Toint / Khoukhi: multipliers updated only
             when the violation meets the current tolerance eta, which tightens as
             ``eta <- eta mu^-beta_eta``; otherwise mu grows and ``eta <- eta0 mu^-alpha_eta``).
-            Both schedules take the inner tolerance from ``inner_tol_ratio`` (in a PBM
-            run's PBM phase from ``pbm_inner_tol_ratio``).
-        damping_init: initial Levenberg damping of the Newton system.
-        verify_tol: relative/absolute tolerance of the final strict verification.
-        guess: "cycloidal_torque" (default): the minimum-time cycloid slowed until it
-            meets the torque bounds; "cycloidal": Khoukhi's (kinematic bounds only);
-            "trapezoidal" (see :mod:`jtraj.initial_guess`).
-        linear_solver: how the Newton directions are computed. "auto" (default):
-            "riccati" on a CPU, "dense" on an accelerator (where only the dense path has
-            been measured so far). "riccati": a stage-wise Riccati recursion (decoupled transcription; :mod:`jtraj.lq`), cost
-            linear in N; the shift ladder's top is a Gershgorin bound computed from
-            bounds on the row sums of |H| (H is never formed), so its iterates differ
-            slightly from "dense": Cholesky factorisations of the assembled Hessian in
-            z, O(N^3) (the other transcriptions always use it). Measured on serial3
-            (2 cores, warm), riccati vs dense: N = 20, 256 benchmark pairs (bench_solver)
-            12.9 vs 12.3 pairs/s, 228 converged with both; the 96 pairs of
-            ``jtraj dataset --pairs 96 --seed 5`` in one process 7.1 vs 6.0 pairs/s, 93
-            vs 95 converged; one solve pinned to a core 64 vs 76 ms (median of 6);
-            N = 40, 32 pairs in one batch 2.18 vs 0.53 pairs/s, 32 vs 31 converged; one
-            solve 201 vs 417 ms.
-        detect_infeasible: stop a problem whose normalised violation shrank by less than
-            5 % over two outer iterations while the penalty grew at least 16x (violation
-            above 1e-3) or stayed at its cap (``penalty_max``, or ``restart_penalty_max``
-            after a restart; violation above 1e-4) (status ``LIKELY_INFEASIBLE``). On the
-            256 benchmark pairs the first rule stopped 24 of the 25 pairs IPOPT reports
-            infeasible and none of the others (history of the 256 + 96 dataset pairs
-            checked offline). The second (2026-11-29) stops the runs that used to end at
-            the outer-iteration limit with the violation frozen at 3e-4 to 6e-3 and the
-            penalty at its cap for 15-20 outer iterations, restarted once and frozen
-            again (14 pairs on seven benchmark seeds, all infeasible for IPOPT: 414-879
-            instead of 611-1,009 iterations each, the converged pairs unchanged; the
-            restart rescues feasible runs, which end their first run near a feasible
-            point, below 6e-4 there). Decoupled transcription only: with the
-            collocation's defect equalities it stopped a feasible problem of the test
-            suite.
-        restart_iter: a run that ends uncertified (iteration or outer-iteration limit,
-            not ``LIKELY_INFEASIBLE``) is restarted once from its polished final point,
-            with least-squares multipliers there and the penalty at
-            ``restart_penalty_max / 100``, capped at ``restart_penalty_max``, for up to
-            ``restart_iter`` more iterations (``Solution.iterations`` counts both runs;
-            ``history`` is the restart's); 0 disables it. Such runs stall on problems
-            whose feasible set is thin (minimum time close to N h_max, torques saturated
-            at most samples): the penalty grows to ``penalty_max`` and the Newton
-            subproblems stall at a feasible point with a KKT error of 1e-3..1e-1.
-            Measured on the benchmark family (256 pairs per seed, 2026-11-27), converged
-            without / with the restart (600): seed 11 233 / 236 (IPOPT 236), seed 1
-            224 / 226 (IPOPT 226), seed 2 232 / 233, seeds 0, 3, 4 unchanged (0: IPOPT
-            231, jtraj 231); total iterations +2.2 % (seed 11) and +4.1 % (seed 1). With
-            250 iterations seed 1 reached 225 (its last pair needs 590 after the
-            restart); restarting with the first run's cap (1e6, penalty 1e4) instead of
-            1e4 (penalty 1e2) rescued 3 instead of 5 of the first 6 such pairs.
-        restart_penalty_max: the penalty cap of a restart (see ``restart_iter``).
-        stall_window, stall_ratio, stall_min_viol, stall_after: a subproblem that no
-            longer makes progress ends early (the multipliers and the penalty are then
-            updated as after a solved one). At every ``stall_window``-th Newton iteration
-            of a subproblem, from its ``2 stall_window``-th on and once the run has taken
-            ``stall_after`` iterations, it ends if its AL value fell by less than
-            ``stall_ratio mu v^2`` over the last window while the complementarity-aware
-            violation v is above ``stall_min_viol``: mu v^2 is the scale by which the next
-            multiplier update moves the AL. Off by default (``stall_window=0``); 10 turns
-            it on. **It can stop a feasible problem as likely infeasible**: pair 591 of
-            ``jtraj dataset --pairs 10000 --seed 0`` (h_max 0.2 s), whose fifth subproblem
-            makes slow but real progress at penalty 640 with the violation at 1.4e-2, was
-            stopped after 124 iterations with ``stall_window=10`` and ``stall_ratio`` 0.1
-            or 0.01; with the exit off it converges after 190. Use it where infeasible
-            problems are common and a rare false ``LIKELY_INFEASIBLE`` is acceptable.
-            Why: on problems IPOPT reports infeasible (the motion cannot be done in
-            N h_max under the torque limits) the violation freezes at 3e-2..8e-2 while
-            the penalty grows, and each subproblem runs to ``max_inner`` with its AL
-            hardly moving (benchmark pair 4 of seed 0: three subproblems of 60 iterations
-            at penalties 40..640); the infeasibility test (``detect_infeasible``) counts
-            outer iterations and waits for them. Measured (2026-11-29, bench_solver's
-            256 pairs per seed, one core each), off against 10 (ratio 0.1; 0.01 saves
-            -6.7 / -3.5 / -3.5 %, 0.003 -2.3 / -1.3 / -2.0 %): seeds 0 / 1 / 11 Newton
-            iterations 33,689 / 34,423 / 31,780 against 31,452 / 32,061 / 30,125 (-6.6 /
-            -6.9 / -5.2 %; on the converged pairs -0.5..-1.1 %), converged 231 / 226 / 236
-            either way, costs within +-0.03 %; on the dataset family (h_max 0.2 s, 256
-            pairs of seeds 5 and 6, nearly all feasible) -0.7 / -1.0 % iterations, the
-            same converged. Times moved within the machine's noise (interleaved runs,
-            -3..-10 % on the benchmark pairs). The guards: without ``stall_after`` and
-            from the 10th inner iteration, two feasible pairs of seed 11 stopped as likely
-            infeasible after 30-34 iterations (their first subproblems stall while the
-            penalty is still small); without ``stall_min_viol``, three hard feasible pairs
-            of seed 1, whose subproblems stall at penalties 1e3..1e5 with violations of
-            1e-3..5e-3, ended uncertified.
+        damping_init: initial Levenberg damping of the AL loop's Newton system (default
+            1e-4).
+        verify_tol: tolerance of the final strict verification, relative for bounds and
+            absolute for the goal (default 1e-6). ``converged`` requires it.
+        guess: the starting point. "cycloidal_torque" (default): the minimum-time cycloid
+            slowed until it meets the torque bounds; "cycloidal": Khoukhi's (kinematic
+            bounds only); "trapezoidal" (see :mod:`jtraj.initial_guess`).
+        linear_solver: how Newton directions are computed. "auto" (default): "riccati" on
+            a CPU, "dense" on an accelerator. "riccati": a stage-wise Riccati recursion
+            (decoupled transcription, :mod:`jtraj.lq`), cost linear in N; "dense":
+            Cholesky factorisations of the assembled Hessian, O(N^3) (the other
+            transcriptions always use it).
+        detect_infeasible: stop a problem whose violation shrank by less than 5 % over
+            two outer iterations while the penalty grew at least 16x or stayed at its cap
+            (status ``LIKELY_INFEASIBLE``; default on). Decoupled transcription only.
+        restart_iter: a run that ends uncertified (not ``LIKELY_INFEASIBLE``) is
+            restarted once from its polished final point with least-squares multipliers,
+            for up to ``restart_iter`` more iterations (default 600; 0 disables it). It
+            rescues problems with a thin feasible set (minimum time close to N h_max).
+        restart_penalty_max: the penalty cap of a restart (default 1e4; the restart
+            starts at a hundredth of it).
+        stall_window, stall_ratio, stall_min_viol, stall_after: an opt-in early exit for
+            AL subproblems that stop making progress: every ``stall_window`` iterations
+            (after ``stall_after`` in the run) a subproblem ends if its AL fell by less
+            than ``stall_ratio mu v^2`` while the violation v is above
+            ``stall_min_viol``. Off by default (``stall_window=0``); 10 saves 5-7 % of the
+            iterations where infeasible problems are common, but can stop a rare feasible
+            problem as ``LIKELY_INFEASIBLE``.
         inequality_penalty: the inequalities' term in the augmented Lagrangian. "phr"
             (default): Rockafellar's ``(max(0, rho + mu g)^2 - rho^2) / (2 mu)``, once
-            differentiable (see ``kink_margin``). "pbm": Ben-Tal and Zibulevsky's
-            penalty-barrier multiplier term ``rho / mu phi(mu g)``, phi(t) = -log(1 - t)
-            for t <= 1/2 continued by a quadratic (twice differentiable, no kink: every
-            inequality keeps a curvature ``rho mu phi''`` in the Newton model), multipliers
-            updated multiplicatively ``rho <- rho phi'(mu g)`` (the factor clipped to
-            ``[1 / pbm_ratio, pbm_ratio]``, rho >= 1e-8) from ``pbm_init``. A PBM run
-            still uncertified after ``pbm_fallback_iter`` iterations falls back to PHR's
-            own cold run from the same start (zero multipliers, penalty 10, ``max_iter``
-            more iterations), followed if needed by PHR's warm restart (``restart_iter``):
-            the runs PBM leaves uncertified are mostly thin-feasible-set ones that PHR
-            and its restart solve. Use :meth:`SolverOptions.pbm` for
-            the settings tuned with it (penalty_init 100, inner_tol_ratio 0.1,
-            detect_min_viol 1e-2). Measured (2026-12-01, bench_solver's 256 pairs per
-            seed, one core each), PHR defaults against :meth:`SolverOptions.pbm`: seeds 0 /
-            1 / 11 converged 231 / 226 / 236 with both (IPOPT 231 / 226 / 236), Newton
-            iterations 33,689 / 34,423 / 31,780 against 21,971 / 23,537 / 19,708 (-35 / -32 /
-            -38 %; median per pair 96-110 against 54), costs where both converge within
-            -0.06 .. +0.11 % of PHR's (medians within 0.002 %); 256 pairs in one process
-            on one core, seeds 1 / 11: 7.58 / 7.41 s against 10.06 / 8.82 s; with IPOPT
-            in the same run, seeds 0 / 1 / 11 / 21-24 converged 1599 of 1792 pairs (IPOPT
-            1598), 0 false, largest cost gap +0.22 %, batch throughput 3.25-4.29x IPOPT's
-            (PHR 3.25x on seed 0 the same day), single solve 3.4-9.8x. Without the
-            fallback (``pbm_fallback_iter=0``: the PBM run to ``max_iter``, then PHR's
-            warm restart) 18,911 / 21,836 / 19,147
-            iterations and seed 1 lost pair 207 (``FEASIBLE_NOT_OPTIMAL``), one of the
-            fragile pairs every change flips; with IPOPT in the same run, over seeds 0 / 1 /
-            11 / 21-24 that variant converged 1598 of 1792 pairs (IPOPT 1598), 0 false, at
-            3.78-4.76x IPOPT's batch throughput (PHR 3.25x the same day). **On the
-            dataset family** (``jtraj dataset``'s default period bound, h_max 0.2 s) it is
-            as good as PHR since its fallback became PHR's own run
-            (``pbm_inner_tol_ratio``, 2026-12-01), not better: ``jtraj dataset --pairs
-            10000 --seed 0`` converged 9983 pairs in 568.6 s against PHR's 9982 in 566.5 s
-            (a machine about 3x slower than the one of the figures above; the same pairs
-            but one, which only PBM converges), with 12 % fewer Newton iterations
-            (1,182,280 against 1,346,582) that each cost 14 % more; costs where both
-            converge: median equal, -0.51 .. +0.68 % of PHR's. Before that fix 9942 pairs
-            converged in 217.5 s against PHR's 162.0 s. There many PBM subproblems end at
-            ``max_inner`` with the KKT error near 1e-3: the Newton model is exact but
-            indefinite with flat directions (h is interior in that family), and the shift
-            ladder oscillates; the fallback then rescues them. By pair (256 of seed 1 on
-            each family, converged by both), PBM against PHR's Newton iterations: no
-            period at h_max 0.46x (benchmark family) / 0.60x (dataset family); some at
-            h_max 0.58x / 1.26x; all at h_max (benchmark only) 1.23x.
-        pbm_fallback_iter: the Newton iterations of a PBM run before it falls back to PHR
-            (see ``inequality_penalty``); 0: no fallback. 200 is past the 99th percentile
-            of the PBM runs that converge on the benchmark family (seeds 0 / 1 / 11:
-            159 / 229 / 428 iterations; a few converge later).
-        pbm_inner_tol_ratio: ``inner_tol_ratio`` for the PBM phase of a PBM run; its PHR
-            fallback and restart take ``inner_tol_ratio``, so that the fallback runs with
-            PHR's own settings. Until 2026-12-01 one ``inner_tol_ratio`` (0.1 in
-            :meth:`SolverOptions.pbm`) served both phases, and the fallback then failed
-            where PHR alone succeeds: on the dataset family (h_max 0.2 s), 3 of the 256
-            pairs of ``benchmark_pairs(256, 1)`` ran all 1300 iterations uncertified that
-            PHR certifies in 136-541 (with the fix 256 / 256 converge, 31,642 Newton
-            iterations against PHR's 34,625).
-        pbm_init, pbm_ratio: the PBM multipliers' starting value and the bound on the
-            factor of each update (see ``inequality_penalty``; on 64 benchmark pairs
-            pbm_init 1 / 0.3 / 0.1 / 0.03 took 3,908 / 6,657 / 3,397 / 3,588 Newton
-            iterations on the converged pairs with penalty_init 100 and no bound on the
-            factor; an unbounded factor (1e3 after a large violation) sent the violation up
-            after a penalty increase and stopped feasible pairs as likely infeasible).
-        detect_min_viol: a guard of ``detect_infeasible``'s first rule (penalty grown
-            16x) in the PBM runs: it also needs the violation above ``detect_min_viol`` at
-            the two previous outer iterations. 0 (the default) leaves the rule as it was;
-            PHR runs (restarts included) ignore it. With PBM
-            (:meth:`SolverOptions.pbm`) the violation can rise for one outer iteration after
-            a penalty increase and then fall, and without ``detect_min_viol = 1e-2`` 2 of
-            64 feasible pairs of seed 1 stopped as likely infeasible (3 without the bound
-            ``pbm_ratio`` on the multiplier update).
-        method: the inner method. "al": the augmented-Lagrangian loop described here.
-            "ip": the primal-dual interior-point method of :mod:`jtraj.ipm` (IPOPT's
-            algorithm on the same stage-wise Riccati recursion, decoupled transcription
-            only), for up to ``ip_max_iter`` iterations until solved (see
-            ``ip_dual_tol``); a problem it leaves unsolved is then solved by the "al"
-            loop from the same start with these options (``Solution.iterations`` counts
-            both). The strict verification is the same; a point the interior-point method
-            decided is not polished (feasible to half ``verify_tol`` already). "auto"
-            (default): "ip" where it applies (the decoupled transcription, no path
-            equalities, the PHR inequality term), "al" elsewhere. On the benchmark (7
-            seeds x 256 pairs) "ip" converges the pairs IPOPT does in about 4x fewer
-            Newton iterations than "al" (see the README). A warm start that already meets
-            the AL loop's tolerances returns at once with either method; from elsewhere
-            the interior-point method starts its barrier afresh at ``init`` (a test
-            problem 1 % off its optimum: 17 iterations, 72 for the AL loop's warm start
-            with least-squares multipliers).
-        ip_max_iter: see ``method``.
-        ip_tol, ip_dual_tol, ip_compl_tol: an interior-point run ends as solved where
-            IPOPT's scaled optimality error is at most ``ip_tol`` (which also sets the
-            barrier parameter's floor, ``ip_tol / 10``), or where its parts are each
-            within their own tolerance: the scaled dual infeasibility within
-            ``ip_dual_tol``, the complementarity within ``ip_compl_tol`` and every
-            constraint's residual (normalised units) within ``verify_tol / 2``
-            (:class:`jtraj.ipm.Tolerances`; 0 switches this second test off). Why: after
-            each fall of the barrier parameter the next Newton step leaves the central
-            path (the error rose 10-400x on benchmark pairs) and takes 3-5 iterations to
-            come back; the last fall, from about 2e-6 to ``ip_tol / 10``, bought a cost
-            within 0.02 % of the strict one. bench_solver's 128 pairs of seed 1: 3,298
-            instead of 3,937 Newton iterations, 110 solved instead of 109, costs within
-            +0.019 %; the dataset family, 256 pairs of seed 0: 9,996 instead of 11,404
-            (256/256 converged either way). The AL loop's own optimality target
-            (``tol_optimality``) is looser still. Each part's tolerance is capped by the
-            AL loop's target for it (``tol_optimality`` for the dual and complementarity
-            parts, ``tol_feasibility`` for the residuals): options asking the AL loop for
-            a tighter solve than these (e.g. 1e-10) make the interior-point run go on
-            to ``ip_tol``.
-        ip_project_tol: where the dual and complementarity parts are within their
-            tolerances and every residual within ``ip_project_tol`` (but not yet within
-            ``verify_tol / 2``), the interior-point method takes a closing step: the
-            barrier parameter kept, a fixed shift on the Hessian, the largest step the
-            fraction-to-the-boundary rule allows, no filter (``jtraj.ipm._PROJECT_SHIFT``;
-            at most two per run). 0 switches it off. Why: from such points the normal
-            iterations often wandered on along the nearly flat cost, the violation up
-            100x, for a cost 1e-4 lower. bench_solver's 256 pairs of seed 1, one core,
-            warm: 4,750 instead of 6,599 Newton iterations (no pair left to the AL loop,
-            the longest run 51 instead of 350), 0.86 instead of 1.15 s, the same 226
-            pairs converged, costs within +0.071 % (mean +0.005 %).
-        ip_damping: the floor of the interior-point method's damping shift: after a
-            step its line search cut to a quarter or less, a shift of at least this
-            stays on the Hessian's diagonal (x 10 after each further such step, / 10
-            after each full step; ``jtraj.ipm._DAMP_FLOOR``). 0 switches it off. Why:
-            late in a run a nearly flat direction of the cost made the Newton step long,
-            the constraints' curvature raised the violation 10x at its full length, and
-            the line search took 3 % of it for tens of iterations. ``solve_batch`` in
-            one process: the dataset family (256 pairs of seed 0) 7,045 instead of 8,132
-            Newton iterations (the longest run 73 instead of 381: none left to the AL
-            loop; 1.14-1.19 instead of 1.39-1.42 s on one core), bench_solver's 256
-            pairs of seed 1 4,549 instead of 4,750; the same pairs converged.
+            differentiable. "pbm": Ben-Tal and Zibulevsky's penalty-barrier multiplier
+            term ``rho / mu phi(mu g)`` (twice differentiable, multiplicative multiplier
+            updates); use :meth:`SolverOptions.pbm` for its tuned settings. It takes about
+            a third fewer Newton iterations than PHR on the benchmark family and none
+            fewer on the dataset family.
+        pbm_fallback_iter: Newton iterations of a PBM run before it falls back to PHR's
+            own cold run from the same start (default 200; 0: no fallback).
+        pbm_inner_tol_ratio: ``inner_tol_ratio`` of the PBM phase of a PBM run (default
+            0.1); its PHR fallback and restart use ``inner_tol_ratio``.
+        pbm_init, pbm_ratio: the PBM multipliers' starting value (default 0.1) and the
+            bound on the factor of each multiplicative update (default 4).
+        detect_min_viol: in PBM runs, ``detect_infeasible``'s first rule also needs the
+            violation above this at the two previous outer iterations (default 0; 1e-2
+            in :meth:`SolverOptions.pbm`). PHR runs ignore it.
+        method: the inner method. "auto" (default): "ip" where it applies (decoupled
+            transcription, no path equalities, PHR term), "al" elsewhere. "ip": the
+            primal-dual interior-point method of :mod:`jtraj.ipm`, with the AL loop as a
+            fallback for what it leaves unsolved. "al": the augmented-Lagrangian loop
+            alone.
+        ip_max_iter: interior-point iterations before the AL fallback (default 150).
+        ip_tol, ip_dual_tol, ip_compl_tol: an interior-point run is solved where IPOPT's
+            scaled optimality error is at most ``ip_tol`` (default 1e-7), or where the
+            dual infeasibility is within ``ip_dual_tol`` (1e-4), the complementarity
+            within ``ip_compl_tol`` (1e-5) and every residual within ``verify_tol / 2``.
+            Each part is capped by the AL loop's ``tol_optimality`` / ``tol_feasibility``,
+            so options asking for a tighter solve make the run go on to ``ip_tol``.
+        ip_project_tol: where the dual and complementarity parts are met and every
+            residual is within this (default 1e-4), the interior-point method takes a
+            closing step onto the constraints (at most two per run; 0 switches it off).
+        ip_damping: floor of the interior-point method's damping shift, kept on the
+            Hessian's diagonal after a step its line search cut to a quarter or less
+            (default 1e-2; 0 switches it off).
         kink_margin, kink_after: from the ``kink_after``-th Newton iteration of an AL
-            subproblem on, its Newton model adds the penalty's curvature ``mu grad g grad
-            g^T`` of the inequalities just short of their PHR kink
-            (``-mu kink_margin < rho + mu g <= 0``, g in the constraints' normalised
-            units); values and gradients are unchanged, so only the directions change.
-            Why: the PHR term is once, not twice, differentiable. A constraint just short
-            of its kink has no curvature in the exact Hessian, and a step that crosses it
-            meets ``mu |grad g|^2`` the model never saw. On benchmark pair 15 of seed 23 a
-            shifted Newton direction predicted a decrease of 6e-6 where the AL rose by
-            3e-5 (one torque bound crossed); the shift ladder shortened every step, the
-            subproblems ran to ``max_inner``, and after 580 iterations the pair was
-            certified 0.47 % above IPOPT's cost (350 iterations and 0.09 % with the
-            defaults). From the first iteration (``kink_after=0``) the curvature also
-            holds constraints that should leave their bound: margin 1e-3 cost 65-75 %
-            more iterations and 5 converged pairs per seed, 1e-4 +6 %; ``kink_after=10``
-            +10 % (seeds 1, 21, 23), margin 1e-2 after 20 +11 % (seed 1), for median cost
-            gaps lower by about 0.003 %. Measured (2 cores,
-            2026-11-28, bench_solver's 256 pairs per seed, IPOPT in the same run), margin
-            0 against the defaults: seeds 0, 1, 11, 21-24 converged 1598 / 1599 of 1792
-            (IPOPT 1598; seed 1: 225 / 226, IPOPT 226), iterations +0.5 % in all (-3.8 %
-            to +3.1 % per seed), cost above IPOPT's where both converge: largest per seed
-            0.13-0.47 % / 0.12-0.21 %, medians 0.010-0.014 % / 0.008-0.010 %.
+            subproblem on (default 20), its Newton model adds the penalty curvature of the
+            inequalities within ``kink_margin`` (default 1e-3) short of their PHR kink,
+            which the exact Hessian of the once-differentiable PHR term misses. 0
+            switches it off.
     """
 
     max_iter: int = eqx.field(static=True, default=500)
@@ -939,22 +763,15 @@ class _State(NamedTuple):
 # NumPy, not jnp: a jnp constant made at import takes the dtype of that moment (float32
 # when x64 is enabled after ``import jtraj``), which changed the iterates between processes
 # that enabled x64 before and after the import (Ray workers against the CLI)
-# 4 shifts x 4 step lengths. The trial points are a third of a Newton iteration's cost
-# (16 al_value calls; 215 of 590 us per problem with 24), and the steps 0.03 and 0.01
-# won 6 % of the iterations. Against 4 x 6 (2026-11-27, same processes interleaved, one
-# core each): 3 x 128 benchmark pairs (seeds 0, 1, 11) 1.11x faster, the same pairs
-# converged (114, 111, 115), iterations -2 % / +2 % / +2 %, costs within 0.06 %; the 96
-# dataset pairs of seed 5 (h_max 0.2) 96/96 either way, 1.09x. 3 shifts x 4: +13 % of
-# iterations, no faster. (An older solver, 2026-11-26: 4 x 4 converged 93 of those 96
-# against 95 with 4 x 6.)
+# 4 shifts x 4 step lengths. The trial points are about a third of a Newton iteration's
+# cost; against 4 shifts x 6 step lengths (down to 0.01) this is about 1.1x faster on the
+# benchmark family with the same pairs converged, and 3 shifts cost 13 % more iterations.
 _LADDER = np.linspace(0.0, 1.0, 4)  # exponents of the geometric shift ladder
 _STEPS = np.array([1.0, 0.5, 0.25, 0.1])
 #: the trial points (index into the ladder, step length), shift-major: every step on every shift but
-#: the top (Gershgorin) one, which takes only the full step. On 24 benchmark pairs (2,355
-#: iterations) the top shift won 4.5 % of the iterations, 0.5 % with a shorter step; 13
-#: trials instead of 16 (2026-11-28, 256 pairs of seeds 1 and 11, one core each, the
-#: same converged): iterations +1.0 % / -0.6 %, time 0.98x / 0.95x. 3 step lengths
-#: (1, 0.4, 0.1) on every shift: +7.5 % / +4 % iterations, no faster.
+#: the top (Gershgorin) one, which takes only the full step: the top shift rarely wins
+#: with a shorter step (0.5 % of the iterations), so 13 trials cost the same iterations
+#: as 16 and run a few per cent faster.
 _TRIAL_SHIFT = np.concatenate([np.repeat(np.arange(len(_LADDER) - 1), len(_STEPS)), [len(_LADDER) - 1]])
 _TRIAL_STEP = np.concatenate([np.tile(_STEPS, len(_LADDER) - 1), _STEPS[:1]])
 
@@ -1079,41 +896,23 @@ def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above
     held). The AL leaves O((lambda* - lambda)/mu) violations; this removes them without
     changing the optimum to first order. A step is kept only if the violation shrinks;
     the projections stop after ``iterations`` or at the first that does not shrink it.
-    With ``chord`` (the finish) they are chord steps, the constraints' Jacobian computed
-    once, at z, and they also stop once the violation is below ``_POLISH_DONE``: the
-    corrections are of the size of the AL's violations (1e-4 and less), so the chord
-    converges about as fast as Gauss-Newton, and the Jacobian was 350 of the 530 us of
-    each projection (serial3, N = 20, 8 lanes: the finish 2.7 -> 1.3 ms per problem; on
-    the 3 x 256 benchmark pairs the same statuses and costs to 1e-5 %). Without it
-    (the restart's starting point, see :func:`_restart`) the Jacobian is recomputed at
-    every projection: a restart continues from that point for hundreds of iterations,
-    and the chord's slightly different point sent benchmark pair 243 of seed 11 (806
-    iterations, converged) to 1,024 iterations and ``FEASIBLE_NOT_OPTIMAL``.
+
+    With ``chord`` (the finish) the constraints' Jacobian is computed once, at z, and the
+    projections also stop once the violation is below ``_POLISH_DONE``: the corrections
+    are as small as the AL's violations, so the chord converges about as fast as
+    Gauss-Newton at about half the cost. Without it (the restart's starting point, see
+    :func:`_restart`) the Jacobian is recomputed at every projection, because a restart
+    runs on from that point for many iterations and is sensitive to it.
 
     A satisfied nearly-active inequality is held where it is to first order. With
     ``release_above``, a point that this holding phase leaves violated by more than
-    ``release_above`` (and that started within its window, violation <= 1e-3, its act_tol)
-    goes on to a releasing phase over all inequality rows (``act_tol = inf``, ``iterations``
-    more projections; a chord's Jacobian is still the one at z, of all rows): a
-    satisfied inequality is left free unless the correction would take it across its
-    boundary (then it is moved onto it). Holding it fails where it is nearly parallel to
-    a violated one (``Problem(efforts="intervals")``: the effort at an interval's end and
-    at the next sample), whose correction it then cancels (see :func:`_final_polish`).
-
-    Both phases are one bounded loop, their bodies one piece of code (the releasing
-    phase's row selection an inner loop that under vmap runs only while some lane
-    releases): two copies of the polish, holding then releasing, were about half of the
-    finish's and the restart's compilation (serial3, N = 10, 2 lanes, one core: the
-    finish 12.9 -> 7.6 s, the restart 12.1 -> 6.2 s; warm, 8 lanes at N = 20, the final
-    polish takes 14.8 instead of 13.4 ms per call, best of five). With the chord, the
-    releasing phase's Jacobian was the one where that phase starts until 2026-12-02; as
-    an inner loop of zero passes it cost 10 ms per call, and a point the holding phase
-    moved by the AL's violations (1e-5 and less) gives a chord as good. The normal
-    equations' ``J^T J`` is formed once per chord (and once per Gauss-Newton projection),
-    the fixed variables' rows and columns zeroed in it, instead of ``Jf^T Jf`` twice per
-    projection (241 x 80 rows at serial3's N = 20): 8 lanes, one core, the final polish
-    0.70-1.03 against 1.04-1.18 ms per problem, the finish 1.18-1.67 against 1.46-1.96
-    (twenty-seventh session; the same iterates on 128 benchmark pairs, equal costs)."""
+    ``release_above`` goes on to a releasing phase over all inequality rows: a satisfied
+    inequality is left free unless the correction would take it across its boundary.
+    Holding fails where a row is nearly parallel to a violated one
+    (``Problem(efforts="intervals")``), whose correction it would cancel (see
+    :func:`_final_polish`). Both phases are one bounded loop with one body, which halves
+    the finish's and the restart's compilation; the normal equations' ``J^T J`` is formed
+    once per Jacobian, the fixed variables' rows and columns zeroed in it."""
     lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
     window = 1e-3  # the holding phase's act_tol: the rows nearly active within it
     n_eq = sum(x.size for x in jax.tree.leaves(jax.eval_shape(lambda zz: nlp.constraints(zz)[0], z)))
@@ -1954,10 +1753,8 @@ def _lane_counts(slots: int) -> list[int]:
     a vmapped iteration costs about its lane count, so the stragglers at the end of a
     batch run on 1/4 and 1/16 of the lanes, but on no fewer than 2 (each count is one
     more compilation, cached); on an accelerator lanes are nearly free and the count
-    stays. Measured (serial3, N = 20, 256 benchmark pairs of seed 1, one core, warm, two
-    runs each): 8 -> 2 -> 1 lanes 23.6 / 26.4 s (h_max 0.1) and 21.8 / 23.4 s (h_max
-    0.2), 8 -> 2 lanes 22.5 / 24.2 s and 22.8 / 23.2 s, and its first call compiles one
-    segment program less (98 against 112 s on today's slow machine)."""
+    stays. Stopping at 2 lanes rather than 1 is as fast and compiles one segment program
+    less."""
     if jax.default_backend() != "cpu":
         return [slots]
     return sorted({slots, max(slots // 4, min(slots, 2)), max(slots // 16, min(slots, 2))}, reverse=True)
@@ -1967,14 +1764,8 @@ def _cpu_lanes(nz: int) -> int:
     """The default lane count on a CPU for problems of about ``nz`` unknowns: 16 at
     serial3's N = 20 (nz = 80), fewer for larger problems (8 at N = 40), at least 4.
     Beyond that each lane costs more (the working set outgrows the core's cache), and the
-    threshold falls as N grows. Measured on one core with the interior-point method and
-    its native KKT kernel (2026-12-04, warm, interleaved in one process, best / median of
-    6-8): N = 20, 256 benchmark pairs of seed 1, 8 / 12 / 16 / 24 / 32 lanes 0.813 /
-    0.807 / 0.773 / 0.868 / 0.876 s and 0.862 / 0.834 / 0.801 / 0.916 / 0.907 s; 256
-    dataset-family pairs 8 / 12 / 16 lanes 1.364 / 1.415 / 1.307 and 1.517 / 1.471 / 1.400
-    s; N = 40 (h_max 0.05 s), 64 pairs, 4 / 8 lanes 1.010 / 1.056 and 1.157 / 1.187 s.
-    With the AL loop (2026-11-29): N = 40, 64 pairs, 2 / 4 / 8 lanes 10.14 / 10.12 / 12.99
-    s; N = 80, 32 pairs: 16.11 / 14.86 / 17.71 s (then 8 at N = 20)."""
+    threshold falls as N grows: on one core, 16 lanes solve 256 benchmark pairs at N = 20
+    about 5 % faster than 8 and 12 % faster than 24 or 32; at N = 40, 4 lanes beat 8."""
     return int(min(16, max(4, 1280 // max(nz, 1))))
 
 
@@ -2325,14 +2116,9 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
             accelerator when B > slots. ``slots=None`` solves all B at once. "auto"
             (default) is 1024 on an accelerator and, on a CPU, 16 for serial3 at N = 20,
             down to 4 for larger problems (:func:`_cpu_lanes`). On a CPU a vmapped
-            iteration costs about its lane count, and more per lane above ~12 lanes:
-            2026-11-29, 128 benchmark pairs, one process per core, seeds 0 / 1, best of
-            two interleaved runs: 4 lanes 5.42 / 5.11 s, 8 lanes 5.39 / 5.06, 12 lanes
-            5.34 / 5.18, 16 lanes 6.16 / 5.70, 32 lanes 6.57 / 6.46 (the default until
-            then). Earlier, with the dense Newton solve (96 pairs on 2 cores): 16 lanes
-            19.0 s, 32 lanes 17.8 s, 64 lanes 23.8 s; segments of 5 / 10 / 25 / 50
-            iterations: 20.6 / 17.8 / 19.2 / 21.7 s. An H200 ran 766 pairs/s at B = 1024
-            solved at once, 1573 at B = 16,384 with 4096 slots.
+            iteration costs about its lane count, and more per lane once the lanes'
+            working set outgrows the core's cache; on an accelerator lanes are nearly
+            free, so larger ``slots`` pay there.
 
     Returns a :class:`Solution` whose fields carry a leading batch axis. Samples with
     non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch

@@ -449,8 +449,7 @@ def _time_differences(h):
 # transposes and copies, several kernels each), and these arrays are short (N + 1 rows).
 # The products are elementwise and summed, not a dot: XLA fuses them into one loop, where
 # a dot of these small shapes is an Eigen contraction that packs its operands into freshly
-# allocated buffers (callgrind, serial3 N = 20, 2026-12-04: -2.9 % instructions for a
-# single solve, -3.9 % for a batch of 128, the same iterations).
+# allocated buffers (about 3-4 % fewer instructions for a serial3 solve at N = 20).
 def _tri_product(tri, X):
     """``tensordot(tri, X, axes=1)`` for a constant 0/1 matrix ``tri``, elementwise."""
     tri = jnp.asarray(tri, X.dtype)
@@ -559,11 +558,8 @@ def decoupled_hessian_bounds(layout: Layout, W, c, Hk):
     ``h_j (t_k - t_j - h_j / 2)`` are positive polynomials in t_k, so their sums over
     j < k (or k > j) are prefix (suffix) sums; only the h-columns' ``|qd_j + (t_k - t_j)
     v_j|`` need an (N+1, N, n) array. The co-state term's |C| has the same structure
-    (``Chv[i, j] = Cq_{>i} h_j`` for j < i). Measured (2026-12-02, serial3, N = 20, 8
-    lanes, one core, interleaved in one process) against the dense Jacobian and
-    ``cumsum``: the diagonal and two row bounds 101 -> 62 us per problem (a call's
-    overhead of ~19 us included), one Newton iteration 336-355 -> 300-322 us (medians of
-    9 x 30 calls, three runs)."""
+    (``Chv[i, j] = Cq_{>i} h_j`` for j < i). On serial3 at N = 20 this takes the diagonal
+    and the row bounds from about 100 to 60 us per problem against the dense Jacobian."""
     N, n = layout.N, layout.m_u
     ns = 2 * n
     qd, u, h = W[:N, n:ns], W[:N, ns:ns + n], W[:N, -1]

@@ -23,7 +23,7 @@ os.environ["JTRAJ_CACHE_DIR"] = os.environ["JTRAJ_TEST_CACHE"]
 # (JTRAJ_TEST_XLA_OPT sets another; 3 is what users' programs get; a level already in
 # XLA_FLAGS is left alone). The suite's time is mostly compilation: tests/test_tracecache.py
 # + tests/test_ipm.py in one process took 123 s at level 0 against 176 s at the default
-# level and 166 s at level 1 (2 cores, 2026-12-05). Without fast-math (XLA's default) the
+# level and 166 s at level 1 (2 cores). Without fast-math (XLA's default) the
 # level changes no result beyond rounding. The workers and the CLI's subprocesses inherit it.
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     _level = os.environ.get("JTRAJ_TEST_XLA_OPT", "0")

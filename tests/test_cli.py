@@ -14,8 +14,7 @@ import pytest
 from jtraj import cli
 
 # a move that fits N = 10 intervals (N h_max = 1 s): its optimum takes T = 0.97 s with
-# every period interior. (Until 2026-12-02 the goal was 30,10,20 deg, which needs more than
-# 1 s: the solve ended LIKELY_INFEASIBLE and the test accepted exit code 1.)
+# every period interior, so the test can demand exit code 0.
 START, GOAL = "0,30,30", "10,25,30"
 
 

@@ -70,8 +70,7 @@ def test_structured_hessian_matches_differences_of_the_gradient(name, transcript
 
 @pytest.mark.parametrize("name, transcription", [
     ("serial3_vertical", "decoupled"),
-    # a minute or more each to compile on a slow 2-core machine (2026-12-02: 35 / 92 / 41 s
-    # beside another test worker)
+    # a minute or more each to compile on a 2-core machine beside another test worker
     pytest.param("ibm7535", "decoupled", marks=pytest.mark.slow),
     pytest.param("pkm2", "decoupled", marks=pytest.mark.slow),
     pytest.param("wmr", "decoupled", marks=pytest.mark.slow),

@@ -104,7 +104,7 @@ def test_hessian_bounds_diag_exact_rows_bound(point):
 def _dense_row_bounds(layout, W, c, Hk, free):
     """The bound of :func:`decoupled_hessian_bounds` the direct way: the recursion's
     Jacobian J (state rows, dense) and the co-state term C formed, then
-    ``(sum_k |J_k|^T |Hk| |J_k| + |C|) 1_free`` (the solver's form until 2026-12-02)."""
+    ``(sum_k |J_k|^T |Hk| |J_k| + |C|) 1_free``: an independent reference."""
     N, n = layout.N, layout.m_u
     ns, m = 2 * n, n + 1
     A, sy, Chv, Chh, perm = _decoupled_pieces(layout, W, c)

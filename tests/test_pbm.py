@@ -119,8 +119,8 @@ def test_pbm_run_cut_short_falls_back_to_phr_and_reaches_the_same_optimum(batch)
 
 def test_fallback_takes_phrs_own_subproblem_tolerance():
     """The PBM phase takes pbm_inner_tol_ratio, the PHR fallback and restart the plain
-    inner_tol_ratio, so the fallback is PHR's own run (until 2026-12-01 one ratio, 0.1,
-    served both, and the fallback failed 3 of 256 dataset-family pairs that PHR solves)."""
+    inner_tol_ratio, so the fallback is PHR's own run (with one ratio, 0.1, for both, the
+    fallback fails dataset-family pairs that PHR solves)."""
     pbm, phr = SolverOptions.pbm(), SolverOptions()
     assert pbm.inner_tol_ratio == phr.inner_tol_ratio == 0.01 and pbm.pbm_inner_tol_ratio == 0.1
     viol = 5e-2

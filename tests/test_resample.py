@@ -132,7 +132,7 @@ def test_refusals():
         intersample_effort(sol, robot, per_interval=1)
 
 
-@pytest.mark.slow  # two minutes or more of compilation on a slow 2-core machine (2026-12-02)
+@pytest.mark.slow  # two minutes or more of compilation on a 2-core machine
 def test_efforts_intervals_bounds_the_executed_motion():
     # the thesis' sample constraints leave the efforts at the interval ends above tau_max;
     # Problem(efforts="intervals") bounds them, checked by Pinocchio's RNEA (independent

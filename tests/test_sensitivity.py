@@ -63,7 +63,7 @@ def _check_against_resolves(base_solve, resolve):
     np.testing.assert_allclose(d["T"], fd_T, rtol=0.02)
 
 
-@pytest.mark.slow  # about two minutes of compilation on a slow 2-core machine (2026-12-02)
+@pytest.mark.slow  # about two minutes of compilation on a 2-core machine
 def test_masses_against_central_differences_of_resolves():
     """Re-solves with the solver core that sensitivity() already compiled (same _run and
     _finish as jtraj.solve), so the test pays for one compilation (~60 s)."""

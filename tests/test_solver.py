@@ -589,9 +589,8 @@ def test_kink_curvature_adds_the_penalty_curvature_of_nearly_active_rows_only():
 def test_stalled_subproblem_pair_reaches_ipopts_cost():
     """Benchmark pair 15 of seed 23 (N = 20): without the kink curvature
     (``kink_margin=0``) its subproblems stall on a torque bound crossed at its PHR kink and
-    it is certified more than 0.3 % above IPOPT's cost (2026-11-28: 0.47 % after 580
-    iterations with 16 trial points per Newton step; 246 iterations with 13, the defaults
-    350 / 367); with the defaults it must be within 0.2 % of it."""
+    it is certified more than 0.3 % above IPOPT's cost; with the defaults it must be
+    within 0.2 % of it."""
     P = pytest.importorskip("peers.ipopt_peer")
     V = pytest.importorskip("peers.verify")
     q0, q1 = P.benchmark_pairs(256, 23)

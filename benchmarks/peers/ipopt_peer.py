@@ -21,8 +21,7 @@ Two CasADi formulations of this same transcription (same unknowns v, h, same opt
   such problems, and the fair peer: on 16 benchmark pairs it took a median 0.22 s
   (67 iterations, 3.4 ms each) against 0.97 s for the condensed form.
 * ``"condensed"``: the states are eliminated (single shooting): 4N variables, but dense
-  derivatives of deep SX graphs (about 15 ms per IPOPT iteration at N = 20). jtraj's
-  benchmark figures before 2026-11-27 were measured against this slower peer.
+  derivatives of deep SX graphs (about 15 ms per IPOPT iteration at N = 20).
 
 The NLP is built **once** per settings ``(N, weights, masses, h_max, formulation)`` with
 the start and goal as CasADi parameters and cached per process (:data:`_CACHE`).

@@ -220,11 +220,9 @@ def mirrored(data):
     return {k: (-np.asarray(v) if k in MIRRORED_FIELDS else v) for k, v in data.items()}
 
 
-#: augment="auto" mirrors datasets with fewer training trajectories than this. nefotc
-#: test RMSE / linear with and without the mirror images (2026-11-27, jtraj train):
-#: 86 training trajectories (18 slices of 96 pairs) 0.318 / 0.403; 268 (300 pairs, seeds
-#: 2 and 7) 0.306 / 0.317 and 0.323 / 0.328; 899 (1000 pairs) 0.288 / 0.289, for twice
-#: the training time (194 s / 98 s)
+#: augment="auto" mirrors datasets with fewer training trajectories than this: the
+#: mirror images lower nefotc's test RMSE / linear from about 0.40 to 0.32 on 86
+#: training trajectories, hardly on 268, not at all on 899, for twice the training time
 MIRROR_AUTO_BELOW = 500
 #: the mappings augment="auto" mirrors. On the 300-pair seed-2 set the others did not
 #: gain: plan (8 rules, order 0) 1.12x the linear baseline with the mirror images against
@@ -290,10 +288,9 @@ def mirror_symmetry(data, max_samples: int = 4096) -> str | None:
     return None
 
 
-# the ensemble of radius "auto" gains from more candidates: test RMSE / linear (nefotc
-# defaults, weights 1 / MSE^2, 2026-11-27), mean over 18 slices of 96 pairs and over 3
-# datasets of 300-1000 pairs: 0.425 / 0.316 with (0.4, 0.6, 0.9, 1.4), 0.403 / 0.312
-# with these seven, at about 1.8x the training time (74 s for the 1000-pair set)
+# the ensemble of radius "auto" gains from more candidates: nefotc's test RMSE / linear
+# over 18 slices of 96 pairs is about 0.40 with these seven against 0.425 with four
+# (0.4, 0.6, 0.9, 1.4), at about 1.8x the training time
 RADIUS_CANDIDATES = (0.4, 0.5, 0.6, 0.75, 0.9, 1.1, 1.4)
 # radius "auto" skips a radius whose clustering gives more rules than one per
 # TRAJECTORIES_PER_RULE training trajectories (the samples of a trajectory are strongly
@@ -446,11 +443,9 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
             model, hist = best[2], best[3]
             if ensemble and len(trained) > 1:
                 # weights 1 / MSE^2 on the validation split (floored: a perfect fit takes all
-                # the weight). Test RMSE / linear, nefotc defaults, mean over 18 slices of
-                # 96 pairs and over 3 datasets of 300-1000 pairs (2026-11-27, the seven
-                # radii): best single radius 0.444 / 0.304, weights 1 / MSE 0.409 / 0.325,
-                # 1 / MSE^2 0.403 / 0.312 (with four radii 0.469 / 0.320, 0.429 / 0.327,
-                # 0.425 / 0.316)
+                # the weight): on small datasets the weighted average is less noisy than the
+                # best single radius (nefotc test RMSE / linear about 0.40 against 0.44 over
+                # 18 slices of 96 pairs); 1 / MSE weights are slightly worse
                 w = np.array([1.0 / max(t[0], 1e-12) ** 4 for t in trained])
                 w /= w.sum()
                 for t, wk in zip(trained, w):

@@ -427,8 +427,8 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
     ``build`` with them must do so under ``if __name__ == "__main__":``. With ``None``,
     where this process may use several CPUs, even a single (last) chunk goes to a worker
     process: XLA's rounding depends on how many CPUs the solving process may use, so
-    chunks solved here would differ in the last bits (1e-12) from the workers' (a
-    resumed run with one chunk left did, 2026-12-03). ``workers=1`` solves here all the
+    chunks solved here would differ in the last bits (1e-12) from the workers'.
+    ``workers=1`` solves here all the
     same: its values equal the workers' only where this process runs on one CPU
     (restricted before JAX starts, e.g. ``taskset -c 0 python ...``).
     ``max_chunks`` stops after that many new chunks (tests).

@@ -22,9 +22,9 @@ Distributions (``space``):
     the leg-singularity margins of ``parallel3``), which :class:`jtraj.Problem` would
     refuse. So pairs are uniform over the admissible part of (start box) x (step cube).
     With no joint box and no such constraints (``serial3``), rejection only removes a
-    ball of radius 0.05 from the step cube, about 1e-4 of its volume.
-    (Until 2026-11-27 goals were clipped into the joint box instead: on a small box
-    such as ``parallel3``'s, about half of them then sat exactly on its boundary.)
+    ball of radius 0.05 from the step cube, about 1e-4 of its volume. Goals are
+    redrawn, not clipped into the joint box: on a small box such as ``parallel3``'s,
+    clipping would put about half of them exactly on its boundary.
 
 ``"task"``
     Task points uniform over the reachable workspace: ``p ~ U(box)`` where ``box`` is
