@@ -4,7 +4,7 @@
         [--rules R] [--order 0|1] [--pairs 100] [--fresh-seed S] [--knn] [--primal] [--closed]
         [--json out.json]
 
-Figures in the README (ANFIS section): ``--order 0 --pairs 100 --knn --primal`` on
+Figures in docs/benchmarks.md (warm starts from a plan): ``--order 0 --pairs 100 --knn --primal`` on
 ``jtraj dataset --robot serial3 --pairs 300 --seed 2``.
 
 Issue #6 item 5. The planner model (mapping ``plan``) is trained here on the dataset's

@@ -1,8 +1,9 @@
 """Regenerate the figures of the getting-started page (``docs/img/first_*.png``).
 
-Run it by hand after a change that alters them (a minute or a few on 2 cores)::
+Run it by hand after a change that alters them (a few minutes on 2 cores)::
 
-    python docs/make_figures.py
+    python docs/make_figures.py            # the missing figures
+    python docs/make_figures.py --force    # all of them
 
 The documentation build never runs it (it does not run the solver); the figures are
 committed. Each figure shows the result of the code on the page it belongs to.
@@ -11,6 +12,7 @@ committed. Each figure shows the result of the code on the page it belongs to.
 from __future__ import annotations
 
 import os
+import sys
 import tempfile
 
 import jax
@@ -25,6 +27,7 @@ import numpy as np  # noqa: E402
 
 import jtraj  # noqa: E402
 from jtraj import dataset, plotting  # noqa: E402
+from jtraj.dataset import plot as dataset_plot  # noqa: E402
 from jtraj.anfis.trajectory import train_mapping, view  # noqa: E402
 from jtraj.online import Planner  # noqa: E402
 
@@ -38,17 +41,31 @@ def _save(fig, name):
     print("wrote", os.path.join(OUT, name))
 
 
-def main():
+def _missing(name, force):
+    return force or not os.path.exists(os.path.join(OUT, name))
+
+
+def main(force: bool = False):
     robot = jtraj.robots.get("serial3")
     weights = jtraj.Weights(time=1.0, energy=0.1)
 
     # first solve
+    if _missing("first_solve.png", force):
+        _first_solve(robot, weights)
+    if _missing("first_batch.png", force):
+        _first_batch(robot, weights)
+    if any(_missing(f"first_{k}.png", force) for k in ("dataset", "model", "query")):
+        _learning(robot, weights)
+
+
+def _first_solve(robot, weights):
     problem = jtraj.Problem(robot, [0.2, -0.3, 0.4], [0.6, 0.1, -0.1], N=20, weights=weights)
     sol = jtraj.solve(problem)
     _save(plotting.plot_solution(problem, sol, title=f"{sol.status_message}, T = {float(sol.T):.3f} s"),
           "first_solve.png")
 
-    # first batch
+
+def _first_batch(robot, weights):
     rng = np.random.default_rng(0)
     q_starts = rng.uniform(-1.0, 1.0, (16, 3))
     q_goals = q_starts + rng.uniform(-0.8, 0.8, (16, 3))
@@ -62,12 +79,14 @@ def main():
     ax.set_title(f"16 problems in one solve_batch: {int(np.sum(batch.converged))} converged")
     _save(fig, "first_batch.png")
 
+
+def _learning(robot, weights):
     with tempfile.TemporaryDirectory() as tmp:
         # first dataset
         path = os.path.join(tmp, "ds")
         spec = dataset.make_spec("serial3", pairs=64, seed=0, N=20)
         dataset.build(spec, path, workers=1, progress=False)
-        dataset.plot.plot(path, os.path.join(OUT, "first_dataset.png"))
+        dataset_plot.plot(path, os.path.join(OUT, "first_dataset.png"))
         print("wrote", os.path.join(OUT, "first_dataset.png"))
 
         # first model: nefotc's predicted torques against the optimal ones on test trajectories
@@ -103,4 +122,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    main(force="--force" in sys.argv[1:])

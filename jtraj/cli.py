@@ -46,7 +46,7 @@ def setup_jax(x64: bool = True) -> None:
         jax.config.update("jax_compilation_cache_dir", path)
         # every program, also the small ones (the batch driver's gathers and packing,
         # eager array operations): a fresh process read about 30 of them in a fraction of
-        # the 1-1.4 s it spent compiling them (see the README's "Limits")
+        # the 1-1.4 s it spent compiling them (docs/guides/performance.md)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     except OSError as exc:  # unwritable home: run without the cache, but say so

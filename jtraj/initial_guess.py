@@ -14,12 +14,10 @@ slowed until it also meets the torque bounds. Along a path traversed c times slo
 efforts are ``tau = D / c^2 + G(q)`` (D: the inertial and Coriolis part at duration T,
 G: gravity), so the smallest c that keeps ``|tau| <= tau_max`` at 2N + 1 points of the
 path is ``c^2 = max |D| / (tau_max - sign(D) G)`` (friction, which does not scale so, is
-counted in D). Measured on bench_solver's canonical serial3 problem (128 pairs of seed
-1, interior-point method): the kinematic cycloid's peak torque was a median 2.4x the
-bound (up to 4.9x) and the optimal T ranged over 0.8-1.8x its T; with the torque
-scaling the optimal T is 0.78-0.98x the guess's, and the Newton iterations fell by 10 %
-(3,937 against 4,375, the same 109 pairs solved, costs within 0.01 %). Starting slower
-(1.1x, 1.25x) or faster (0.8x) than the torque-feasible cycloid took more iterations.
+counted in D). On the serial3 benchmark family the kinematic cycloid asks a median 2.4x
+the torque bound; the torque-scaled one is within 0.78-0.98x of the optimal T, and the
+interior-point method takes about 10 % fewer Newton iterations from it than from the
+kinematic cycloid (and more from one run slower or faster than it).
 
 Trapezoidal profile: accelerate at ``a`` up to ``v_c``, cruise, decelerate, every joint
 synchronised to the slowest one.

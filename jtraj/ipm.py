@@ -109,13 +109,9 @@ _PROJECT_MAX = 2
 #: the reduced Hessian can be positive definite with a tiny eigenvalue: its Newton step
 #: is long along that direction (|dz| about 1 in scaled units), the violation at the
 #: full step rose 10x from the constraints' curvature, and the search took 3 % of it for
-#: tens of iterations (a dataset-family pair: 50 of its 75 iterations). Measured on
-#: the dataset family (serial3, h_max = 0.2 s, 144 pairs of seed 0) and the benchmark
-#: family (192 pairs of seed 1), Newton iterations in all (the same 0.05 % of cost):
-#: without it 4,356 and 3,525 (2 dataset pairs unsolved in 150 iterations), with
-#: floor 1e-2 3,921 (-10 %) and 3,438 (-2.5 %), none unsolved. A second-order
-#: correction (IPOPT's, on the same 48 + 64 pairs) took more: 1,581 against 1,356 and
-#: 1,123 against 1,099
+#: tens of iterations. With the floor 1e-2 the dataset family (serial3, h_max 0.2 s)
+#: takes about 10 % fewer Newton iterations and the benchmark family 2.5 % fewer, with
+#: none left unsolved; a second-order correction (IPOPT's) took more
 _DAMP_FLOOR, _DAMP_UP, _DAMP_DOWN, _DAMP_CUT = 1e-2, 10.0, 10.0, 2
 
 

@@ -14,7 +14,7 @@ Two kinds of planner:
   the torque box) drives the robot's forward dynamics for the predicted period. The
   goal offset is fed back, so errors are corrected on the way: on 100 held-out pairs of a
   300-pair serial3 dataset the median goal error was 0.030 rad, against 0.20 rad for the
-  open-loop plan model (README, ANFIS).
+  open-loop plan model (docs/guides/anfis.md).
 
 The actuator efforts come from the robot's inverse dynamics, and :class:`Plan` reports:
 
@@ -214,7 +214,7 @@ class Planner:
         multipliers and penalty of a cold start; ``"full"`` is ``jtraj.solve(init=...)``,
         which also estimates multipliers at the plan and starts the penalty at
         ``penalty_max / 100``: right for a guess near an optimum, but the plan is not
-        (median goal error ~0.3 rad), and on 60 held-out serial3 pairs (README, ANFIS)
+        (median goal error ~0.3 rad), and on 60 held-out serial3 pairs
         ``"full"`` converged on 2/60 against 43/60 from the cycloidal start, ``"primal"``
         on 45/60 with 0.85x the iterations (``jtraj.solve(..., warm=)``)."""
         if warm not in ("primal", "full"):

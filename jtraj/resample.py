@@ -10,8 +10,8 @@ and the efforts that realise it are ``tau(t) = ID(q(t), qd(t), v_k)``. By defaul
 (``Problem(efforts="samples")``, the thesis) the solver bounds the efforts at the
 samples only; between them they vary with the state and exceed ``tau_max`` at the end of
 an interval (``efforts="intervals"`` bounds those too). :func:`resample` returns them,
-and :func:`intersample_effort` measures the excess (README, "Efforts between the
-samples").
+and :func:`intersample_effort` measures the excess (docs/guides/problems.md,
+"Efforts between the samples").
 
 The other transcriptions are not constant-acceleration trajectories (the spline's
 acceleration is linear between knots, shooting and collocation integrate the forward

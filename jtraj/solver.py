@@ -1778,10 +1778,8 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     nothing is pending, the unfinished problems move to fewer lanes (see
     :func:`_lane_counts`). Each problem takes the iterations it takes in a one-shot batch
     (results equal up to rounding at another batch width), restarts included: a run that
-    ends uncertified is restarted on its lane (see :func:`_run_lanes`).
-    Measured (serial3, N = 20, 96 dataset pairs, 2 cores, warm, segments of 25): 27.6 s
-    with 32 lanes throughout (64 % of the lane-iterations useful), 19.2 s stepping down
-    to 8 and 2 (17.8 s with segments of 10, the default)."""
+    ends uncertified is restarted on its lane (see :func:`_run_lanes`). With lanes held
+    throughout, about a third of the lane-iterations would be idle."""
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
     states = _run_lanes(nlps, states, np.arange(int(valid.shape[0])), opts, slots, steps)
     return _finish_all(nlps, states, opts, valid, slots)
@@ -1845,15 +1843,10 @@ def _run_pool(nlps, states, todo, opts, slots: int):
     A lane whose problem finishes takes the next pending one at once, in the same loop:
     the AL loop's segments (:func:`_run_lanes`) hand lanes over only between segments of
     ``segment`` iterations, and a problem finishing within one left its lane idle for the
-    rest of it, about half a segment per problem (serial3, N = 20, 16 lanes: a
-    simulation of the segments on the measured iteration counts put the lane-iterations
-    run at 1.18x the useful ones on the dataset family and 1.29x on bench_solver's
-    pairs, where a problem takes 27 and 18 iterations; refilled at once, 1.03x). Once
-    nothing is pending and at most the next smaller lane count (:func:`_lane_counts`) of
-    problems is left, the loop returns and the rest goes on through that many lanes.
-    Measured (256 pairs, both versions side by side on the two cores, median of 8 warm
-    calls): bench_solver's 0.62 against 0.77-0.88 s with segments, the dataset family's
-    1.16-1.21 against 1.36-1.43 s, the same iterations."""
+    rest of it, about half a segment per problem (on serial3 at N = 20 about 20-30 % of
+    the lane-iterations; refilled at once, 3 %). Once nothing is pending and at most the
+    next smaller lane count (:func:`_lane_counts`) of problems is left, the loop returns
+    and the rest goes on through that many lanes."""
     B = todo.size
     if B == 0:
         return states

@@ -1,5 +1,5 @@
 """The benchmark scripts' plumbing (results, JSON summary, plot) with the fast stand-in
-solver: the figures themselves come from real runs (README), not from tests."""
+solver: the figures themselves come from real runs (docs/benchmarks.md), not from tests."""
 
 import json
 import os

@@ -4,8 +4,8 @@
 candidate clustering radius and, by default, keeps all of them, weighted by
 1 / (validation mean squared error)^2. On small trajectory datasets the validation split
 is a handful of trajectories, so picking the single best radius on it is noisy;
-averaging the candidates removes much of that noise (README, ANFIS: 18 slices of 96
-pairs, test RMSE / linear baseline mean 0.444 -> 0.403).
+averaging the candidates removes much of that noise (18 slices of 96 pairs: test RMSE
+/ linear baseline mean 0.444 -> 0.403; docs/guides/anfis.md).
 
 An :class:`Ensemble` answers like a :class:`~jtraj.anfis.Model` (``predict``,
 ``predict_fn``, ``metadata``, ``astype``, ``save``; :func:`jtraj.anfis.load` reads it

@@ -68,7 +68,7 @@ def view(data, mapping: str = "nefotc", *, goal: bool | str = False, phase: bool
     Over a dataset of random start/goal pairs the plain mappings are not
     functions (the same ``(q, qd)`` is crossed towards different goals with opposite
     torques), so no regressor beats the linear baseline by much on them; with the goal
-    offset they are (see the README's ANFIS section for the figures).
+    offset they are (see docs/guides/anfis.md).
 
     ``phase=True`` (``nefotc`` and ``nefumop``) appends the sample's place in its
     trajectory, ``k / N`` (input ``phase``), after the other inputs.
@@ -300,7 +300,7 @@ TRAJECTORIES_PER_RULE = 4
 MAX_AUTO_RULES = 64
 # extra inputs (goal, phase) of train_mapping when not given: over a dataset of random
 # start/goal pairs the thesis' mappings are not functions (see view); with the goal
-# offset and the phase they nearly are (README, ANFIS: nefotc 0.2x and nefumop 0.35-0.4x
+# offset and the phase they nearly are (docs/benchmarks.md: nefotc 0.2x and nefumop 0.35-0.4x
 # the linear baseline on the thesis' inputs on 300-1000-pair serial3 datasets)
 DEFAULT_INPUTS = {"nefotc": ("relative", True), "nefumop": ("append", True)}
 
@@ -354,7 +354,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     members' rules), ``radius``, ``epochs`` and ``best_epoch`` of the member with the
     lowest validation RMSE; ``history`` is that member's. On 18 slices of 96 pairs of
     serial3 datasets the ensemble's test RMSE was 0.403x the linear baseline on average
-    against 0.444x for the best single radius (README, ANFIS).
+    against 0.444x for the best single radius.
     ``augment``: ``"mirror"`` adds the reflection ``q -> -q`` of every training (and
     validation) trajectory, an optimal trajectory too when the robot has that symmetry
     (:func:`mirror_symmetry`; an error if it does not); ``"auto"`` (default) does so

@@ -4,7 +4,7 @@ and optionally refine it with the exact solver.
 Open loop: --model of mapping plan. Closed loop (the thesis' NeFOTC with NeFuMOP):
 --model of mapping nefotc (the torque controller) and --periods of mapping nefumop
 (its output h sets the sampling periods), rolled out through the robot's dynamics;
-much closer to the goal on serial3 (median 0.026 rad against 0.20 rad, README)."""
+much closer to the goal on serial3 (median 0.030 rad against 0.20 rad; docs/guides/anfis.md)."""
 
 HELP = "plan a trajectory with a trained ANFIS planner (optionally refine it exactly)"
 

@@ -2,7 +2,7 @@
 
 Give a start and a goal, each either in joint space (--start-q / --goal-q, radians,
 or degrees with --deg) or as a task-space point (--start-xy / --goal-xy, metres,
-solved by inverse kinematics). Example (the README demo):
+solved by inverse kinematics). Example (the README's first command):
 
     jtraj solve --robot serial3 --start-q 0,30,30 --goal-xy 1.35,1.30 --deg --plot serial3.png
 

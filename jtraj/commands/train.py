@@ -11,7 +11,7 @@ of the thesis' inputs (the goal is missing), and no regressor gets far below the
 baseline on them. --goal-inputs adds the offset to the goal, --phase the sample's place
 k/N in its trajectory. By default nefotc is (q_goal - q, qd, k/N) -> tau and nefumop
 (p, pd, p_goal - p, k/N) -> (tau, h); `--goal-inputs none --no-phase` gives the thesis'
-inputs (see README, ANFIS).
+inputs (see docs/guides/anfis.md).
 
 With --radius auto (the default when --rules is not given) one model is trained per
 candidate radius and all of them are kept, weighted by 1 / (validation MSE)^2
