@@ -190,7 +190,7 @@ def test_energy_conservation(name):
 
 # the closed chains compile for about a minute each on a slow 2-core machine: slow (their
 # dynamics stay in the default suite through the Pinocchio and structure tests)
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in ("parallel3", "pkm2") else n
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in ("parallel3", "pkm2", "gough_stewart") else n
                                   for n in catalogue()])
 def test_transforms_on_every_function(name):
     """jit, vmap and grad (with respect to the state, the torques and the robot's
