@@ -1,7 +1,7 @@
 """jtraj against CasADi + IPOPT on a 7-DOF spatial arm (the Franka Panda).
 
     python benchmarks/bench_spatial.py [--pairs 64] [--batch 32] [--seed 0] [--N 40]
-                                       [--latency-pairs 4] [--workers W] [--peer-jerk auto|off]
+                                       [--latency-pairs 4] [--workers W] [--peer-jerk off|auto]
                                        [--first-solution] [--json out.json]
 
 Problem family: ``jtraj.robots.get("panda")``, N = 40, weights time 1 / energy 0.1,
@@ -212,9 +212,10 @@ def main(argv=None):
     ap.add_argument("--N", type=int, default=40)
     ap.add_argument("--latency-pairs", type=int, default=4)
     ap.add_argument("--workers", type=int, default=None, help="jtraj batch processes (default: all cores)")
-    ap.add_argument("--peer-jerk", choices=("auto", "off"), default="auto",
+    ap.add_argument("--peer-jerk", choices=("auto", "off"), default="off",
                     help="auto: the peer bounds |v_k+1 - v_k| <= qddd_max (h_k + h_k+1)/2 when jtraj's panda "
-                         "has jerk limits (the same form as jtraj's must be used for a fair comparison)")
+                         "has jerk limits; use it only where jtraj's transcription bounds the jerk in that same "
+                         "form, otherwise the two NLPs differ (default off)")
     ap.add_argument("--first-solution", action="store_true", help="also time a fresh process to a first solution")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
