@@ -199,18 +199,30 @@ class GoughStewart(Robot):
         rho = jnp.sqrt(jnp.sum(d**2, axis=-1))
         return rho, d / rho[:, None]
 
+    def _mass_matrix_mechanism(self, q: Vec) -> Array:
+        """M(q) (6, 6) in closed form, the Hessian in qd of :meth:`kinetic_energy`:
+        the platform's ``blockdiag(m I, E^T R I_b R^T E)`` plus, per leg, ``G_i^T K_i G_i``
+        with ``dd_i = G_i qd``, ``G_i = [I, -skew(R b_i) E]`` (velocity of the leg vector),
+        ``K_i = m_p u u^T + (m_p (rho - e_p)^2 + m_c e_c^2 + I_c + I_p) / rho^2 (I - u u^T)``
+        (the piston's axial and both bodies' transverse motion; ``ud = (I - u u^T) dd / rho``)."""
+        R, E = self.rotation(q), rpy_rate_matrix(q[3:6])
+        RE = R.T @ E  # body angular velocity per angle rate
+        M = jnp.zeros((6, 6))
+        M = M.at[:3, :3].set(self.platform_mass * jnp.eye(3))
+        M = M.at[3:, 3:].set(RE.T @ self.platform_inertia @ RE)
+        rho, u = self._leg_state(q)
+        Rb = self.platform_points @ R.T
+        skew = jnp.cross(Rb[:, :, None], jnp.eye(3)[None, :, :], axis=1)  # skew(Rb_i) e_j as columns
+        G = jnp.concatenate([jnp.broadcast_to(jnp.eye(3), (6, 3, 3)), -skew @ E], axis=2)  # (6, 3, 6)
+        uu = u[:, :, None] * u[:, None, :]
+        transverse = (self.piston_mass * (rho - self.piston_com) ** 2 + self.cyl_mass * self.cyl_com**2
+                      + self.cyl_inertia + self.piston_inertia) / rho**2
+        K = self.piston_mass * uu + transverse[:, None, None] * (jnp.eye(3) - uu)
+        return M + jnp.einsum("kai,kab,kbj->ij", G, K, G)
+
     def kinetic_energy(self, q: Vec, qd: Vec) -> Array:
-        (rho, u), (rhod, ud) = jax.jvp(self._leg_state, (q,), (qd,))
-        R, Rd = jax.jvp(self.rotation, (q,), (qd,))
-        W = R.T @ Rd
-        w = jnp.stack([W[2, 1], W[0, 2], W[1, 0]])
-        T_platform = 0.5 * self.platform_mass * jnp.sum(qd[:3] ** 2) + 0.5 * w @ self.platform_inertia @ w
-        ud2 = jnp.sum(ud**2, axis=-1)
-        v_piston = rhod[:, None] * u + (rho - self.piston_com)[:, None] * ud
-        T_legs = (0.5 * self.cyl_mass * self.cyl_com**2 * jnp.sum(ud2)
-                  + 0.5 * self.piston_mass * jnp.sum(v_piston**2)
-                  + 0.5 * (self.cyl_inertia + self.piston_inertia) * jnp.sum(ud2))
-        return T_platform + T_legs
+        """``T = 1/2 qd^T M(q) qd`` (bodies and terms in the module docstring)."""
+        return 0.5 * qd @ self._mass_matrix_mechanism(q) @ qd
 
     def potential_energy(self, q: Vec) -> Array:
         rho, u = self._leg_state(q)
