@@ -66,3 +66,25 @@ def test_spec_rejects_bad_limits(panda):
                        h_min=0.005, h_max=0.1)
     with pytest.raises(ValueError, match="tau_max"):
         A.ArmSpec.make(fn, q_min=-1, q_max=1, qd_max=1.0, qdd_max=1.0, tau_max=0.0, h_min=0.005, h_max=0.1)
+
+
+def test_jerk_bound_is_met_and_active(panda):
+    """With a jerk bound tight enough to matter, every change of acceleration between
+    consecutive intervals stays within jerk_max times the time between their midpoints,
+    the bound is active somewhere, and the move is slower than without it."""
+    model, lim, spec = panda
+    fn = spec.function()
+    jerk = 40.0
+    tight = A.ArmSpec.make(fn, q_min=lim["q_min"], q_max=lim["q_max"], qd_max=lim["qd_max"], qdd_max=10.0,
+                           tau_max=lim["tau_max"], h_min=0.005, h_max=0.1, jerk_max=jerk)
+    lo, hi = lim["q_min"], lim["q_max"]
+    q0 = (lo + hi) / 2
+    q1 = q0 + 0.4
+    N = 8
+    free, r = A.solve_pair(spec, q0, q1, N=N), A.solve_pair(tight, q0, q1, N=N)
+    assert free["strict_success"] and r["strict_success"]
+    dv = np.abs(np.diff(r["v"], axis=0))
+    dt = 0.5 * (r["h"][1:] + r["h"][:-1])
+    ratio = dv / (jerk * dt[:, None])
+    assert ratio.max() <= 1 + 1e-6 and ratio.max() > 0.99
+    assert r["T"] > free["T"] * (1 + 1e-3)
