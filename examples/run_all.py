@@ -27,7 +27,7 @@ RESULTS = HERE / "RESULTS.md"
 FIGURES = HERE / "figures"
 
 # in the order of issue 4; scripts that do not exist yet are reported as missing
-EXPERIMENTS = ["serial3", "serial3_vertical", "ibm7535", "pkm2", "parallel3", "wmr"]
+EXPERIMENTS = ["serial3", "serial3_vertical", "ibm7535", "pkm2", "parallel3", "wmr", "gough_stewart"]
 
 _HEADER = """# jtraj: reproduction of the published experiments
 

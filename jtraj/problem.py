@@ -111,7 +111,11 @@ def _square(M, m, name):
 
 
 class ViaPoint(eqx.Module):
-    """An imposed passage of the task point: ``||p(q_k) - point|| <= tol``.
+    """An imposed passage of the task point: ``||p(q_k) - point|| <= tol``, and with a
+    ``rotation`` R_l (3, 3) also of the orientation (the thesis' form):
+    ``||vect(R(q_k)^T R_l)|| <= rot_tol``, where ``R(q)`` is the robot's ``rotation``
+    and ``vect`` the axial vector of a rotation's skew part (norm = sin of the angle
+    between the two orientations, so ``rot_tol`` is about an angle in rad).
 
     The passing sample is fixed before solving (fixed shapes, smooth constraints):
     ``sample`` if given, else via point l of L is assigned ``k = round((l+1) N/(L+1))``,
@@ -122,6 +126,16 @@ class ViaPoint(eqx.Module):
     point: Array
     tol: float | Array = 1e-6
     sample: int | None = eqx.field(static=True, default=None)
+    rotation: Array | None = None
+    rot_tol: float | Array = 1e-3
+
+
+def orientation_error(R, R_target) -> Array:
+    """``vect(R^T R_target)`` (3,), with ``vect(A) = (A_32 - A_23, A_13 - A_31,
+    A_21 - A_12) / 2``: ``sin(angle) * axis`` of the rotation between the two
+    orientations; its norm is the thesis' orientation distance of a passage."""
+    A = R.T @ R_target
+    return 0.5 * jnp.stack([A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1]])
 
 
 #: slack of the checks of a problem's start and goal against its boxes and path
@@ -219,7 +233,7 @@ class Problem(eqx.Module):
             raise ValueError(f"weights must be a jtraj.Weights, got {type(weights).__name__}")
         if via_points:  # (the task space's dimension, by tracing the kinematics: ~3 ms)
             d = jax.eval_shape(robot.forward_kinematics, self.q_start).shape[0]
-            self.via_points = tuple(_as_via(p, i, d) for i, p in enumerate(via_points))
+            self.via_points = tuple(_as_via(p, i, d, robot) for i, p in enumerate(via_points))
         else:
             self.via_points = ()
         if T_max is None:
@@ -317,8 +331,8 @@ def ik_or_raise(robot, p, q_init, name, method="weighted"):
     return res.q
 
 
-def _as_via(p, i, d) -> ViaPoint:
-    """Validate via point ``i`` of a robot whose task space has dimension ``d``."""
+def _as_via(p, i, d, robot) -> ViaPoint:
+    """Validate via point ``i`` of ``robot``, whose task space has dimension ``d``."""
     vp = p if isinstance(p, ViaPoint) else ViaPoint(point=p)
     name = f"via_points[{i}]" + (".point" if isinstance(p, ViaPoint) else "")
     if jnp.shape(vp.point) != (d,):
@@ -328,7 +342,26 @@ def _as_via(p, i, d) -> ViaPoint:
         raise ValueError(f"via_points[{i}].tol must be a scalar, got shape {jnp.shape(vp.tol)}")
     if is_concrete(vp.tol) and not (math.isfinite(float(vp.tol)) and float(vp.tol) > 0):
         raise ValueError(f"via_points[{i}].tol must be a finite distance > 0 [m], got {vp.tol!r}")
-    return ViaPoint(point=point, tol=vp.tol, sample=vp.sample)
+    rotation = None
+    if vp.rotation is not None:
+        if not callable(getattr(robot, "rotation", None)):
+            raise ValueError(f"via_points[{i}].rotation needs a robot with an orientation (a rotation(q) "
+                             f"method); robot {robot.name!r} has none")
+        if jnp.shape(vp.rotation) != (3, 3):
+            raise ValueError(f"via_points[{i}].rotation must be a (3, 3) rotation matrix, "
+                             f"got shape {jnp.shape(vp.rotation)}")
+        rotation = jnp.asarray(vp.rotation, dtype=float)
+        if is_concrete(rotation):
+            Rn = np.asarray(rotation)
+            if not (np.all(np.isfinite(Rn)) and np.allclose(Rn.T @ Rn, np.eye(3), atol=1e-9)
+                    and np.linalg.det(Rn) > 0):
+                raise ValueError(f"via_points[{i}].rotation must be a rotation matrix (R^T R = I, "
+                                 f"det R = +1), got {Rn.tolist()}")
+        if jnp.ndim(vp.rot_tol) != 0:
+            raise ValueError(f"via_points[{i}].rot_tol must be a scalar, got shape {jnp.shape(vp.rot_tol)}")
+        if is_concrete(vp.rot_tol) and not (math.isfinite(float(vp.rot_tol)) and 0 < float(vp.rot_tol) < 1):
+            raise ValueError(f"via_points[{i}].rot_tol must be in (0, 1) (sin of an angle), got {vp.rot_tol!r}")
+    return ViaPoint(point=point, tol=vp.tol, sample=vp.sample, rotation=rotation, rot_tol=vp.rot_tol)
 
 
 def minimum_time_bound(problem: Problem) -> Array:

@@ -54,7 +54,7 @@ from . import _packing, _tracecache, ipm, lq
 from ._compile import SOLVER_XLA_OPTIONS, supported_options
 from ._compile import solver_jit as _jit
 from ._math import log1p
-from .problem import Problem, Weights
+from .problem import Problem, Weights, orientation_error
 from .transcription import Layout, StageData, Transcription, decoupled_hessian, decoupled_hessian_bounds
 
 # ----------------------------------------------------------------------------------------
@@ -1527,6 +1527,10 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> So
         sd = nlp.sd
         dist = jnp.linalg.norm(jax.vmap(problem.robot.forward_kinematics)(q) - sd.via_target, axis=-1)
         viol["via"] = jnp.max(jnp.where(sd.is_via > 0, jnp.maximum(dist - sd.via_tol, 0.0), 0.0))
+        if sd.via_rotation is not None:  # ||vect(R^T R_l)|| beyond rot_tol, absolute likewise
+            rot = jax.vmap(lambda q_, R_l: jnp.linalg.norm(orientation_error(problem.robot.rotation(q_), R_l)))
+            err = rot(q, sd.via_rotation)
+            viol["via_rotation"] = jnp.max(jnp.where(sd.is_via_rot > 0, jnp.maximum(err - sd.via_rot_tol, 0.0), 0.0))
     for k, c in eq.items():
         if k != "goal":
             viol[k] = jnp.max(jnp.abs(c))

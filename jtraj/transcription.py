@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .problem import Problem
+from .problem import Problem, orientation_error
 
 _BIG = 1e6  # "no bound" stand-in for scaling when a box is absent
 #: periods enter z as h / (_H_SCALE h_max). The Levenberg shifts and the stationarity
@@ -65,6 +65,10 @@ class StageData(NamedTuple):
     via_target: Array  # (N+1, d) task point to pass at this sample
     via_tol: Array  # (N+1,) Euclidean tolerance of the passage (0 where none)
     is_via: Array  # (N+1,) 1 where a via point is imposed
+    # orientation passages (None unless a via point has a rotation)
+    via_rotation: Array | None = None  # (N+1, 3, 3) orientation R_l to pass at this sample
+    via_rot_tol: Array | None = None  # (N+1,) tolerance on ||vect(R^T R_l)|| (0 where none)
+    is_via_rot: Array | None = None  # (N+1,) 1 where an orientation passage is imposed
 
 
 class Layout(eqx.Module):
@@ -334,9 +338,18 @@ class Transcription:
             g = jnp.stack([(p - sd.via_target - width) / (1.0 + width),
                            (sd.via_target - p - width) / (1.0 + width)], axis=-1)
             ineq["via"] = jnp.where(sd.is_via > 0, g, -1.0)
+        if sd.via_rotation is not None:
+            # the same inscribed box on vect(R^T R_l) (the thesis' orientation distance)
+            e = orientation_error(robot.rotation(q), sd.via_rotation)
+            width = jnp.maximum(sd.via_rot_tol, 1e-12) / jnp.sqrt(3.0)
+            g = jnp.stack([(e - width) / (1.0 + width), (-e - width) / (1.0 + width)], axis=-1)
+            ineq["via_rotation"] = jnp.where(sd.is_via_rot > 0, g, -1.0)
         extra = getattr(robot, "path_constraints", None)
         if extra is not None:
             ineq["path"] = jnp.where(sd.is_inner > 0, extra(q), -1.0)
+        extra_qd = getattr(robot, "velocity_constraints", None)
+        if extra_qd is not None:  # state-dependent bounds, e.g. a parallel robot's leg speeds
+            ineq["path_qd"] = jnp.where(sd.is_inner > 0, extra_qd(q, qd), -1.0)
         qd_scale = 1.0 if lim.qd_max is None else lim.qd_max
         if self.name == "collocation":  # midpoint-rule defects of interval k
             n = robot.n
@@ -371,9 +384,18 @@ class Transcription:
             target = target.at[kk].set(vp.point)
             tol = tol.at[kk].set(vp.tol)
             is_via = is_via.at[kk].set(1.0)
+        rot = {}
+        if any(vp.rotation is not None for vp in problem.via_points):
+            R_l, rot_tol, is_rot = jnp.tile(jnp.eye(3), (N + 1, 1, 1)), jnp.zeros(N + 1), jnp.zeros(N + 1)
+            for vp, kk in zip(problem.via_points, problem.via_samples()):
+                if vp.rotation is not None:
+                    R_l = R_l.at[kk].set(vp.rotation)
+                    rot_tol = rot_tol.at[kk].set(vp.rot_tol)
+                    is_rot = is_rot.at[kk].set(1.0)
+            rot = dict(via_rotation=R_l, via_rot_tol=rot_tol, is_via_rot=is_rot)
         return StageData(is_interval=(k < N).astype(float), is_inner=(k >= 1).astype(float),
                          is_final=(k == N).astype(float), via_target=target,
-                         via_tol=tol, is_via=is_via)
+                         via_tol=tol, is_via=is_via, **rot)
 
 
 def sd_mask(mask, x):

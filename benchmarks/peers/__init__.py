@@ -4,6 +4,9 @@
   :func:`solve_pair`, :func:`solve_many`, :func:`cycloidal_init`.
 * :mod:`.pairs` -- :func:`benchmark_pairs`, the canonical problem family (NumPy only).
 * :mod:`.verify` -- NumPy + Pinocchio verifier: :func:`verify`, :func:`verify_batch`.
+* :mod:`.casadi_rnea` -- a CasADi RNEA from a Pinocchio model's numbers (spatial arms).
+* :mod:`.ipopt_arm` -- the decoupled NLP of any arm given as a CasADi function, in IPOPT.
+* :mod:`.verify_arm` -- NumPy + Pinocchio verifier of such an arm's trajectories.
 
 Names are imported lazily so that IPOPT workers do not load Pinocchio and vice versa.
 """

@@ -26,13 +26,15 @@ _REGISTRY: dict[str, str] = {
     "pkm2": "jtraj.robots.pkm2:pkm2",
     "parallel3": "jtraj.robots.parallel3:parallel3",
     "wmr": "jtraj.robots.wmr:wmr",
+    "gough_stewart": "jtraj.robots.gough_stewart:gough_stewart",
 }
 
 # parameters that must stay strictly positive when overridden
 _POSITIVE = {"lengths", "masses", "leg_mass", "slider_mass", "platform_mass", "link_length",
              "link_mass", "R", "r", "L", "wheel_radius", "track", "mass",
              "link_com", "link_inertia", "inertia", "wheel_inertia", "body_radius",
-             "eps1", "eps2", "rho_min", "rho_max"}
+             "eps1", "eps2", "rho_min", "rho_max", "cyl_mass", "piston_mass", "cyl_inertia",
+             "piston_inertia", "platform_radius", "z_home", "rhod_max", "det_min"}
 
 
 def names() -> list[str]:
