@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _packing, _tracecache, ipm, lq
+from . import _packing, _setup, _tracecache, ipm, lq
 from ._compile import SOLVER_XLA_OPTIONS, supported_options
 from ._compile import solver_jit as _jit
 from ._math import log1p
@@ -1799,12 +1799,17 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
         raise ValueError(f"warm must be 'full' or 'primal', got {warm!r}")
     warm = init is not None and warm == "full"
     opts = _resolve_method(options, transcription, problem.robot)
+    # float64 only, the compilation cache on, a first compilation logged (jtraj._setup)
+    key = _setup.before_solve(problem.robot, problem.N, batch=False, problem=problem, options=opts,
+                              transcription=transcription, efforts=problem.efforts)
     guess = init is None
     if guess:  # placeholders of the controls' shapes (the program computes the guess)
         init = _placeholder_init(problem.N, Transcription(transcription).control_dim(problem))
     else:
         init = _check_init(problem, init, transcription)
-    return _solve_jit(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
+    sol = _solve_jit(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
+    _setup.compiled(key)
+    return sol
 
 
 @functools.lru_cache(maxsize=16)
@@ -2368,6 +2373,8 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     _check_efforts(efforts, transcription)
     opts = _resolve_method(options, transcription, robot)
     weights = Weights() if weights is None else weights
+    key = _setup.before_solve(robot, N, batch=True, weights=weights, options=opts, transcription=transcription,
+                              efforts=efforts)
 
     def make(a, b, c, d, t):
         return _problem(robot, a, b, c, d, t, N, weights, efforts)
@@ -2391,7 +2398,10 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     if not isinstance(segment, int) or segment < 1:
         raise ValueError(f"segment must be a positive integer, got {segment!r}")
     if opts.method == "ip":
-        return _solve_batch_ip(problems, opts, transcription, init, jax.device_put(warm), slots or B, segment)
-    if slots is not None and B > min(_lane_counts(slots)):
-        return _solve_compacted(problems, opts, transcription, init, jax.device_put(warm), slots, segment)
-    return _solve_batch_jit(problems, opts, transcription, init, jax.device_put(warm))
+        sol = _solve_batch_ip(problems, opts, transcription, init, jax.device_put(warm), slots or B, segment)
+    elif slots is not None and B > min(_lane_counts(slots)):
+        sol = _solve_compacted(problems, opts, transcription, init, jax.device_put(warm), slots, segment)
+    else:
+        sol = _solve_batch_jit(problems, opts, transcription, init, jax.device_put(warm))
+    _setup.compiled(key)
+    return sol

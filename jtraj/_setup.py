@@ -1,0 +1,267 @@
+"""JAX set-up shared by the library and the CLI: float64, the persistent compilation
+cache, and a line saying when the solver compiles.
+
+Precision. jtraj solves in float64 only. ``import jtraj`` changes no global JAX setting;
+:func:`before_solve` (called by :func:`jtraj.solve` and :func:`jtraj.solve_batch`)
+raises ``ValueError`` where ``jax_enable_x64`` is off, or where the problem's or the
+robot's arrays are float32 (built while it was off): with x64 off JAX makes every array
+float32, and the solver's tolerances (KKT error 3e-4 and below, feasibility 1e-6) are
+then out of reach or met by rounding noise. The fix is one line at the start of the
+program, before robots and problems are built::
+
+    jax.config.update("jax_enable_x64", True)
+
+The CLI (:func:`setup_jax`) switches it on itself.
+
+Compilation cache. Compiling the solver takes tens of seconds; JAX's persistent
+compilation cache keeps the compiled programs (and :mod:`jtraj._tracecache` the traced
+ones) between processes. jtraj turns it on at the first solve of a process (not at
+import), in :func:`cache_dir`: ``$JTRAJ_CACHE_DIR``, else ``$XDG_CACHE_HOME/jtraj/jax``,
+else ``~/.cache/jtraj/jax``; ``JTRAJ_CACHE=0`` leaves it off. A cache directory the
+program already set (``jax.config.update("jax_compilation_cache_dir", ...)`` or
+``JAX_COMPILATION_CACHE_DIR``) is kept as it is. Several processes may share the cache:
+JAX writes its entries, and jtraj its files, to a temporary name first and renames them
+(atomic on POSIX).
+
+A cache holds programs that every process loads and runs, so whoever may write to it may
+run code as its users. jtraj uses a cache directory (its own, and the native kernel's of
+:mod:`jtraj._kkt_native`) only where it is owned by this user and neither group- nor
+world-writable, and no folder above it (up to the root) is writable by another user
+without the sticky bit; otherwise it logs why and runs without it (:func:`untrusted`).
+The files jtraj itself writes there are read without running code
+(:mod:`jtraj._tracecache` stores JSON and ``jax.export``'s serialised bytes, no pickle).
+
+Logging. The library logs through the ``logging`` logger ``"jtraj"``; the line that a
+solver will be compiled is at INFO (``logging.basicConfig(level=logging.INFO)`` shows
+it). The CLI shows the logger's INFO lines on stderr.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import stat
+import threading
+
+logger = logging.getLogger("jtraj")
+
+#: how long a first compilation of the solver usually takes (told in the log line)
+TYPICAL_COMPILE = "usually tens of seconds to a minute or two on a 2-core machine"
+
+_lock = threading.Lock()
+_state: dict = {"cache": False, "seen": set(), "refused": set()}
+
+
+def cache_dir() -> str | None:
+    """The compilation cache jtraj uses: ``$JTRAJ_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/jtraj/jax``, else ``~/.cache/jtraj/jax``; None where ``JTRAJ_CACHE=0``
+    (or ``off``, ``false``, ``no``) switches it off."""
+    if os.environ.get("JTRAJ_CACHE", "1").strip().lower() in ("0", "off", "false", "no"):
+        return None
+    path = os.environ.get("JTRAJ_CACHE_DIR")
+    if path:
+        return os.path.abspath(os.path.expanduser(path))
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(os.path.abspath(base), "jtraj", "jax")
+
+
+def untrusted(path: str) -> str | None:
+    """Why ``path`` (an existing directory) is not safe to load programs from, or None:
+    it must be owned by this user and not writable by group or others, and every folder
+    above it must be owned by this user or root and not writable by another user unless
+    its sticky bit is set (``/tmp``: others cannot rename what is ours there)."""
+    if not hasattr(os, "getuid"):  # not POSIX: no ownership to check
+        return None
+    uid = os.getuid()
+    path = os.path.realpath(path)
+    try:
+        st = os.stat(path)
+    except OSError as err:
+        return f"cannot inspect it ({err.strerror or err})"
+    if not stat.S_ISDIR(st.st_mode):
+        return "it is not a directory"
+    if st.st_uid != uid:
+        return f"it is owned by another user (uid {st.st_uid})"
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return f"other users can write to it (mode {stat.S_IMODE(st.st_mode):o}; chmod go-w fixes it)"
+    parent = os.path.dirname(path)
+    while True:
+        try:
+            pst = os.stat(parent)
+        except OSError as err:
+            return f"cannot inspect {parent} ({err.strerror or err})"
+        if pst.st_uid not in (uid, 0):
+            return f"the folder {parent} above it is owned by another user (uid {pst.st_uid})"
+        if pst.st_mode & (stat.S_IWGRP | stat.S_IWOTH) and not pst.st_mode & stat.S_ISVTX:
+            return f"other users can write to the folder {parent} above it (mode {stat.S_IMODE(pst.st_mode):o})"
+        up = os.path.dirname(parent)
+        if up == parent:
+            return None
+        parent = up
+
+
+def trusted_dir(path: str, what: str = "compilation cache") -> bool:
+    """Create ``path`` (mode 0700) if missing and say whether it may be used
+    (:func:`untrusted`); a refusal is logged once per path, as a warning."""
+    try:
+        os.makedirs(path, mode=0o700, exist_ok=True)
+    except OSError as err:
+        reason = f"cannot create it ({err.strerror or err})"
+    else:
+        reason = untrusted(path)
+    if reason is None:
+        return True
+    with _lock:
+        first = (what, path) not in _state["refused"]
+        _state["refused"].add((what, path))
+    if first:
+        logger.warning("jtraj: not using %s as the %s: %s; running without it", path, what, reason)
+    return False
+
+
+def enable_cache(path: str | None = None, *, small: bool = True) -> str | None:
+    """Point JAX's persistent compilation cache at ``path`` (default :func:`cache_dir`)
+    where it may be trusted, and return it (None: left off). ``small``: keep every
+    program, also those that compile in under a second (JAX's default keeps only
+    those over one second; the solver's batch driver has about 30 small ones that a
+    fresh process reads in a fraction of the time it spends compiling them)."""
+    import jax
+
+    path = cache_dir() if path is None else path
+    if path is None or not trusted_dir(path):
+        return None
+    jax.config.update("jax_compilation_cache_dir", path)
+    if small:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
+
+
+def ensure_cache() -> None:
+    """Turn the compilation cache on once per process, unless the program configured
+    one itself or ``JTRAJ_CACHE=0`` (called at the first solve)."""
+    if _state["cache"]:
+        return
+    with _lock:
+        if _state["cache"]:
+            return
+        _state["cache"] = True
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:  # the program's own choice
+        return
+    enable_cache()
+
+
+def setup_jax(x64: bool = True) -> None:
+    """float64 and the persistent compilation cache (the CLI and dataset workers)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", x64)
+    with _lock:
+        _state["cache"] = True
+    if cache_dir() is not None:
+        enable_cache()
+
+
+class PrecisionError(ValueError):
+    """jtraj was asked to solve in float32 (see the module's docstring)."""
+
+
+_FIX = ("call jax.config.update('jax_enable_x64', True) at the start of the program, before building "
+        "robots and problems")
+
+
+def check_float64(**trees) -> None:
+    """Raise :class:`PrecisionError` (a ``ValueError``) naming the argument where x64 is
+    off or a floating array of ``trees`` (name -> pytree) is not float64."""
+    import jax
+    import numpy as np
+
+    if not jax.config.jax_enable_x64:
+        raise PrecisionError(f"jtraj solves in float64 but jax_enable_x64 is off (JAX would make every array "
+                             f"float32): {_FIX}")
+    f64 = np.dtype(np.float64)
+    for name, tree in trees.items():
+        if all(getattr(x, "dtype", f64) == f64 or not np.issubdtype(x.dtype, np.floating)
+               for x in jax.tree.leaves(tree)):
+            continue
+        for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+            dtype = getattr(leaf, "dtype", None)
+            if dtype is not None and np.issubdtype(dtype, np.floating) and dtype != np.float64:
+                where = name + jax.tree_util.keystr(path)
+                raise PrecisionError(f"{where} is {dtype}, not float64 (built while jax_enable_x64 was off?): "
+                                     f"jtraj solves in float64; {_FIX}")
+
+
+def _marker(key: tuple) -> str | None:
+    """The file that says a solver of ``key`` was compiled into the cache (None: no cache)."""
+    import jax
+
+    base = jax.config.jax_compilation_cache_dir
+    if not base:
+        return None
+    from ._tracecache import _source_hash_once
+
+    text = json.dumps([repr(k) for k in key] + [_source_hash_once(), jax.__version__, jax.default_backend()])
+    return os.path.join(base, "jtraj-seen", hashlib.sha256(text.encode()).hexdigest()[:32])
+
+
+def announce(key: tuple, what: str) -> None:
+    """Log once per process and ``key`` (robot type, sizes, options: what selects the
+    solver's programs) that the solver is compiled now, or loaded from the cache where a
+    process before this one compiled it there (a marker file, see :func:`compiled`)."""
+    with _lock:
+        if key in _state["seen"]:
+            return
+        _state["seen"].add(key)
+    marker = _marker(key)
+    if marker is not None and os.path.exists(marker):
+        logger.info("jtraj: loading the compiled solver for %s from the cache %s (first use in this process)",
+                    what, os.path.dirname(os.path.dirname(marker)))
+        return
+    where = ("kept in the cache " + os.path.dirname(os.path.dirname(marker)) + " for later processes"
+             if marker else "not cached: the compilation cache is off")
+    logger.info("jtraj: compiling the solver for %s (first use; %s; %s)", what, TYPICAL_COMPILE, where)
+    _state.setdefault("pending", set()).add(key)
+
+
+def compiled(key: tuple) -> None:
+    """Record that the solver of ``key`` finished compiling into the cache (a marker
+    file for :func:`announce` in later processes)."""
+    pending = _state.get("pending", set())
+    if key not in pending:
+        return
+    pending.discard(key)
+    marker = _marker(key)
+    if marker is None:
+        return
+    try:
+        os.makedirs(os.path.dirname(marker), mode=0o700, exist_ok=True)
+        with open(marker, "w") as fh:
+            fh.write("")
+    except OSError:
+        pass
+
+
+def before_solve(robot, N: int, *, batch: bool, problem=None, weights=None, options=None,
+                 transcription: str = "decoupled", efforts: str = "samples") -> tuple:
+    """What :func:`jtraj.solve` and :func:`jtraj.solve_batch` do before solving: the
+    float64 check (``ValueError``), the compilation cache on (once per process) and the
+    log line of a first compilation. Returns the key to pass to :func:`compiled` after
+    the solve."""
+    if problem is not None:
+        check_float64(problem=problem)
+    else:
+        check_float64(robot=robot, weights=weights)
+    ensure_cache()
+    method = getattr(options, "method", None)
+    key = (type(robot).__qualname__, getattr(robot, "name", ""), int(robot.n), int(N), batch, transcription,
+           method, efforts)
+    what = (f"{getattr(robot, 'name', type(robot).__name__)} (n = {robot.n}), N = {N}"
+            + (", batches" if batch else "") + ("" if transcription == "decoupled" else f", {transcription}")
+            + ("" if method in (None, "auto") else f", method {method}"))
+    announce(key, what)
+    return key
