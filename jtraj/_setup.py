@@ -261,7 +261,6 @@ def before_solve(robot, N: int, *, batch: bool, problem=None, weights=None, opti
     key = (type(robot).__qualname__, getattr(robot, "name", ""), int(robot.n), int(N), batch, transcription,
            method, efforts)
     what = (f"{getattr(robot, 'name', type(robot).__name__)} (n = {robot.n}), N = {N}"
-            + (", batches" if batch else "") + ("" if transcription == "decoupled" else f", {transcription}")
-            + ("" if method in (None, "auto") else f", method {method}"))
+            + (", batches" if batch else "") + ("" if transcription == "decoupled" else f", {transcription}"))
     announce(key, what)
     return key

@@ -259,7 +259,7 @@ def worker_task(spec: Spec, c: int):
     the process on one CPU (a Ray worker claims one, see :func:`_one_cpu`), then float64
     and the compilation cache set up as in the CLI process."""
     _one_cpu()
-    from jtraj.cli import setup_jax
+    from jtraj._setup import setup_jax
 
     setup_jax()
     return c, compute_chunk(spec, c)
