@@ -294,8 +294,17 @@ def test_field_missing_from_older_chunks_reads_as_nan(tmp_path):
     assert np.all(np.isnan(full["kkt_error"]))  # the fake solver does not report it
     assert "  KKT error: -" in dataset.summary(a)
     viol = full["max_violation"].copy()
-    with h5py.File(os.path.join(a, "chunks", "chunk-000000.h5"), "a") as f:
-        del f["max_violation"]  # as if chunk 0 had been written before the field existed
+    chunk0 = os.path.join(a, "chunks", "chunk-000000.h5")
+    with h5py.File(chunk0, "a") as f:
+        del f["max_violation"]
+    # a field removed from a chunk with checksums: corrupt
+    with pytest.raises(ValueError, match="chunk-000000.h5: corrupt chunk .*list of fields"):
+        dataset.load(a)
+    with h5py.File(chunk0, "a") as f:  # as if chunk 0 had been written before the field and the checksums existed
+        for k in ("digest", "integrity"):
+            del f.attrs[k]
+        for k in f.keys():
+            del f[k].attrs["sha256"]
     data = dataset.load(a)
     assert "max_violation" in data
     assert np.all(np.isnan(data["max_violation"][:8]))

@@ -442,6 +442,8 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
     writer = store.Writer(out, ident, metadata(spec))
     try:
         done = set(writer.finished(spec.n_chunks))
+        for c, why in sorted(writer.rejected.items()):  # corrupt, or of another dataset: solved again
+            log(f"jtraj dataset: chunk {c} is solved again: {why}")
         todo = [c for c in range(spec.n_chunks) if c not in done]
         if max_chunks is not None:
             todo = todo[:max_chunks]
@@ -459,7 +461,7 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
             if changed and todo:
                 log("jtraj dataset: warning: resuming with different software/hardware (" + ", ".join(changed)
                     + "); new chunks may differ in the last bits from an uninterrupted run")
-        stats = {"pairs_done": pairs_done, "converged": conv_done, "new_pairs": 0}
+        stats = {"pairs_done": pairs_done, "converged": conv_done, "new_pairs": 0, "new_chunks": 0}
         bar = None
         if progress:
             from tqdm import tqdm
@@ -475,6 +477,7 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
             k = stop - start
             stats["pairs_done"] += k
             stats["new_pairs"] += k
+            stats["new_chunks"] += 1
             stats["converged"] += int(np.sum(arrays["converged"]))
             if bar is not None:
                 bar.update(k)
@@ -496,7 +499,7 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
         if bar is not None:
             bar.close()
         stats["seconds"] = wall
-        stats["complete"] = len(writer.finished(spec.n_chunks)) == spec.n_chunks
+        stats["complete"] = len(done) + stats["new_chunks"] == spec.n_chunks
         stats["pairs_per_s"] = stats["new_pairs"] / wall if wall > 0 and stats["new_pairs"] else float("nan")
         return stats
     finally:
