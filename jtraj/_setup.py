@@ -20,8 +20,10 @@ import), in :func:`cache_dir`: ``$JTRAJ_CACHE_DIR``, else ``$XDG_CACHE_HOME/jtra
 else ``~/.cache/jtraj/jax``; ``JTRAJ_CACHE=0`` leaves it off. A cache directory the
 program already set (``jax.config.update("jax_compilation_cache_dir", ...)`` or
 ``JAX_COMPILATION_CACHE_DIR``) is kept as it is. Several processes may share the cache:
-JAX writes its entries, and jtraj its files, to a temporary name first and renames them
-(atomic on POSIX).
+jtraj writes its own files (kept traces, the native kernel) to a temporary name and renames
+them (atomic on POSIX); JAX writes its entries in place, so where jtraj sets the cache up
+it caps it at :data:`CACHE_MAX_BYTES` (2 GiB, least recently used programs evicted), which
+makes JAX hold a file lock (the ``filelock`` package) around each entry's read and write.
 
 A cache holds programs that every process loads and runs, so whoever may write to it may
 run code as its users. jtraj uses a cache directory (its own, and the native kernel's of
@@ -49,6 +51,10 @@ logger = logging.getLogger("jtraj")
 
 #: how long a first compilation of the solver usually takes (told in the log line)
 TYPICAL_COMPILE = "usually tens of seconds to a minute or two on a 2-core machine"
+
+#: the compilation cache's size cap where jtraj sets the cache up (JAX evicts the least
+#: recently used programs beyond it); one serial3 solver's programs take about 5 MB
+CACHE_MAX_BYTES = 2 << 30
 
 _lock = threading.Lock()
 _state: dict = {"cache": False, "seen": set(), "refused": set()}
@@ -136,6 +142,16 @@ def enable_cache(path: str | None = None, *, small: bool = True) -> str | None:
     if small:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    if jax.config.jax_compilation_cache_max_size == -1:
+        try:
+            import filelock  # noqa: F401  (JAX's size cap needs it)
+        except ImportError:
+            pass
+        else:
+            # a size cap makes JAX take a file lock around every read and write of an entry,
+            # which it otherwise writes in place: a process could read another's half-written
+            # entry (JAX then warns and compiles). Least recently used entries go first.
+            jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
     return path
 
 

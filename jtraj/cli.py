@@ -44,6 +44,17 @@ def setup_jax(x64: bool = True) -> None:
     setup(x64)
 
 
+class _Stderr:
+    """A logging handler's stream that is whatever ``sys.stderr`` is at each line (a
+    caller of :func:`main` may replace it between calls)."""
+
+    def write(self, text):
+        sys.stderr.write(text)
+
+    def flush(self):
+        sys.stderr.flush()
+
+
 def show_progress_lines() -> None:
     """The library's INFO lines (logger "jtraj": a solver compiling, a cache refused) on
     stderr, as they are (they start with "jtraj: ")."""
@@ -51,7 +62,7 @@ def show_progress_lines() -> None:
 
     log = logging.getLogger("jtraj")
     if not any(getattr(h, "_jtraj_cli", False) for h in log.handlers):
-        handler = logging.StreamHandler(sys.stderr)
+        handler = logging.StreamHandler(_Stderr())
         handler.setFormatter(logging.Formatter("%(message)s"))
         handler._jtraj_cli = True
         log.addHandler(handler)

@@ -1,7 +1,9 @@
 """What to achieve: :class:`Problem`, :class:`Weights` and :class:`ViaPoint`.
 
 Units: positions in rad (or m for prismatic/task coordinates), velocities per second,
-times in seconds, torques in N m (or N). A :class:`Problem` is an equinox Module: its
+times in seconds, torques in N m (or N). Build robots and problems with
+``jax_enable_x64`` on: their arrays take JAX's float width of that moment, and
+:func:`jtraj.solve` refuses float32 (see :mod:`jtraj._setup`). A :class:`Problem` is an equinox Module: its
 arrays are leaves (so problems can be batched with ``vmap`` and differentiated), its
 sizes (``N``, number of via points) are static.
 """

@@ -1775,6 +1775,11 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     On a CPU one problem runs about 1.6x faster in a process pinned to one core
     (:func:`jtraj.pin_to_one_cpu` before JAX's first computation; the CLI does it).
 
+    Solves in float64 only: raises ``ValueError`` where ``jax_enable_x64`` is off or the
+    problem holds float32 arrays (built while it was off). The first solve of a process
+    turns JAX's persistent compilation cache on and logs (logger "jtraj", INFO) a
+    compilation it starts (:mod:`jtraj._setup`).
+
     Args:
         problem: a :class:`jtraj.Problem`.
         options: :class:`SolverOptions` (defaults documented there).
@@ -2341,7 +2346,8 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
 
     Returns a :class:`Solution` whose fields carry a leading batch axis. Samples with
     non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch
-    never raises for one bad sample); shapes and the robot are checked up front.
+    never raises for one bad sample); shapes and the robot are checked up front, and
+    float64 as in :func:`solve`.
     """
     from .robots import Robot
 

@@ -33,13 +33,21 @@ def test_help_lists_commands(capsys):
         assert opt in out
 
 
-def test_solve_writes_consistent_json_and_png(tmp_path, capsys):
+def test_solve_writes_consistent_json_and_png(tmp_path, capsys, monkeypatch):
+    from jtraj import _setup
+
+    monkeypatch.setitem(_setup._state, "seen", set())  # as in a new process: the first solve is announced
     out_json, out_png = tmp_path / "sol.json", tmp_path / "sol.png"
     rc = cli.main(["solve", "--robot", "serial3", "--start-q", START, "--goal-q", GOAL, "--deg", "--N", "10",
                    "--weights", "time=1,energy=0.5", "--json", str(out_json), "--plot", str(out_png), "--rate", "200"])
-    text = capsys.readouterr().out
+    captured = capsys.readouterr()
+    text = captured.out
     d = json.loads(out_json.read_text())
     assert rc == 0 and d["converged"] and d["status_name"] == "CONVERGED", (rc, d["status_name"])
+    # one line on stderr says that the solver is compiled (or loaded from the cache)
+    lines = [ln for ln in captured.err.splitlines() if "the solver for serial3 (n = 3), N = 10" in ln]
+    assert len(lines) == 1 and lines[0].startswith(("jtraj: compiling the solver for serial3 (n = 3), N = 10 (first use",
+                                                    "jtraj: loading the compiled solver for serial3")), captured.err
     assert "status:" in text and "T =" in text and "max violation" in text and "solve" in text
     for key in ("converged", "status", "status_message", "T", "cost", "cost_terms", "max_violation", "q", "qd",
                 "v", "tau", "h", "iterations", "solve_seconds", "compile_seconds", "robot", "N", "weights",
