@@ -46,6 +46,7 @@ import logging
 import os
 import stat
 import threading
+import weakref
 
 logger = logging.getLogger("jtraj")
 
@@ -57,6 +58,10 @@ TYPICAL_COMPILE = "usually tens of seconds to a minute or two on a 2-core machin
 CACHE_MAX_BYTES = 2 << 30
 
 _lock = threading.Lock()
+#: id -> weak reference of the problems, robots and weights found float64 (before_solve)
+_checked: dict = {}
+#: id -> (weak reference, (class, name, n)) of the robots solved (before_solve)
+_robots: dict = {}
 _state: dict = {"cache": False, "seen": set(), "refused": set()}
 
 
@@ -190,25 +195,36 @@ _FIX = ("call jax.config.update('jax_enable_x64', True) at the start of the prog
         "robots and problems")
 
 
+#: floating dtypes jtraj refuses (what JAX makes with x64 off, and narrower)
+_NARROW = None
+
+
+def _narrow():
+    global _NARROW
+    if _NARROW is None:
+        import jax.numpy as jnp
+        import numpy as np
+
+        _NARROW = frozenset(np.dtype(d) for d in (np.float32, np.float16, jnp.bfloat16, np.complex64))
+    return _NARROW
+
+
 def check_float64(**trees) -> None:
     """Raise :class:`PrecisionError` (a ``ValueError``) naming the argument where x64 is
-    off or a floating array of ``trees`` (name -> pytree) is not float64."""
+    off or a floating array of ``trees`` (name -> pytree) is narrower than float64."""
     import jax
-    import numpy as np
 
     if not jax.config.jax_enable_x64:
         raise PrecisionError(f"jtraj solves in float64 but jax_enable_x64 is off (JAX would make every array "
                              f"float32): {_FIX}")
-    f64 = np.dtype(np.float64)
+    narrow = _narrow()
     for name, tree in trees.items():
-        if all(getattr(x, "dtype", f64) == f64 or not np.issubdtype(x.dtype, np.floating)
-               for x in jax.tree.leaves(tree)):
+        if not any(getattr(x, "dtype", None) in narrow for x in jax.tree.leaves(tree)):
             continue
         for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
-            dtype = getattr(leaf, "dtype", None)
-            if dtype is not None and np.issubdtype(dtype, np.floating) and dtype != np.float64:
+            if getattr(leaf, "dtype", None) in narrow:
                 where = name + jax.tree_util.keystr(path)
-                raise PrecisionError(f"{where} is {dtype}, not float64 (built while jax_enable_x64 was off?): "
+                raise PrecisionError(f"{where} is {leaf.dtype}, not float64 (built while jax_enable_x64 was off?): "
                                      f"jtraj solves in float64; {_FIX}")
 
 
@@ -225,14 +241,18 @@ def _marker(key: tuple) -> str | None:
     return os.path.join(base, "jtraj-seen", hashlib.sha256(text.encode()).hexdigest()[:32])
 
 
-def announce(key: tuple, what: str) -> None:
+def announce(key: tuple, what) -> None:
     """Log once per process and ``key`` (robot type, sizes, options: what selects the
     solver's programs) that the solver is compiled now, or loaded from the cache where a
-    process before this one compiled it there (a marker file, see :func:`compiled`)."""
+    process before this one compiled it there (a marker file, see :func:`compiled`).
+    ``what``: the text naming it, or a function returning it."""
+    if key in _state["seen"]:
+        return
     with _lock:
         if key in _state["seen"]:
             return
         _state["seen"].add(key)
+    what = what() if callable(what) else what
     marker = _marker(key)
     if marker is not None and os.path.exists(marker):
         logger.info("jtraj: loading the compiled solver for %s from the cache %s (first use in this process)",
@@ -268,15 +288,36 @@ def before_solve(robot, N: int, *, batch: bool, problem=None, weights=None, opti
     float64 check (``ValueError``), the compilation cache on (once per process) and the
     log line of a first compilation. Returns the key to pass to :func:`compiled` after
     the solve."""
-    if problem is not None:
-        check_float64(problem=problem)
-    else:
-        check_float64(robot=robot, weights=weights)
-    ensure_cache()
-    method = getattr(options, "method", None)
-    key = (type(robot).__qualname__, getattr(robot, "name", ""), int(robot.n), int(N), batch, transcription,
-           method, efforts)
-    what = (f"{getattr(robot, 'name', type(robot).__name__)} (n = {robot.n}), N = {N}"
-            + (", batches" if batch else "") + ("" if transcription == "decoupled" else f", {transcription}"))
-    announce(key, what)
+    import jax
+
+    if not jax.config.jax_enable_x64:
+        check_float64()  # raises
+    for name, tree in (("problem", problem), ("robot", None if problem is not None else robot),
+                       ("weights", weights)):
+        # each (immutable) problem, robot and weights checked once (a warm solve takes
+        # milliseconds; flattening a problem about 0.05 ms)
+        if tree is None:
+            continue
+        ref = _checked.get(id(tree))
+        if ref is None or ref() is not tree:
+            check_float64(**{name: tree})
+            if len(_checked) > 1024:
+                _checked.clear()
+            try:
+                _checked[id(tree)] = weakref.ref(tree)
+            except TypeError:  # (no weak references: checked every time)
+                pass
+    if not _state["cache"]:
+        ensure_cache()
+    entry = _robots.get(id(robot))
+    if entry is None or entry[0]() is not robot:  # (a robot's attributes take microseconds each)
+        entry = (weakref.ref(robot), (type(robot).__qualname__, getattr(robot, "name", type(robot).__name__),
+                                      int(robot.n)))
+        if len(_robots) > 1024:
+            _robots.clear()
+        _robots[id(robot)] = entry
+    kind, name, n = entry[1]
+    key = (kind, name, n, N, batch, transcription, getattr(options, "method", None), efforts)
+    announce(key, lambda: (f"{name} (n = {n}), N = {N}" + (", batches" if batch else "")
+                           + ("" if transcription == "decoupled" else f", {transcription}")))
     return key
