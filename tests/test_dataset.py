@@ -566,3 +566,21 @@ def test_ray_real_solver_equals_single_process(tmp_path):
     dataset.build(spec, str(tmp_path / "single"), progress=False)
     dataset.build(spec, str(tmp_path / "ray"), ray="local:2", progress=False)
     assert_same(dataset.load(str(tmp_path / "single")), dataset.load(str(tmp_path / "ray")))
+
+
+def test_progress_bar_says_compiling_until_the_first_chunk(tmp_path, capsys, monkeypatch):
+    """The first chunk waits for the solver's compilation: the bar says so (its clock
+    running), then counts pairs."""
+    import importlib
+
+    build_mod = importlib.import_module("jtraj.dataset.build")  # (jtraj.dataset.build is the function)
+    monkeypatch.setenv("JTRAJ_FAKE_SOLVER_DELAY", "1.5")
+    dataset.build(fake_spec(pairs=16, batch=8), str(tmp_path / "d"), progress=True, workers=1)
+    err = capsys.readouterr().err.replace("\r", "\n")
+    first = [ln for ln in err.splitlines() if "0/16" in ln]
+    assert first and all(ln.startswith(build_mod.COMPILING) for ln in first), err
+    assert any("[00:01<" in ln for ln in first), err  # redrawn while waiting
+    assert any(ln.startswith("dataset: 100%") and "16/16" in ln for ln in err.splitlines()), err
+    # nothing left to solve: no compiling label
+    dataset.build(fake_spec(pairs=16, batch=8), str(tmp_path / "d"), progress=True, workers=1)
+    assert build_mod.COMPILING not in capsys.readouterr().err
