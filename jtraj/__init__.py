@@ -7,14 +7,20 @@ works without ``import jtraj.dataset``), so that the import stays fast.
 
 jtraj solves in float64: call ``jax.config.update("jax_enable_x64", True)`` at the start
 of a program, before building robots and problems (:func:`solve` raises ``ValueError``
-otherwise; ``import jtraj`` changes no JAX setting). The first solve of a process turns
-JAX's persistent compilation cache on in ``~/.cache/jtraj/jax`` (``JTRAJ_CACHE_DIR``
-moves it, ``JTRAJ_CACHE=0`` leaves it off); see :mod:`jtraj._setup`.
+otherwise; ``import jtraj`` leaves x64 as it is). ``import jtraj`` turns JAX's persistent
+compilation cache on in ``~/.cache/jtraj/jax`` (``JTRAJ_CACHE_DIR`` moves it,
+``JTRAJ_CACHE=0`` leaves it off; a cache directory the program already set is kept), so
+that a later process loads the solver instead of compiling it; see :mod:`jtraj._setup`.
 """
 
 import importlib as _importlib
 
 __version__ = "0.1.0"
+
+from . import _setup  # noqa: E402
+
+# before anything is compiled: the robots' and problems' small programs are kept too
+_setup.ensure_cache()
 
 from . import robots  # noqa: E402
 from ._cpu import pin_to_one_cpu  # noqa: E402

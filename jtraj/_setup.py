@@ -15,11 +15,15 @@ The CLI (:func:`setup_jax`) switches it on itself.
 
 Compilation cache. Compiling the solver takes tens of seconds; JAX's persistent
 compilation cache keeps the compiled programs (and :mod:`jtraj._tracecache` the traced
-ones) between processes. jtraj turns it on at the first solve of a process (not at
-import), in :func:`cache_dir`: ``$JTRAJ_CACHE_DIR``, else ``$XDG_CACHE_HOME/jtraj/jax``,
-else ``~/.cache/jtraj/jax``; ``JTRAJ_CACHE=0`` leaves it off. A cache directory the
-program already set (``jax.config.update("jax_compilation_cache_dir", ...)`` or
-``JAX_COMPILATION_CACHE_DIR``) is kept as it is. Several processes may share the cache:
+ones) between processes. ``import jtraj`` turns it on (:func:`ensure_cache`; the first
+solve would be too late for the small programs that building robots and problems
+compiles: about 20 of them, 0.5-3 s of every new process), in :func:`cache_dir`:
+``$JTRAJ_CACHE_DIR``, else ``$XDG_CACHE_HOME/jtraj/jax``, else ``~/.cache/jtraj/jax``;
+``JTRAJ_CACHE=0`` leaves it off. A cache directory the program already set
+(``jax.config.update("jax_compilation_cache_dir", ...)`` before ``import jtraj``, or
+``JAX_COMPILATION_CACHE_DIR``) is kept as it is; where jtraj sets it, it also keeps
+programs that compile in under a second (JAX's default keeps only longer ones), for the
+whole process. Several processes may share the cache:
 jtraj writes its own files (kept traces, the native kernel) to a temporary name and renames
 them (atomic on POSIX); JAX writes its entries in place, so where jtraj sets the cache up
 it caps it at :data:`CACHE_MAX_BYTES` (2 GiB, least recently used programs evicted), which
@@ -162,7 +166,8 @@ def enable_cache(path: str | None = None, *, small: bool = True) -> str | None:
 
 def ensure_cache() -> None:
     """Turn the compilation cache on once per process, unless the program configured
-    one itself or ``JTRAJ_CACHE=0`` (called at the first solve)."""
+    one itself or ``JTRAJ_CACHE=0`` (called by ``import jtraj``, and again, a no-op then,
+    at each solve)."""
     if _state["cache"]:
         return
     with _lock:

@@ -1776,9 +1776,9 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     (:func:`jtraj.pin_to_one_cpu` before JAX's first computation; the CLI does it).
 
     Solves in float64 only: raises ``ValueError`` where ``jax_enable_x64`` is off or the
-    problem holds float32 arrays (built while it was off). The first solve of a process
-    turns JAX's persistent compilation cache on and logs (logger "jtraj", INFO) a
-    compilation it starts (:mod:`jtraj._setup`).
+    problem holds float32 arrays (built while it was off). A solve that compiles the
+    solver (first use in a process) logs a line saying so (logger "jtraj", INFO); JAX's
+    persistent compilation cache, on since ``import jtraj``, keeps it (:mod:`jtraj._setup`).
 
     Args:
         problem: a :class:`jtraj.Problem`.

@@ -1,5 +1,5 @@
-"""JAX set-up of the library (jtraj._setup): the compilation cache turned on at the first
-solve in a trusted directory only, its switches, processes sharing it, the float64
+"""JAX set-up of the library (jtraj._setup): the compilation cache turned on by import
+jtraj in a trusted directory only, its switches, processes sharing it, the float64
 policy, the log line of a first compilation, and the lazy subpackages."""
 
 import logging
@@ -23,6 +23,8 @@ def _run(code: str, env: dict | None = None, timeout: int = 300) -> subprocess.C
     e = {k: v for k, v in os.environ.items() if k not in ("JTRAJ_CACHE_DIR", "JTRAJ_CACHE", "JAX_ENABLE_X64",
                                                           "JAX_COMPILATION_CACHE_DIR")}
     e["PYTHONPATH"] = ROOT + os.pathsep + e.get("PYTHONPATH", "")
+    if "JTRAJ_CACHE_DIR" not in (env or {}):
+        e["JTRAJ_CACHE"] = "0"  # never the user's ~/.cache/jtraj
     e.update(env or {})
     return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, env=e,
                           timeout=timeout, cwd=ROOT)
@@ -72,30 +74,28 @@ def test_a_directory_others_can_write_to_is_refused(tmp_path, caplog):
     assert stat.S_IMODE(os.stat(new).st_mode) & 0o077 == 0
 
 
-def test_the_first_solve_turns_the_cache_on_unless_switched_off_or_set(tmp_path):
-    # ensure_cache() is what solve() and solve_batch() call first (no compilation needed here)
+def test_import_turns_the_cache_on_unless_switched_off_or_set(tmp_path):
     code = """
-        import jax, jtraj
-        from jtraj import _setup
-        assert jax.config.jax_compilation_cache_dir is None  # import changes nothing
-        _setup.ensure_cache()
+        import jax
+        assert jax.config.jax_compilation_cache_dir is None
+        import jtraj
         print(jax.config.jax_compilation_cache_dir)
-        print(jax.config.jax_compilation_cache_max_size == _setup.CACHE_MAX_BYTES)
+        print(jax.config.jax_compilation_cache_max_size == jtraj._setup.CACHE_MAX_BYTES)
+        print(jax.config.jax_enable_x64)  # left as it was
     """
     own = tmp_path / "c"
     r = _run(code, {"JTRAJ_CACHE_DIR": str(own)})
     assert r.returncode == 0, r.stderr
     # capped: JAX then locks each entry's read and write (it writes them in place)
-    assert r.stdout.split() == [str(own), "True"] and own.is_dir()
+    assert r.stdout.split() == [str(own), "True", "False"] and own.is_dir()
     r = _run(code, {"JTRAJ_CACHE_DIR": str(own), "JTRAJ_CACHE": "0"})
     assert r.returncode == 0, r.stderr
     assert r.stdout.split()[0] == "None"
     # a directory the program set itself is kept
     r = _run("""
-        import jax, jtraj
+        import jax
         jax.config.update("jax_compilation_cache_dir", %r)
-        from jtraj import _setup
-        _setup.ensure_cache()
+        import jtraj
         print(jax.config.jax_compilation_cache_dir)
     """ % str(tmp_path / "theirs"), {"JTRAJ_CACHE_DIR": str(own)})
     assert r.returncode == 0, r.stderr
