@@ -46,8 +46,9 @@ def test_solve_writes_consistent_json_and_png(tmp_path, capsys, monkeypatch):
     assert rc == 0 and d["converged"] and d["status_name"] == "CONVERGED", (rc, d["status_name"])
     # one line on stderr says that the solver is compiled (or loaded from the cache)
     lines = [ln for ln in captured.err.splitlines() if "the solver for serial3 (n = 3), N = 10" in ln]
-    assert len(lines) == 1 and lines[0].startswith(("jtraj: compiling the solver for serial3 (n = 3), N = 10 (first use",
-                                                    "jtraj: loading the compiled solver for serial3")), captured.err
+    assert len(lines) == 1, captured.err
+    assert lines[0].startswith(("jtraj: compiling the solver for serial3 (n = 3), N = 10 (first use",
+                                "jtraj: loading the compiled solver for serial3")), captured.err
     assert "status:" in text and "T =" in text and "max violation" in text and "solve" in text
     for key in ("converged", "status", "status_message", "T", "cost", "cost_terms", "max_violation", "q", "qd",
                 "v", "tau", "h", "iterations", "solve_seconds", "compile_seconds", "robot", "N", "weights",

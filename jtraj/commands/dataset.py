@@ -25,8 +25,8 @@ checksums: Fletcher-32 and SHA-256 of every field, SHA-256 of the header), corru
 named and left out. verify: only that check, one line per corrupt chunk file. A resumed
 build solves corrupt chunks again.
 
-Exit status: build 0 when the dataset is complete, 1 when chunks are left; info and verify 0 when every chunk present is intact, 1 when one is
-corrupt; 2 on bad input.
+Exit status: build 0 when the dataset is complete, 1 when chunks are left; info and
+verify 0 when every chunk present is intact, 1 when one is corrupt; 2 on bad input.
 """
 
 import argparse
