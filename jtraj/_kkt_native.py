@@ -19,7 +19,8 @@ XLA's Riccati recursion, with the same iterations (``benchmarks/iteration_cost.p
 The kernel is compiled on first use with the machine's C++ compiler (``$CXX``, else
 ``g++`` or ``c++``: ``-O3 -march=native``, about 12 s, once per machine;
 ``JTRAJ_NATIVE_MARCH`` sets another ``-march``) into
-``$JTRAJ_NATIVE_DIR`` (default ``~/.cache/jtraj/native``), under a name that hashes the
+``$JTRAJ_NATIVE_DIR`` (default ``$XDG_CACHE_HOME/jtraj/native`` or ``~/.cache/jtraj/native``;
+used only where no other user can write to it, see :func:`jtraj._setup.untrusted`), under a name that hashes the
 source, the flags, the compiler's and jaxlib's versions and the CPU's model and flags,
 so that a cache shared between machines never hands one a build for another. It is
 used where all of these hold: the backend is the CPU, the arrays are float64, the robot
@@ -96,9 +97,12 @@ def _build() -> str:
         h.update(b"\0")
     ident = h.hexdigest()[:16]
     folder = _directory()
+    from ._setup import trusted_dir, untrusted
+
+    if not trusted_dir(folder, "native kernel's folder"):  # a library loaded from it runs as this user
+        raise RuntimeError(f"{folder} is not safe to load a library from ({untrusted(folder)})")
     path = os.path.join(folder, f"jtraj_kkt-{ident}.so")
     if not os.path.exists(path):
-        os.makedirs(folder, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=folder, suffix=".so.tmp")
         os.close(fd)
         try:

@@ -8,7 +8,7 @@ each ``jtraj solve`` pays it), against a few seconds of actual solving.
 Where the persistent compilation cache is on (``jax_compilation_cache_dir`` set: the CLI,
 ``jtraj dataset``'s workers, the tests), :func:`program` keeps a program's traced and
 lowered form (a serialised :class:`jax.export.Exported` of the program on its arguments'
-array leaves, with a pickled skeleton of its output's structure) next to it, keyed by
+array leaves, with a JSON skeleton of its output's structure) next to it, keyed by
 everything its trace depends on: jtraj's source (a hash of its ``.py`` files), the JAX
 and jaxlib versions, the backend, the native KKT kernel's build or its absence
 (:mod:`jtraj._kkt_native`), the JAX settings that change a trace (x64, precision,
@@ -23,14 +23,25 @@ It refuses (returns None, the caller then traces as usual) when that key shows a
 that has no stable text (``<... at 0x...>``, e.g. a function) or a pytree node class
 defined outside jtraj (a user's robot: its code is not in the source hash).
 ``JTRAJ_TRACE_CACHE=0`` turns the cache off.
+
+Reading a kept file runs no code: the skeleton is JSON naming only plain values,
+containers and classes defined in jtraj (rebuilt field by field, as ``jax.tree.unflatten``
+does, without calling their constructors), and the program is ``jax.export``'s
+serialised form (a flatbuffer). No pickle: a file that someone else could write would
+otherwise run their code on loading. An output holding anything else is not kept (the
+program is traced as usual). The folder is used only where :func:`jtraj._setup.untrusted`
+finds no other user able to write to it.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import enum
 import functools
 import hashlib
+import importlib
+import json
 import os
-import pickle
 import re
 import tempfile
 from typing import Any, Callable
@@ -69,7 +80,12 @@ def directory() -> str | None:
     if os.environ.get("JTRAJ_TRACE_CACHE", "1") == "0":
         return None
     base = jax.config.jax_compilation_cache_dir
-    return os.path.join(base, FOLDER) if base else None
+    if not base:
+        return None
+    from ._setup import trusted_dir
+
+    folder = os.path.join(base, FOLDER)
+    return folder if trusted_dir(folder, "folder of kept traces") else None
 
 
 #: the modules whose pytree node classes the source hash covers
@@ -108,8 +124,115 @@ def _sig(x):
 class _Slot:
     """Marks an array's place in a kept program's output skeleton."""
 
-    def __reduce__(self):
-        return (_Slot, ())
+
+#: the first bytes of a kept program's file (then the skeleton's JSON length, 8 bytes
+#: big-endian, the JSON and jax.export's bytes)
+MAGIC = b"jtraj-trace 1\n"
+
+
+def _class_name(cls) -> str:
+    name = f"{cls.__module__}:{cls.__qualname__}"
+    if not cls.__module__.startswith(_OWN_MODULES) or "<" in cls.__qualname__:
+        raise TypeError(f"{name} is not a class of jtraj")
+    return name
+
+
+def _resolve(name: str):
+    """The class ``module:qualname``, of jtraj only (a skeleton names nothing else)."""
+    module, _, qualname = name.partition(":")
+    if not module.startswith(_OWN_MODULES):
+        raise ValueError(f"a kept trace names the class {name!r}, outside jtraj")
+    obj = importlib.import_module(module)
+    for part in qualname.split("."):
+        obj = getattr(obj, part)
+    if not isinstance(obj, type):
+        raise ValueError(f"{name!r} is not a class")
+    return obj
+
+
+def encode(x):
+    """A JSON-able form of a skeleton (see :func:`decode`); TypeError where it holds
+    something else than plain values, NumPy scalars, tuples, lists, dicts, and
+    dataclasses (equinox modules), named tuples and enums defined in jtraj."""
+    if isinstance(x, _Slot):
+        return {"$": "slot"}
+    if x is None or type(x) in (bool, int, str):
+        return {"$": "v", "v": x}
+    if type(x) is float:
+        return {"$": "f", "v": repr(x)}
+    if isinstance(x, enum.Enum):
+        return {"$": "enum", "cls": _class_name(type(x)), "v": encode(x.value)}
+    if isinstance(x, np.generic) and x.dtype.kind in "biuf":
+        return {"$": "np", "dtype": x.dtype.str, "v": repr(x.item())}
+    if type(x) in (tuple, list):
+        return {"$": type(x).__name__, "v": [encode(v) for v in x]}
+    if type(x) is dict:
+        return {"$": "dict", "k": [encode(k) for k in x], "v": [encode(v) for v in x.values()]}
+    if isinstance(x, tuple) and hasattr(type(x), "_fields"):
+        return {"$": "nt", "cls": _class_name(type(x)), "v": [encode(v) for v in x]}
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return {"$": "dc", "cls": _class_name(type(x)),
+                "f": {f.name: encode(getattr(x, f.name)) for f in dataclasses.fields(x)}}
+    raise TypeError(f"cannot keep a {type(x).__name__} in a trace's skeleton")
+
+
+def decode(d):
+    """The skeleton :func:`encode` described (ValueError on anything else)."""
+    if not isinstance(d, dict):
+        raise ValueError("malformed skeleton")
+    tag = d.get("$")
+    if tag == "slot":
+        return _Slot()
+    if tag == "v":
+        if d["v"] is not None and type(d["v"]) not in (bool, int, str):
+            raise ValueError("malformed skeleton value")
+        return d["v"]
+    if tag == "f":
+        return float(d["v"])
+    if tag == "np":
+        dtype = np.dtype(d["dtype"])
+        if dtype.kind not in "biuf":
+            raise ValueError("malformed skeleton scalar")
+        return dtype.type(float(d["v"]) if dtype.kind == "f" else int(d["v"]) if dtype.kind in "iu"
+                          else d["v"] == "True")
+    if tag in ("tuple", "list"):
+        items = [decode(v) for v in d["v"]]
+        return tuple(items) if tag == "tuple" else items
+    if tag == "dict":
+        return {decode(k): decode(v) for k, v in zip(d["k"], d["v"])}
+    cls = _resolve(d["cls"])
+    if tag == "enum" and issubclass(cls, enum.Enum):
+        return cls(decode(d["v"]))
+    if tag == "nt" and issubclass(cls, tuple) and hasattr(cls, "_fields"):
+        return cls(*[decode(v) for v in d["v"]])
+    if tag == "dc" and dataclasses.is_dataclass(cls):
+        names = {f.name for f in dataclasses.fields(cls)}
+        if set(d["f"]) != names:
+            raise ValueError(f"the kept fields of {d['cls']} are not its fields")
+        obj = object.__new__(cls)  # as jax.tree.unflatten rebuilds an equinox module: no constructor
+        for name, value in d["f"].items():
+            object.__setattr__(obj, name, decode(value))
+        return obj
+    raise ValueError(f"malformed skeleton entry {tag!r}")
+
+
+def _read(path: str):
+    """(skeleton, jax.export bytes) of a kept file; ValueError where it is not one."""
+    with open(path, "rb") as fh:
+        data = fh.read()
+    if not data.startswith(MAGIC) or len(data) < len(MAGIC) + 8:
+        raise ValueError("not a kept trace of this format")
+    at = len(MAGIC)
+    size = int.from_bytes(data[at:at + 8], "big")
+    text = data[at + 8:at + 8 + size]
+    if len(text) != size:
+        raise ValueError("truncated")
+    return decode(json.loads(text)), data[at + 8 + size:]
+
+
+def _payload(skeleton, blob: bytes) -> bytes:
+    text = json.dumps(encode(skeleton), separators=(",", ":")).encode()
+    return MAGIC + len(text).to_bytes(8, "big") + text + bytes(blob)
 
 
 def key(name: str, static: str, args: tuple, compiler_options: dict | None) -> str | None:
@@ -147,11 +270,10 @@ def program(name: str, fn: Callable, args: tuple, static: str,
         return None
     path = os.path.join(folder, k + ".jaxexport")
     try:
-        with open(path, "rb") as fh:
-            skeleton, blob = pickle.load(fh)
+        skeleton, blob = _read(path)
         exported = jax.export.deserialize(bytearray(blob))
-    except (OSError, ValueError, EOFError, ImportError, pickle.UnpicklingError, TypeError, AttributeError):
-        # missing (or unreadable: written by another version): export it now
+    except (OSError, ValueError, KeyError, ImportError, TypeError, AttributeError, RecursionError):
+        # missing (or unreadable: written by another version or format): export it now
         kept = {}
         flat = _flat(fn, tree, is_array, fixed, kept)
         # the native kernel's FFI call (jtraj._kkt_native) is registered by every process
@@ -164,8 +286,8 @@ def program(name: str, fn: Callable, args: tuple, static: str,
             return None
         skeleton = kept["skeleton"]
         try:
-            payload = pickle.dumps((skeleton, bytes(blob)))
-        except (pickle.PicklingError, TypeError, AttributeError):
+            payload = _payload(skeleton, blob)
+        except (TypeError, ValueError):
             return None  # an output that cannot be kept: trace as usual
         try:
             os.makedirs(folder, exist_ok=True)

@@ -7,8 +7,9 @@ Each sub-command lives in its own module under :mod:`jtraj.commands` and exposes
 * ``run(args) -> int``: does the work and returns the exit status.
 
 Command modules must not import JAX at module level, so that ``jtraj --help`` stays fast;
-:func:`main` turns on float64 and JAX's persistent compilation cache before ``run`` is
-called, so a second call of the same command does not recompile.
+:func:`main` turns on float64 and JAX's persistent compilation cache (:mod:`jtraj._setup`)
+before ``run`` is called, so a second call of the same command does not recompile, and
+shows the library's log lines (logger "jtraj", INFO: a solver compiling) on stderr.
 """
 
 from __future__ import annotations
@@ -29,28 +30,44 @@ COMMANDS = {
 }
 
 
-def cache_dir() -> str:
-    """Where compiled programs are kept between calls (``$JTRAJ_CACHE_DIR`` overrides)."""
-    default = os.path.join(os.path.expanduser("~"), ".cache", "jtraj", "jax")
-    return os.environ.get("JTRAJ_CACHE_DIR", default)
+def cache_dir() -> str | None:
+    """Where compiled programs are kept between calls (see :func:`jtraj._setup.cache_dir`)."""
+    from jtraj._setup import cache_dir as where
+
+    return where()
 
 
 def setup_jax(x64: bool = True) -> None:
-    """float64 and a persistent compilation cache for every CLI command."""
-    import jax
+    """float64 and the persistent compilation cache (:func:`jtraj._setup.setup_jax`)."""
+    from jtraj._setup import setup_jax as setup
 
-    jax.config.update("jax_enable_x64", x64)
-    path = cache_dir()
-    try:
-        os.makedirs(path, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", path)
-        # every program, also the small ones (the batch driver's gathers and packing,
-        # eager array operations): a fresh process read about 30 of them in a fraction of
-        # the 1-1.4 s it spent compiling them (docs/guides/performance.md)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    except OSError as exc:  # unwritable home: run without the cache, but say so
-        print(f"jtraj: compilation cache disabled ({exc})", file=sys.stderr)
+    setup(x64)
+
+
+class _Stderr:
+    """A logging handler's stream that is whatever ``sys.stderr`` is at each line (a
+    caller of :func:`main` may replace it between calls)."""
+
+    def write(self, text):
+        sys.stderr.write(text)
+
+    def flush(self):
+        sys.stderr.flush()
+
+
+def show_progress_lines() -> None:
+    """The library's INFO lines (logger "jtraj": a solver compiling, a cache refused) on
+    stderr, as they are (they start with "jtraj: ")."""
+    import logging
+
+    log = logging.getLogger("jtraj")
+    if not any(getattr(h, "_jtraj_cli", False) for h in log.handlers):
+        handler = logging.StreamHandler(_Stderr())
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        handler._jtraj_cli = True
+        log.addHandler(handler)
+    if log.level == logging.NOTSET or log.level > logging.INFO:
+        log.setLevel(logging.INFO)
 
 
 def _available():
@@ -70,7 +87,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="jtraj",
         description="Differentiable robot trajectory optimisation in JAX "
-                    "(decoupled augmented Lagrangian, batched datasets, ANFIS online planner).")
+                    "(decoupled augmented Lagrangian, batched datasets, ANFIS online planner).",
+        epilog="Exit status: 0 done (a solve or refinement converged, a dataset complete and intact); 1 done "
+               "but not that (not converged, a gradient check failed, a dataset incomplete or with corrupt "
+               "chunks; see each command's --help); 2 bad input (a message names the argument or file). "
+               "Compiled programs are kept in ~/.cache/jtraj/jax ($JTRAJ_CACHE_DIR moves it, JTRAJ_CACHE=0 "
+               "turns it off).")
     parser.add_argument("--version", action="version", version=f"jtraj {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, mod in _available().items():
@@ -112,6 +134,7 @@ def main(argv=None) -> int:
         from jtraj._cpu import pin_to_one_cpu
 
         pin_to_one_cpu()
+    show_progress_lines()
     setup_jax()
     try:
         return int(args._run(args) or 0)

@@ -188,10 +188,23 @@ class Planner:
         return plan
 
     def plan(self, q_start, q_goal) -> Plan:
-        """The predicted trajectory and its feasibility (one jitted call)."""
-        qs = jnp.asarray(np.asarray(q_start, float).reshape(self.n))
-        qg = jnp.asarray(np.asarray(q_goal, float).reshape(self.n))
+        """The predicted trajectory and its feasibility (one jitted call). ``ValueError``
+        where ``q_start`` or ``q_goal`` is not an (n,) vector of finite numbers."""
+        from ._checks import check_state
+
+        qs = jnp.asarray(np.asarray(check_state(q_start, "q_start", self.n), float).reshape(self.n))
+        qg = jnp.asarray(np.asarray(check_state(q_goal, "q_goal", self.n), float).reshape(self.n))
         return self._plan(qs, qg)
+
+    def check(self, q_start, q_goal) -> None:
+        """``ValueError`` where ``q_start`` or ``q_goal`` is not what ``jtraj.Problem``
+        accepts of a start and a goal: an (n,) finite vector inside the robot's joint box,
+        workspace box and path constraints (:func:`jtraj.problem.check_configurations`)."""
+        from ._checks import check_state
+        from .problem import check_configurations
+
+        check_configurations(self.robot, {"q_start": check_state(q_start, "q_start", self.n).reshape(self.n),
+                                          "q_goal": check_state(q_goal, "q_goal", self.n).reshape(self.n)})
 
     __call__ = plan
 
@@ -200,8 +213,13 @@ class Planner:
         return worst <= self.tol and float(p.goal_error) <= self.goal_tol
 
     def query(self, q_start, q_goal, *, refine: bool = False, weights=None, options=None,
-              warm: str = "primal") -> dict:
+              warm: str = "primal", N: int | None = None) -> dict:
         """Plan, report feasibility, and optionally refine with the exact solver.
+
+        ``q_start`` and ``q_goal`` are checked first (:meth:`check`: ``ValueError``).
+        ``N``: intervals of the refined problem, by default the model's; another N
+        warm-starts from the plan re-sampled onto N equal periods (the plan's acceleration
+        at each new interval's midpoint), which keeps the plan's total time.
 
         ``weights`` default to those of the training dataset (stored in the model's
         metadata as ``"weights"``, e.g. ``"time=1,energy=0.1"``), else ``Weights()``.
@@ -219,6 +237,10 @@ class Planner:
         on 45/60 with 0.85x the iterations (``jtraj.solve(..., warm=)``)."""
         if warm not in ("primal", "full"):
             raise ValueError(f"warm must be 'primal' or 'full', got {warm!r}")
+        if N is not None and (isinstance(N, bool) or not isinstance(N, (int, np.integer)) or N < 2):
+            raise ValueError(f"N must be an integer >= 2 or None, got {N!r}")
+        N = self.N if N is None else int(N)
+        self.check(q_start, q_goal)
         t0 = time.perf_counter()
         p = jax.block_until_ready(self.plan(q_start, q_goal))
         out = dict(seconds=time.perf_counter() - t0, T=float(p.T), feasible=self.feasible(p),
@@ -238,10 +260,11 @@ class Planner:
             if weights is None and self.model.metadata.get("weights"):
                 weights = jtraj.Weights.parse(self.model.metadata["weights"])  # the dataset's cost
             kw = {} if weights is None else {"weights": weights}
-            prob = jtraj.Problem(self.robot, np.asarray(q_start, float), np.asarray(q_goal, float), N=self.N, **kw)
+            prob = jtraj.Problem(self.robot, np.asarray(q_start, float), np.asarray(q_goal, float), N=N, **kw)
+            out["refined_N"] = N
             # cycloidal first: in a fresh process it pays the compilation (shared with the
             # warm solve), so refined_seconds is a compiled solve's time
-            for label, init in (("cycloidal", None), ("refined", (p.v, p.h))):
+            for label, init in (("cycloidal", None), ("refined", _resampled(p.v, p.h, N, self.robot.limits))):
                 t1 = time.perf_counter()
                 if init is None:
                     sol = jtraj.solve(prob, options=options)
@@ -259,3 +282,16 @@ class Planner:
                 out[f"{label}_converged"] = bool(np.asarray(sol.converged))
         return out
 
+
+
+def _resampled(v, h, N: int, limits):
+    """A plan's (v (M, n), h (M,)) on N equal periods of the same total time (within the
+    robot's period bounds): the acceleration at each new interval's midpoint (the plan
+    itself where N = M)."""
+    v, h = np.asarray(v), np.asarray(h)
+    if N == h.shape[0]:
+        return jnp.asarray(v), jnp.asarray(h)
+    T = float(h.sum())
+    mid = (np.arange(N) + 0.5) * T / N
+    k = np.minimum(np.searchsorted(np.cumsum(h), mid), h.shape[0] - 1)
+    return jnp.asarray(v[k]), jnp.full(N, float(np.clip(T / N, limits.h_min, limits.h_max)))

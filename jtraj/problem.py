@@ -1,7 +1,9 @@
 """What to achieve: :class:`Problem`, :class:`Weights` and :class:`ViaPoint`.
 
 Units: positions in rad (or m for prismatic/task coordinates), velocities per second,
-times in seconds, torques in N m (or N). A :class:`Problem` is an equinox Module: its
+times in seconds, torques in N m (or N). Build robots and problems with
+``jax_enable_x64`` on: their arrays take JAX's float width of that moment, and
+:func:`jtraj.solve` refuses float32 (see :mod:`jtraj._setup`). A :class:`Problem` is an equinox Module: its
 arrays are leaves (so problems can be batched with ``vmap`` and differentiated), its
 sizes (``N``, number of via points) are static.
 """
@@ -170,6 +172,35 @@ def admissible_configuration(robot: Robot, q) -> Array:
     return ok
 
 
+def check_configurations(robot: Robot, configurations: dict, velocities: dict | None = None) -> None:
+    """``ValueError`` naming the first of ``configurations`` (name -> (n,) concrete
+    array) outside the joint box, the workspace box or the robot's path constraints, or
+    of ``velocities`` beyond ``qd_max``: the checks :class:`Problem` makes of its start and
+    goal (the joint box of every configuration first), shared with the CLI and
+    :class:`jtraj.online.Planner`. Shapes and finiteness: :func:`jtraj._checks.check_state`."""
+    lim = robot.limits
+    ends = list(configurations.items())
+    failed = {name: {k for k, c in configuration_checks(robot, q).items() if not bool(c)} for name, q in ends}
+    for name, q in ends:
+        if "joint" in failed[name]:
+            raise ValueError(f"{name} = {np.asarray(q).tolist()} is outside the joint limits "
+                             f"[{np.asarray(lim.q_min).tolist()}, {np.asarray(lim.q_max).tolist()}]")
+    for name, qd in (velocities or {}).items():
+        if lim.qd_max is not None and bool(jnp.any(jnp.abs(qd) > lim.qd_max * (1 + FACE_TOL))):
+            raise ValueError(f"{name} exceeds the velocity limits qd_max = {np.asarray(lim.qd_max).tolist()}")
+    for name, q in ends:
+        if "workspace" in failed[name]:
+            p = np.asarray(robot.forward_kinematics(q)).tolist()
+            raise ValueError(f"{name} puts the task point at {p}, outside "
+                             f"the workspace box {np.asarray(lim.workspace).tolist()}")
+    for name, q in ends:
+        if "path" in failed[name]:
+            g = np.asarray(robot.path_constraints(q))
+            raise ValueError(f"{name} = {np.asarray(q).tolist()} violates the path constraints of robot "
+                             f"{robot.name!r} (largest normalised value {g.max():.3g} > 0: e.g. too "
+                             f"close to a singularity)")
+
+
 #: where the torque bound is imposed (see :class:`Problem`)
 EFFORTS = ("samples", "intervals")
 
@@ -260,26 +291,8 @@ class Problem(eqx.Module):
         """Reject problems that are infeasible on their face (before any solve)."""
         lim = self.robot.limits
         N = self.N
-        ends = (("q_start", self.q_start), ("q_goal", self.q_goal))
-        failed = {name: {k for k, c in configuration_checks(self.robot, q).items() if not bool(c)} for name, q in ends}
-        for name, q in ends:
-            if "joint" in failed[name]:
-                raise ValueError(f"{name} = {np.asarray(q).tolist()} is outside the joint limits "
-                                 f"[{np.asarray(lim.q_min).tolist()}, {np.asarray(lim.q_max).tolist()}]")
-        for name, qd in (("qd_start", self.qd_start), ("qd_goal", self.qd_goal)):
-            if lim.qd_max is not None and bool(jnp.any(jnp.abs(qd) > lim.qd_max * (1 + FACE_TOL))):
-                raise ValueError(f"{name} exceeds the velocity limits qd_max = {np.asarray(lim.qd_max).tolist()}")
-        for name, q in ends:
-            if "workspace" in failed[name]:
-                p = np.asarray(self.robot.forward_kinematics(q)).tolist()
-                raise ValueError(f"{name} puts the task point at {p}, outside "
-                                 f"the workspace box {np.asarray(lim.workspace).tolist()}")
-        for name, q in ends:
-            if "path" in failed[name]:
-                g = np.asarray(self.robot.path_constraints(q))
-                raise ValueError(f"{name} = {np.asarray(q).tolist()} violates the path constraints of robot "
-                                 f"{self.robot.name!r} (largest normalised value {g.max():.3g} > 0: e.g. too "
-                                 f"close to a singularity)")
+        check_configurations(self.robot, {"q_start": self.q_start, "q_goal": self.q_goal},
+                             {"qd_start": self.qd_start, "qd_goal": self.qd_goal})
         rest = not (bool(jnp.any(self.qd_start != 0)) or bool(jnp.any(self.qd_goal != 0)))
         T_need = float(minimum_time_bound(self)) if rest else 0.0
         if T_need > N * lim.h_max * (1 + 1e-9):

@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _packing, _tracecache, ipm, lq
+from . import _packing, _setup, _tracecache, ipm, lq
 from ._compile import SOLVER_XLA_OPTIONS, supported_options
 from ._compile import solver_jit as _jit
 from ._math import log1p
@@ -1578,6 +1578,11 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     On a CPU one problem runs about 1.6x faster in a process pinned to one core
     (:func:`jtraj.pin_to_one_cpu` before JAX's first computation; the CLI does it).
 
+    Solves in float64 only: raises ``ValueError`` where ``jax_enable_x64`` is off or the
+    problem holds float32 arrays (built while it was off). A solve that compiles the
+    solver (first use in a process) logs a line saying so (logger "jtraj", INFO); JAX's
+    persistent compilation cache, on since ``import jtraj``, keeps it (:mod:`jtraj._setup`).
+
     Args:
         problem: a :class:`jtraj.Problem`.
         options: :class:`SolverOptions` (defaults documented there).
@@ -1602,12 +1607,17 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
         raise ValueError(f"warm must be 'full' or 'primal', got {warm!r}")
     warm = init is not None and warm == "full"
     opts = _resolve_method(options, transcription, problem.robot)
+    # float64 only, the compilation cache on, a first compilation logged (jtraj._setup)
+    key = _setup.before_solve(problem.robot, problem.N, batch=False, problem=problem, options=opts,
+                              transcription=transcription, efforts=problem.efforts)
     guess = init is None
     if guess:  # placeholders of the controls' shapes (the program computes the guess)
         init = _placeholder_init(problem.N, Transcription(transcription).control_dim(problem))
     else:
         init = _check_init(problem, init, transcription)
-    return _solve_jit(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
+    sol = _solve_jit(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
+    _setup.compiled(key)
+    return sol
 
 
 @functools.lru_cache(maxsize=16)
@@ -2119,7 +2129,8 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
 
     Returns a :class:`Solution` whose fields carry a leading batch axis. Samples with
     non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch
-    never raises for one bad sample); shapes and the robot are checked up front.
+    never raises for one bad sample); shapes and the robot are checked up front, and
+    float64 as in :func:`solve`.
     """
     from .robots import Robot
 
@@ -2151,6 +2162,8 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     _check_efforts(efforts, transcription)
     opts = _resolve_method(options, transcription, robot)
     weights = Weights() if weights is None else weights
+    key = _setup.before_solve(robot, N, batch=True, weights=weights, options=opts, transcription=transcription,
+                              efforts=efforts)
 
     def make(a, b, c, d, t):
         return _problem(robot, a, b, c, d, t, N, weights, efforts)
@@ -2174,7 +2187,10 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     if not isinstance(segment, int) or segment < 1:
         raise ValueError(f"segment must be a positive integer, got {segment!r}")
     if opts.method == "ip":
-        return _solve_batch_ip(problems, opts, transcription, init, jax.device_put(warm), slots or B, segment)
-    if slots is not None and B > min(_lane_counts(slots)):
-        return _solve_compacted(problems, opts, transcription, init, jax.device_put(warm), slots, segment)
-    return _solve_batch_jit(problems, opts, transcription, init, jax.device_put(warm))
+        sol = _solve_batch_ip(problems, opts, transcription, init, jax.device_put(warm), slots or B, segment)
+    elif slots is not None and B > min(_lane_counts(slots)):
+        sol = _solve_compacted(problems, opts, transcription, init, jax.device_put(warm), slots, segment)
+    else:
+        sol = _solve_batch_jit(problems, opts, transcription, init, jax.device_put(warm))
+    _setup.compiled(key)
+    return sol

@@ -32,13 +32,22 @@ def test_help_lists_commands(capsys):
         assert opt in out
 
 
-def test_solve_writes_consistent_json_and_png(tmp_path, capsys):
+def test_solve_writes_consistent_json_and_png(tmp_path, capsys, monkeypatch):
+    from jtraj import _setup
+
+    monkeypatch.setitem(_setup._state, "seen", set())  # as in a new process: the first solve is announced
     out_json, out_png = tmp_path / "sol.json", tmp_path / "sol.png"
     rc = cli.main(["solve", "--robot", "serial3", "--start-q", START, "--goal-q", GOAL, "--deg", "--N", "10",
                    "--weights", "time=1,energy=0.5", "--json", str(out_json), "--plot", str(out_png), "--rate", "200"])
-    text = capsys.readouterr().out
+    captured = capsys.readouterr()
+    text = captured.out
     d = json.loads(out_json.read_text())
     assert rc == 0 and d["converged"] and d["status_name"] == "CONVERGED", (rc, d["status_name"])
+    # one line on stderr says that the solver is compiled (or loaded from the cache)
+    lines = [ln for ln in captured.err.splitlines() if "the solver for serial3 (n = 3), N = 10" in ln]
+    assert len(lines) == 1, captured.err
+    assert lines[0].startswith(("jtraj: compiling the solver for serial3 (n = 3), N = 10 (first use",
+                                "jtraj: loading the compiled solver for serial3")), captured.err
     assert "status:" in text and "T =" in text and "max violation" in text and "solve" in text
     for key in ("converged", "status", "status_message", "T", "cost", "cost_terms", "max_violation", "q", "qd",
                 "v", "tau", "h", "iterations", "solve_seconds", "compile_seconds", "robot", "N", "weights",
@@ -198,3 +207,151 @@ def test_pin_to_one_cpu_restricts_the_process():
         cpu, aff = out.stdout.split(maxsplit=1)
         assert int(cpu) == allowed[i % len(allowed)]
         assert aff.strip() == f"[{int(cpu)}]"
+
+
+# --- jtraj query: the start and the goal checked as jtraj solve checks them -------------
+
+@pytest.fixture(scope="module")
+def plan_model(tmp_path_factory):
+    """A small plan model of serial3 at N = 10 (a synthetic dataset: no solve)."""
+    from jtraj.anfis import trajectory
+
+    data = trajectory.synthetic_dataset(P=40, N=10, seed=0)
+    model = trajectory.train_mapping(data, "plan", n_rules=4, epochs=5)[0]
+    path = tmp_path_factory.mktemp("query") / "plan.anfis"
+    model.save(path)
+    return str(path), data
+
+
+def _strict_json(path):
+    """The file's JSON, refusing NaN and infinities (which JSON does not have)."""
+    def bad(token):
+        raise ValueError(f"invalid JSON constant {token}")
+
+    with open(path) as fh:
+        return json.load(fh, parse_constant=bad)
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--start", "0,0.5,nan", "--goal", "0.2,0.4,0.5"], "--start must be finite"),
+    (["--start", "0,0.5,0.5", "--goal", "0.2,inf,0.5"], "--goal must be finite"),
+    (["--start", "0,30,30", "--goal", "10,25,30"], "add --deg"),  # degrees without --deg
+    (["--start", "0,0.5", "--goal", "0.2,0.4,0.5"], "--start must have 3 values"),
+    (["--start", "0,0.5,0.5", "--goal", "0.2,0.4,0.5", "--N", "12"], "give --refine"),
+    (["--start", "0,0.5,0.5", "--goal", "0.2,0.4,0.5", "--refine", "--N", "1"], "--N must be"),
+    (["--start", "0,0.5,0.5", "--goal", "0.2,0.4,0.5", "--refine", "--weights", "speed=1"], "--weights"),
+])
+def test_query_bad_input_exits_2_and_writes_nothing(argv, needle, plan_model, tmp_path, capsys, monkeypatch):
+    import jtraj
+
+    def never(*a, **k):
+        raise AssertionError("solved a refused query")
+
+    monkeypatch.setattr(jtraj, "solve", never)
+    out = tmp_path / "q.json"
+    rc = cli.main(["query", "--model", plan_model[0], *argv, "--json", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("jtraj query: error:") and needle in err, err
+    assert not out.exists()
+
+
+def test_query_outside_the_joint_box_names_the_option(tmp_path):
+    """parallel3 has a joint box (+-0.5 rad): a start outside it is refused as jtraj solve
+    refuses it, and where the numbers fit the box once read as degrees the message says
+    --deg (as it does for any angle beyond 2 pi)."""
+    import jtraj
+    from jtraj.commands.solve import check_joint_values
+
+    robot = jtraj.robots.get("parallel3")
+    np.testing.assert_array_equal(robot.limits.q_max, [0.5, 0.5])
+    inside = np.array([0.1, -0.2])
+    check_joint_values(robot, {"--start": inside, "--goal": inside}, deg=False)  # accepted
+    # numbers that fit the box once read as degrees: the message says --deg
+    with pytest.raises(ValueError, match=r"--goal = \[0.1, 1.0\] is outside the joint limits.*add --deg"):
+        check_joint_values(robot, {"--start": inside, "--goal": [0.1, 1.0]}, deg=False)
+    with pytest.raises(ValueError, match=r"--start = \[5.0, -5.0\] is outside the joint limits.*add --deg"):
+        check_joint_values(robot, {"--start": [5.0, -5.0], "--goal": inside}, deg=False)
+    # given with --deg (converted to radians by then): no hint
+    with pytest.raises(ValueError, match=r"--start = \[5.0, -5.0\] is outside the joint limits") as exc:
+        check_joint_values(robot, {"--start": [5.0, -5.0], "--goal": inside}, deg=True)
+    assert "--deg" not in str(exc.value)
+    with pytest.raises(ValueError, match=r"--goal = \[0.0, 30.0\] has an angle beyond 2 pi.*add --deg"):
+        check_joint_values(robot, {"--start": inside, "--goal": [0.0, 30.0]}, deg=False)
+
+
+def test_query_writes_strict_json_and_reads_degrees(plan_model, tmp_path, capsys):
+    path, data = plan_model
+    qs, qg = data["q_start"][0], data["q_goal"][0]
+    out = tmp_path / "q.json"
+    rc = cli.main(["query", "--model", path, "--start", ",".join(map(str, np.rad2deg(qs))),
+                   "--goal", ",".join(map(str, np.rad2deg(qg))), "--deg", "--json", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    d = _strict_json(out)
+    np.testing.assert_allclose(d["q"][0], qs, atol=1e-12)  # the plan starts at the start, in radians
+    assert len(d["q"]) == 11 and isinstance(d["feasible"], bool)
+
+
+def test_query_json_has_null_where_the_plan_is_not_finite(plan_model, tmp_path, monkeypatch, capsys):
+    """A model may predict NaN: the report says nan, the JSON null (never invalid JSON)."""
+    from jtraj import online
+
+    real = online.Planner.query
+
+    def nan_query(self, *a, **k):
+        out = real(self, *a, **k)
+        out.update(goal_error=float("nan"), T=float("inf"), q=[[float("nan")] * 3] * 11)
+        return out
+
+    monkeypatch.setattr(online.Planner, "query", nan_query)
+    out = tmp_path / "q.json"
+    rc = cli.main(["query", "--model", plan_model[0], "--start", "0,0.5,0.5", "--goal", "0.2,0.4,0.5",
+                   "--json", str(out)])
+    assert rc == 0 and "goal error nan" in capsys.readouterr().out
+    d = _strict_json(out)
+    assert d["goal_error"] is None and d["T"] is None and d["q"][0] == [None] * 3
+
+
+def test_planner_checks_the_start_and_goal_and_resamples_for_another_N(plan_model):
+    import jtraj
+    from jtraj.online import Planner, _resampled
+
+    planner = Planner(plan_model[0])
+    with pytest.raises(ValueError, match="q_start must be finite"):
+        planner.query([0.0, np.nan, 0.5], [0.2, 0.4, 0.5])
+    with pytest.raises(ValueError, match=r"q_goal must have shape \(3,\)"):
+        planner.query([0.0, 0.5, 0.5], [0.2, 0.4])
+    with pytest.raises(ValueError, match="N must be an integer >= 2"):
+        planner.query([0.0, 0.5, 0.5], [0.2, 0.4, 0.5], N=1)
+    lim = jtraj.robots.get("serial3").limits
+    v = np.arange(10.0)[:, None] * np.ones((1, 3))
+    h = np.full(10, 0.05)
+    v2, h2 = _resampled(v, h, 10, lim)
+    np.testing.assert_array_equal(v2, v) and np.testing.assert_array_equal(h2, h)
+    v2, h2 = _resampled(v, h, 5, lim)  # periods 0.1 s: midpoints 0.05, 0.15, ... fall in intervals 1, 3, ...
+    np.testing.assert_allclose(h2, 0.1) and np.testing.assert_array_equal(v2[:, 0], [1, 3, 5, 7, 9])
+
+
+def test_query_refine_exit_code_and_json(plan_model, tmp_path, capsys):
+    """--refine at the model's N (the solve test's serial3 program at N = 10): the exit
+    code says whether the refined solution converged, the JSON is strict."""
+    import jtraj
+
+    path, data = plan_model
+    robot = jtraj.robots.get("serial3")
+
+    def fits(i):  # the synthetic dataset's moves are not all feasible at N = 10
+        try:
+            jtraj.Problem(robot, data["q_start"][i], data["q_goal"][i], N=10)
+        except ValueError:
+            return False
+        return True
+
+    i = next(i for i in range(len(data["q_start"])) if fits(i))
+    qs, qg = data["q_start"][i], data["q_goal"][i]
+    out = tmp_path / "r.json"
+    rc = cli.main(["query", "--model", path, "--start", ",".join(map(str, qs)), "--goal", ",".join(map(str, qg)),
+                   "--refine", "--N", "10", "--json", str(out)])
+    text = capsys.readouterr().out
+    d = _strict_json(out)
+    assert d["refined_N"] == 10 and "refined (primal warm start, N = 10)" in text
+    assert rc == (0 if d["refined_converged"] else 1)

@@ -294,8 +294,17 @@ def test_field_missing_from_older_chunks_reads_as_nan(tmp_path):
     assert np.all(np.isnan(full["kkt_error"]))  # the fake solver does not report it
     assert "  KKT error: -" in dataset.summary(a)
     viol = full["max_violation"].copy()
-    with h5py.File(os.path.join(a, "chunks", "chunk-000000.h5"), "a") as f:
-        del f["max_violation"]  # as if chunk 0 had been written before the field existed
+    chunk0 = os.path.join(a, "chunks", "chunk-000000.h5")
+    with h5py.File(chunk0, "a") as f:
+        del f["max_violation"]
+    # a field removed from a chunk with checksums: corrupt
+    with pytest.raises(ValueError, match="chunk-000000.h5: corrupt chunk .*list of fields"):
+        dataset.load(a)
+    with h5py.File(chunk0, "a") as f:  # as if chunk 0 had been written before the field and the checksums existed
+        for k in ("digest", "integrity"):
+            del f.attrs[k]
+        for k in f.keys():
+            del f[k].attrs["sha256"]
     data = dataset.load(a)
     assert "max_violation" in data
     assert np.all(np.isnan(data["max_violation"][:8]))
@@ -557,3 +566,21 @@ def test_ray_real_solver_equals_single_process(tmp_path):
     dataset.build(spec, str(tmp_path / "single"), progress=False)
     dataset.build(spec, str(tmp_path / "ray"), ray="local:2", progress=False)
     assert_same(dataset.load(str(tmp_path / "single")), dataset.load(str(tmp_path / "ray")))
+
+
+def test_progress_bar_says_compiling_until_the_first_chunk(tmp_path, capsys, monkeypatch):
+    """The first chunk waits for the solver's compilation: the bar says so (its clock
+    running), then counts pairs."""
+    import importlib
+
+    build_mod = importlib.import_module("jtraj.dataset.build")  # (jtraj.dataset.build is the function)
+    monkeypatch.setenv("JTRAJ_FAKE_SOLVER_DELAY", "1.5")
+    dataset.build(fake_spec(pairs=16, batch=8), str(tmp_path / "d"), progress=True, workers=1)
+    err = capsys.readouterr().err.replace("\r", "\n")
+    first = [ln for ln in err.splitlines() if "0/16" in ln]
+    assert first and all(ln.startswith(build_mod.COMPILING) for ln in first), err
+    assert any("[00:01<" in ln for ln in first), err  # redrawn while waiting
+    assert any(ln.startswith("dataset: 100%") and "16/16" in ln for ln in err.splitlines()), err
+    # nothing left to solve: no compiling label
+    dataset.build(fake_spec(pairs=16, batch=8), str(tmp_path / "d"), progress=True, workers=1)
+    assert build_mod.COMPILING not in capsys.readouterr().err

@@ -3,6 +3,7 @@
   jtraj dataset [build] --robot serial3 --pairs 10000 --seed 0 --out runs/s3 [--N 20]
                 [--weights time=1,energy=0.1] [--space joint|task] [--batch B] [--workers K | --ray auto]
   jtraj dataset info PATH
+  jtraj dataset verify PATH
   jtraj dataset plot PATH [--out overview.png]
 
 build: samples start/goal pairs deterministically from the seed (joint space:
@@ -18,17 +19,25 @@ into an existing dataset are refused. Chunks are solved by one pinned worker
 process per CPU (--workers K to choose; 1 solves in this process, whose results equal
 the workers' only when it runs on one CPU, e.g. under taskset -c 0); --ray
 auto|HOST:PORT|local[:K] distributes them over a Ray cluster instead, with identical results.
+
+info: the dataset's parameters and figures; every chunk file is verified first (all
+checksums: Fletcher-32 and SHA-256 of every field, SHA-256 of the header), corrupt ones are
+named and left out. verify: only that check, one line per corrupt chunk file. A resumed
+build solves corrupt chunks again.
+
+Exit status: build 0 when the dataset is complete, 1 when chunks are left; info and
+verify 0 when every chunk present is intact, 1 when one is corrupt; 2 on bad input.
 """
 
 import argparse
 
 HELP = "build (resumable, optionally on Ray), summarise or plot a dataset of optimal trajectories"
 
-ACTIONS = ("build", "info", "plot")
+ACTIONS = ("build", "info", "verify", "plot")
 
 
 def configure(parser):
-    parser.add_argument("action", nargs="*", metavar="[build | info PATH | plot PATH]",
+    parser.add_argument("action", nargs="*", metavar="[build | info PATH | verify PATH | plot PATH]",
                         help="what to do (default build)")
     parser.add_argument("--robot", help="robot name (see 'jtraj robots')")
     parser.add_argument("--pairs", type=int, help="number of start/goal pairs P >= 1")
@@ -85,7 +94,7 @@ def _action(args):
     if not act:
         return "build", None
     if act[0] not in ACTIONS:
-        raise ValueError(f"unknown action {act[0]!r}; use build, info PATH or plot PATH")
+        raise ValueError(f"unknown action {act[0]!r}; use build, info PATH, verify PATH or plot PATH")
     if act[0] == "build":
         if len(act) > 1:
             raise ValueError(f"build takes options only, got extra arguments {act[1:]}")
@@ -110,10 +119,17 @@ def run(args) -> int:
 
     action, path = _action(args)
     if action == "info":
-        from jtraj.dataset import summary
+        from jtraj.dataset import summary_and_check
 
-        print(summary(path))
-        return 0
+        text, check = summary_and_check(path)
+        print(text)
+        return 1 if check["corrupt"] else 0
+    if action == "verify":
+        from jtraj.dataset import verify_report
+
+        text, intact = verify_report(path)
+        print(text)
+        return 0 if intact else 1
     if action == "plot":
         from jtraj.dataset.plot import plot
 

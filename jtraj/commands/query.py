@@ -4,13 +4,21 @@ and optionally refine it with the exact solver.
 Open loop: --model of mapping plan. Closed loop (the thesis' NeFOTC with NeFuMOP):
 --model of mapping nefotc (the torque controller) and --periods of mapping nefumop
 (its output h sets the sampling periods), rolled out through the robot's dynamics;
-much closer to the goal on serial3 (median 0.030 rad against 0.20 rad; docs/guides/anfis.md)."""
+much closer to the goal on serial3 (median 0.030 rad against 0.20 rad; docs/guides/anfis.md).
+
+The start and the goal are checked as ``jtraj solve`` checks them: finite, inside the
+robot's joint box, workspace and path constraints, in radians (--deg for degrees).
+--refine solves the exact problem warm-started from the plan, with the dataset's weights
+and the model's N unless --weights / --N say otherwise (another N warm-starts from the
+plan re-sampled onto N equal periods); --method and --inequalities as in ``jtraj solve``.
+
+Exit status: 0 when a plan was made (and, with --refine, the refined solution converged),
+1 when --refine stopped without convergence (the report and JSON are still written), 2 on
+bad input."""
 
 HELP = "plan a trajectory with a trained ANFIS planner (optionally refine it exactly)"
 
 
-def _vec(text):
-    return [float(t) for t in text.replace(",", " ").split()]
 
 
 #: the CLI pins this command to one CPU core before JAX starts (jtraj._cpu)
@@ -22,9 +30,19 @@ def configure(parser):
                         help="model file from `jtraj train --mapping plan`, or `--mapping nefotc` with --periods")
     parser.add_argument("--periods", help="with a nefotc --model: a model file from `jtraj train --mapping nefumop` "
                                           "on the same dataset (closed-loop planning)")
-    parser.add_argument("--start", required=True, type=_vec, help="start joint positions, e.g. '0,0.52,0.52'")
-    parser.add_argument("--goal", required=True, type=_vec, help="goal joint positions")
+    parser.add_argument("--start", required=True, metavar="Q1,Q2,...",
+                        help="start joint positions (rad, or deg with --deg), e.g. '0,0.52,0.52'")
+    parser.add_argument("--goal", required=True, metavar="Q1,Q2,...", help="goal joint positions")
+    parser.add_argument("--deg", action="store_true", help="--start and --goal are in degrees")
     parser.add_argument("--refine", action="store_true", help="warm-start the exact solver from the plan")
+    parser.add_argument("--N", type=int, default=None,
+                        help="with --refine: sampling intervals of the refined problem (default the model's N)")
+    parser.add_argument("--weights", default=None,
+                        help="with --refine: cost weights as in jtraj solve (default: the training dataset's)")
+    parser.add_argument("--method", choices=("auto", "al", "ip"), default="auto",
+                        help="with --refine: inner method of the solver (see jtraj solve)")
+    parser.add_argument("--inequalities", choices=("phr", "pbm"), default="phr",
+                        help="with --refine: inequality term of the solver (see jtraj solve)")
     parser.add_argument("--warm", default="primal", choices=["primal", "full"],
                         help="refine from the plan's primal point only (default; multipliers and penalty as in "
                              "a cold start) or with jtraj.solve's full warm start (estimated multipliers, high "
@@ -32,29 +50,64 @@ def configure(parser):
     parser.add_argument("--json", help="write the result (trajectory included) as JSON")
 
 
+def _vector(text, name, n, deg):
+    from jtraj.commands.solve import parse_vector
+
+    if not isinstance(text, str):  # a sequence of numbers (a Python caller's args)
+        text = ",".join(str(float(x)) for x in text)
+    # (spaces separate as well as commas)
+    return parse_vector(",".join(text.replace(",", " ").split()), name, n, deg=deg)
+
+
 def run(args) -> int:
     import json
 
     from jtraj.commands import check_input_file, check_output_file
+    from jtraj.commands.solve import _finite_json, check_joint_values
     from jtraj.online import Planner
 
     check_input_file(args.model, "--model")
     check_input_file(getattr(args, "periods", None), "--periods")
     check_output_file(args.json, "--json")
+    refine_opts = [f"--{k.replace('_', '-')}" for k, default in (("N", None), ("weights", None), ("method", "auto"),
+                                                              ("inequalities", "phr"))
+                   if getattr(args, k, default) != default]
+    if refine_opts and not args.refine:
+        raise ValueError(f"{', '.join(refine_opts)} set(s) the refinement: give --refine too")
+    if getattr(args, "N", None) is not None and args.N < 2:
+        raise ValueError(f"--N must be an integer >= 2, got {args.N}")
+    weights = None
+    if getattr(args, "weights", None) is not None:
+        import jtraj
+
+        try:
+            weights = jtraj.Weights.parse(args.weights)
+        except ValueError as exc:
+            raise ValueError(f"--weights: {exc}") from None
     planner = Planner(args.model, periods=getattr(args, "periods", None))
-    if len(args.start) != planner.n or len(args.goal) != planner.n:
-        raise ValueError(f"--start and --goal need {planner.n} values each")
-    out = planner.query(args.start, args.goal, refine=args.refine, warm=getattr(args, "warm", "primal"))
+    deg = getattr(args, "deg", False)
+    q_start = _vector(args.start, "--start", planner.n, deg)
+    q_goal = _vector(args.goal, "--goal", planner.n, deg)
+    check_joint_values(planner.robot, {"--start": q_start, "--goal": q_goal}, deg)
+    options = None
+    if args.refine:
+        import jtraj
+
+        method = getattr(args, "method", "auto")
+        options = (jtraj.SolverOptions.pbm(method=method) if getattr(args, "inequalities", "phr") == "pbm"
+                   else jtraj.SolverOptions(method=method))
+    out = planner.query(q_start, q_goal, refine=args.refine, warm=getattr(args, "warm", "primal"),
+                        weights=weights, options=options, N=getattr(args, "N", None))
     print(f"plan: T = {out['T']:.4f} s, feasible = {out['feasible']}, goal error {out['goal_error']:.3g} rad, "
           f"tau over limit {out['tau_violation']:.3g}, qd over limit {out['qd_violation']:.3g}"
           + (f" (between the samples: up to {out['effort_between_samples']:.4f} x tau_max)"
              if "effort_between_samples" in out else ""))
     if args.refine:
-        print(f"refined ({out['refined_warm']} warm start): {out['refined_status']} in "
+        print(f"refined ({out['refined_warm']} warm start, N = {out['refined_N']}): {out['refined_status']} in "
               f"{out['refined_iterations']} iterations, {out['refined_seconds']:.2f} s "
               f"(cycloidal start: {out['cycloidal_iterations']} iterations, "
               f"{out['cycloidal_seconds']:.2f} s, compilation included when not cached)")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump(out, f, indent=2)
-    return 0
+            json.dump(_finite_json(out), f, indent=2, allow_nan=False)
+    return 1 if args.refine and not out["refined_converged"] else 0

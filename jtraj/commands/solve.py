@@ -80,6 +80,37 @@ def parse_vector(text, name, n=None, *, deg=False):
     return np.deg2rad(arr) if deg else arr
 
 
+def check_joint_values(robot, values: dict, deg: bool) -> None:
+    """The start and goal configurations given on the command line (option -> radians,
+    None where not given) checked as :class:`jtraj.Problem` checks them
+    (:func:`jtraj.problem.check_configurations`), the error naming the option; where the
+    numbers look like degrees given without ``--deg`` (beyond 2 pi, or inside the joint
+    box once read as degrees) the message says to add it. Shared by ``solve`` and
+    ``query``."""
+    import numpy as np
+
+    from jtraj.problem import check_configurations
+
+    given = {k: np.asarray(v, float) for k, v in values.items() if v is not None}
+    hint = "; if these are degrees, add --deg"
+    if not deg:
+        for name, q in given.items():
+            if np.max(np.abs(q)) > 2 * np.pi:
+                raise ValueError(f"{name} = {q.tolist()} has an angle beyond 2 pi: radians are expected{hint}")
+    try:
+        check_configurations(robot, given)
+    except ValueError as exc:
+        msg = str(exc)
+        if not deg:
+            try:
+                check_configurations(robot, {k: np.deg2rad(q) for k, q in given.items()})
+            except ValueError:
+                pass
+            else:
+                msg += hint
+        raise ValueError(msg) from None
+
+
 def _ik(robot, p, q_init, name):
     try:
         from jtraj.problem import ik_or_raise
@@ -140,6 +171,7 @@ def build_problem(args):
     p_start = parse_vector(args.start_xy, "--start-xy", d)
     p_goal = parse_vector(args.goal_xy, "--goal-xy", d)
     vias = [ViaPoint(point=parse_vector(v, "--via", d), tol=args.via_tol) for v in args.via]
+    check_joint_values(robot, {"--start-q": q_start, "--goal-q": q_goal}, args.deg)
     if q_start is None:
         q_start = np.asarray(_ik(robot, p_start, None, "--start-xy"))
     if q_goal is None:
@@ -178,6 +210,20 @@ def _finite(x):
     if isinstance(x, list):
         return [_finite(v) for v in x]
     return x if math.isfinite(x) else None
+
+
+def _finite_json(x):
+    """``x`` (dicts, lists, numbers) with every non-finite float replaced by None (JSON
+    has no NaN or inf: ``json.dump(..., allow_nan=False)`` then cannot fail)."""
+    import math
+
+    if isinstance(x, dict):
+        return {k: _finite_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_json(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
 
 
 def solution_dict(args, problem, sol, solve_s, compile_s) -> dict:
@@ -264,8 +310,9 @@ def run(args) -> int:
                                                     for k in ("t", "q", "qd", "qdd", "tau")})
     print(summary(d))
     if args.json:
+        d = _finite_json(d)
         with open(args.json, "w") as fh:
-            json.dump(d, fh, indent=1)
+            json.dump(d, fh, indent=1, allow_nan=False)
         print(f"wrote {args.json}")
     if args.plot:
         from jtraj.plotting import plot_solution, save

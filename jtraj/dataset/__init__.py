@@ -37,7 +37,7 @@ from . import sampling, store
 from .build import Spec, build, compute_chunk, make_spec
 
 __all__ = ["Dataset", "Spec", "build", "compute_chunk", "iter_chunks", "load", "make_spec", "sampling", "store",
-           "summary", "views"]
+           "summary", "verify", "views"]
 
 
 class Dataset(Mapping):
@@ -48,14 +48,14 @@ class Dataset(Mapping):
     ``complete``, ``pairs`` (pairs present).
     """
 
-    def __init__(self, path: str, partial: bool = False):
+    def __init__(self, path: str, partial: bool = False, exclude=()):
         self.path = os.path.abspath(path)
         man = store.read_manifest(self.path)
         self.identity = man["identity"]
         self.metadata = dict(man["metadata"], identity=man["identity"])
         self._hash = man["identity_hash"]
         n_chunks = int(self.metadata["chunks"])
-        self.chunks = [c for c in store.finished_chunks(self.path) if c < n_chunks]
+        self.chunks = [c for c in store.finished_chunks(self.path) if c < n_chunks and c not in exclude]
         self.complete = len(self.chunks) == n_chunks
         if not self.complete and not partial:
             raise ValueError(f"dataset {path!r} is incomplete ({len(self.chunks)}/{n_chunks} chunks); re-run the "
@@ -66,8 +66,13 @@ class Dataset(Mapping):
         # with a field that older chunks lack (see __getitem__)
         self._keys, self._chunk_keys = [], {}
         for c in self.chunks:
-            with h5py.File(os.path.join(self.path, store.CHUNKS, store.chunk_name(c)), "r") as f:
-                self._chunk_keys[c] = set(f.keys())
+            file = os.path.join(self.path, store.CHUNKS, store.chunk_name(c))
+            try:  # the header's checksum here; each field's when it is read (store.read_chunk)
+                with h5py.File(file, "r") as f:
+                    store._check_header(f, file)
+                    self._chunk_keys[c] = set(f.keys())
+            except (OSError, RuntimeError) as err:
+                raise store._corrupt(file, f"HDF5 cannot read it: {err}") from None
             self._keys += [k for k in sorted(self._chunk_keys[c]) if k not in self._keys]
         self._cache: dict = {}
 
@@ -105,8 +110,44 @@ class Dataset(Mapping):
 def load(path: str, *, partial: bool = False) -> Dataset:
     """Open the dataset at ``path`` (see :class:`Dataset`). ``partial=True`` accepts an
     unfinished dataset and exposes the finished chunks only (``data["index"]`` gives
-    their pair indices)."""
+    their pair indices). A chunk file that fails its checksums raises ``ValueError``
+    naming the file ("corrupt chunk"), here for its header and when a field is read for
+    the field (see :mod:`jtraj.dataset.store`; :func:`verify` checks every chunk)."""
     return Dataset(path, partial=partial)
+
+
+def verify(path: str) -> dict:
+    """Check every chunk file of the dataset at ``path`` completely (all fields read, all
+    checksums compared, see :func:`jtraj.dataset.store.verify_chunk`). Returns
+    ``{"chunks": expected count, "intact": [...], "older": [...] (intact by Fletcher-32,
+    written without SHA-256 checksums), "corrupt": {chunk: message naming the file},
+    "missing": [...]}``."""
+    man = store.read_manifest(path)
+    n_chunks = int(man["metadata"]["chunks"])
+    out = {"chunks": n_chunks, "intact": [], "older": [], "corrupt": {}, "missing": []}
+    present = [c for c in store.finished_chunks(path) if c < n_chunks]
+    for c in present:
+        try:
+            note = store.verify_chunk(os.path.join(os.path.abspath(path), store.CHUNKS, store.chunk_name(c)),
+                                      man["identity_hash"])
+        except ValueError as err:
+            out["corrupt"][c] = str(err)
+        else:
+            out["older" if note else "intact"].append(c)
+    out["missing"] = sorted(set(range(n_chunks)) - set(present))
+    return out
+
+
+def verify_report(path: str) -> tuple[str, bool]:
+    """``jtraj dataset verify``'s text and whether every present chunk is intact."""
+    r = verify(path)
+    lines = [f"dataset {os.path.abspath(path)}: {r['chunks']} chunks, {len(r['intact'])} intact"
+             + (f", {len(r['older'])} intact by Fletcher-32 only (written without SHA-256 checksums by an older "
+                f"jtraj)" if r["older"] else "")
+             + (f", {len(r['missing'])} not yet built" if r["missing"] else "")
+             + (f", {len(r['corrupt'])} CORRUPT" if r["corrupt"] else "")]
+    lines += [f"  corrupt: {msg}" for msg in r["corrupt"].values()]
+    return "\n".join(lines), not r["corrupt"]
 
 
 def iter_chunks(path: str, keys=None):
@@ -120,10 +161,17 @@ _EFFORTS_TEXT = {"samples": "samples", "intervals": "samples and interval ends"}
 
 
 def summary(path: str) -> str:
-    """Human-readable summary (``jtraj dataset info``)."""
+    """Human-readable summary (``jtraj dataset info``): every chunk is verified first
+    (:func:`verify`); corrupt chunk files are named and left out of the figures."""
+    return summary_and_check(path)[0]
+
+
+def summary_and_check(path: str) -> tuple[str, dict]:
+    """:func:`summary`'s text and :func:`verify`'s result."""
     from jtraj.solver import Status
 
-    data = load(path, partial=True)
+    check = verify(path)
+    data = Dataset(path, partial=True, exclude=set(check["corrupt"]))
     md = data.metadata
     lines = [f"dataset {data.path}",
              f"  robot {md['robot']} (n = {md['n']}), N = {md['N']}, weights {md['weights_text']}, "
@@ -133,8 +181,15 @@ def summary(path: str) -> str:
              f"  sampling: {md['sampling']['space']} space, {md['sampling']['law']}",
              f"  created {md['created']} with jtraj {md['versions'].get('jtraj')}, jax {md['versions'].get('jax')}",
              f"  chunks {len(data.chunks)}/{md['chunks']}" + ("" if data.complete else " (incomplete: re-run to resume)")]
+    if check["corrupt"]:
+        lines.append(f"  CORRUPT chunks: {len(check['corrupt'])} (left out below; re-running the build command "
+                     f"solves them again)")
+        lines += [f"    {msg}" for msg in check["corrupt"].values()]
+    if check["older"]:
+        lines.append(f"  {len(check['older'])} chunks written without SHA-256 checksums (older jtraj): "
+                     f"checked by Fletcher-32 only")
     if not data.chunks:
-        return "\n".join(lines + ["  no finished chunk yet"])
+        return "\n".join(lines + ["  no intact chunk" if check["corrupt"] else "  no finished chunk yet"]), check
     P = data.pairs
     conv = data["converged"]
     status = data["status"]
@@ -162,7 +217,7 @@ def summary(path: str) -> str:
         lines.append(stats("KKT error", data["kkt_error"][sel]))
     lines.append(f"  max violation (all pairs): median {np.median(data['max_violation']):.3g}, "
                  f"max {np.max(data['max_violation']):.3g}")
-    return "\n".join(lines)
+    return "\n".join(lines), check
 
 
 from . import views  # noqa: E402

@@ -259,7 +259,7 @@ def worker_task(spec: Spec, c: int):
     the process on one CPU (a Ray worker claims one, see :func:`_one_cpu`), then float64
     and the compilation cache set up as in the CLI process."""
     _one_cpu()
-    from jtraj.cli import setup_jax
+    from jtraj._setup import setup_jax
 
     setup_jax()
     return c, compute_chunk(spec, c)
@@ -440,8 +440,11 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
         raise ValueError(f"workers must be a positive integer or None, got {workers!r}")
     backend = _check_ray(ray) if ray else None  # then the cluster; both before any compute
     writer = store.Writer(out, ident, metadata(spec))
+    ticker = None
     try:
         done = set(writer.finished(spec.n_chunks))
+        for c, why in sorted(writer.rejected.items()):  # corrupt, or of another dataset: solved again
+            log(f"jtraj dataset: chunk {c} is solved again: {why}")
         todo = [c for c in range(spec.n_chunks) if c not in done]
         if max_chunks is not None:
             todo = todo[:max_chunks]
@@ -459,14 +462,18 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
             if changed and todo:
                 log("jtraj dataset: warning: resuming with different software/hardware (" + ", ".join(changed)
                     + "); new chunks may differ in the last bits from an uninterrupted run")
-        stats = {"pairs_done": pairs_done, "converged": conv_done, "new_pairs": 0}
+        stats = {"pairs_done": pairs_done, "converged": conv_done, "new_pairs": 0, "new_chunks": 0}
         bar = None
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=spec.pairs, initial=pairs_done, unit="pair", desc="dataset", dynamic_ncols=True,
-                       smoothing=0.1, file=sys.stderr)
+            # until the first chunk arrives the workers compile the solver (or load it from
+            # the compilation cache): the bar says so and its clock runs (ticker)
+            bar = tqdm(total=spec.pairs, initial=pairs_done, unit="pair", desc=COMPILING if todo else "dataset",
+                       dynamic_ncols=True, smoothing=0.1, file=sys.stderr)
             bar.set_postfix_str(_postfix(stats))
+            if todo:
+                ticker = _Ticker(bar)
         t0 = time.perf_counter()
 
         def finish(c, arrays):
@@ -475,8 +482,11 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
             k = stop - start
             stats["pairs_done"] += k
             stats["new_pairs"] += k
+            stats["new_chunks"] += 1
             stats["converged"] += int(np.sum(arrays["converged"]))
             if bar is not None:
+                if bar.desc != "dataset":
+                    bar.set_description_str("dataset", refresh=False)
                 bar.update(k)
                 bar.set_postfix_str(_postfix(stats))
 
@@ -493,16 +503,44 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
             else:
                 backend.run(spec, todo, finish)
         wall = time.perf_counter() - t0
+        if ticker is not None:
+            ticker.stop()
         if bar is not None:
             bar.close()
         stats["seconds"] = wall
-        stats["complete"] = len(writer.finished(spec.n_chunks)) == spec.n_chunks
+        stats["complete"] = len(done) + stats["new_chunks"] == spec.n_chunks
         stats["pairs_per_s"] = stats["new_pairs"] / wall if wall > 0 and stats["new_pairs"] else float("nan")
         return stats
     finally:
+        if ticker is not None:
+            ticker.stop()
         writer.close()
         if backend is not None:
             backend.close()
+
+
+#: the progress bar's label until the first chunk is done
+COMPILING = "dataset: compiling the solver (first chunk; cached afterwards)"
+
+
+class _Ticker:
+    """Redraws a tqdm bar every second (its elapsed time) while no chunk finishes: the
+    first chunk waits for the solver's compilation, a minute or more."""
+
+    def __init__(self, bar, every: float = 1.0):
+        import threading
+
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(bar, every), daemon=True)
+        self._thread.start()
+
+    def _run(self, bar, every):
+        while not self._stop.wait(every):
+            bar.refresh()
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join()
 
 
 def _postfix(stats):

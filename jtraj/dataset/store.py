@@ -15,9 +15,22 @@ Durability. A chunk is written to ``chunk-XXXXXX.h5.tmp-<pid>``, flushed, ``fsyn
 and only then renamed to its final name with :func:`os.replace` (atomic on POSIX); the
 directory is ``fsync``-ed after the rename. A ``kill -9`` at any moment therefore
 leaves either no file for a chunk or a complete one; finished chunks are never opened for
-writing again. HDF5 datasets carry Fletcher-32 checksums, so a file damaged later (disk
-fault) is detected on read. Each chunk file repeats the dataset's identity (JSON), its hash and its
+writing again. Each chunk file repeats the dataset's identity (JSON), its hash and its
 pair range in its attributes, so it cannot be mixed into another dataset.
+
+Integrity. A file damaged after it was written (a disk fault, a bad copy) is detected and
+named: every HDF5 dataset (field) carries a Fletcher-32 checksum of its stored bytes
+(checked by HDF5 on every read) and a SHA-256 of its array (dtype, shape and values) in
+its attribute ``sha256``; the file's attribute ``digest`` is a SHA-256 over its header
+attributes (format, identity, chunk, pair range) and the fields' names and SHA-256s, so a
+flipped bit in a field, in an attribute or in the list of fields shows, as does a file
+HDF5 cannot open. :func:`verify_chunk` checks one file completely; ``jtraj dataset info``
+and ``jtraj dataset verify`` check every chunk and name the corrupt files; a resumed
+build solves corrupt chunks again instead of counting them done; :func:`read_chunk`
+(hence :func:`jtraj.dataset.load`) checks the SHA-256 of every field it reads and the
+header digest, and raises ``ValueError`` naming the file and saying "corrupt". Chunks
+written before these checksums existed (no ``digest`` attribute) stay readable; for them
+only Fletcher-32 is checked, and ``verify`` says so.
 
 Resuming. The manifest's ``identity`` holds every parameter that determines the values
 (robot and its parameters, N, weights, solver settings, seed, pairs, batch, sampling
@@ -218,11 +231,18 @@ class Writer:
                     os.remove(os.path.join(d, e))
 
     def finished(self, n_chunks: int) -> list[int]:
-        """Indices of the chunks already on disk and valid (an invalid one is recomputed)."""
+        """Indices of the chunks already on disk and intact (every checksum verified, see
+        :func:`verify_chunk`); ``self.rejected`` maps the others (corrupt, of another
+        dataset) to why: they are solved again."""
         done = []
+        self.rejected = {}
         for c in finished_chunks(self.path):
-            if c < n_chunks and _chunk_ok(os.path.join(self.path, CHUNKS, chunk_name(c)), self.hash):
-                done.append(c)
+            if c < n_chunks:
+                why = chunk_problem(os.path.join(self.path, CHUNKS, chunk_name(c)), self.hash)
+                if why is None:
+                    done.append(c)
+                else:
+                    self.rejected[c] = why
         return done
 
     def write_chunk(self, c: int, start: int, arrays: dict) -> None:
@@ -241,12 +261,101 @@ class Writer:
             f.attrs["identity"] = self._identity_json  # each chunk file is readable on its own
             for k, v in arrays.items():
                 v = np.asarray(v)
-                f.create_dataset(k, data=v, fletcher32=v.size > 0, chunks=v.shape if v.size else None)
+                d = f.create_dataset(k, data=v, fletcher32=v.size > 0, chunks=v.shape if v.size else None)
+                d.attrs["sha256"] = array_digest(v)
             f.attrs["complete"] = True
+            f.attrs["integrity"] = INTEGRITY
+            f.attrs["digest"] = header_digest(f)
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, final)
         _fsync_dir(os.path.dirname(final))
+
+
+#: version of the chunk checksums (a chunk file's ``integrity`` attribute; absent: none)
+INTEGRITY = 1
+#: the attributes a chunk's ``digest`` covers, besides its fields' names and SHA-256s
+_HEADER = ("format", "identity_hash", "chunk", "start", "count", "identity", "complete")
+
+
+def array_digest(v) -> str:
+    """SHA-256 of an array's dtype, shape and values (C order)."""
+    v = np.ascontiguousarray(np.asarray(v))
+    h = hashlib.sha256()
+    h.update(v.dtype.str.encode())
+    h.update(repr(v.shape).encode())
+    h.update(v.tobytes())
+    return h.hexdigest()
+
+
+def _attr(x):
+    """An HDF5 attribute's value as plain JSON-able Python."""
+    if isinstance(x, bytes):
+        return x.decode("utf-8", "replace")
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return x
+
+
+def header_digest(f) -> str:
+    """SHA-256 of an open chunk file's header attributes and its fields' SHA-256s."""
+    fields = sorted((k, _attr(f[k].attrs.get("sha256"))) for k in f.keys())
+    text = json.dumps({"attrs": {k: _attr(f.attrs.get(k)) for k in _HEADER}, "fields": fields}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+class CorruptChunk(ValueError):
+    """A chunk file whose contents do not match its checksums (or that HDF5 cannot read)."""
+
+
+def _corrupt(file: str, why: str) -> CorruptChunk:
+    return CorruptChunk(f"{file}: corrupt chunk ({why}); 'jtraj dataset verify' lists the corrupt chunks, and "
+                        f"re-running the build command solves them again")
+
+
+def _check_header(f, file: str) -> bool:
+    """``CorruptChunk`` where the header digest does not match; False for a chunk written
+    without checksums (older format), True otherwise."""
+    if "digest" not in f.attrs:
+        return False
+    if _attr(f.attrs["digest"]) != header_digest(f):
+        raise _corrupt(file, "its header attributes or list of fields do not match their checksum")
+    return True
+
+
+def _read_field(f, k: str, file: str, checked: bool):
+    try:
+        v = f[k][()]
+    except OSError as err:  # HDF5's Fletcher-32 check ("filter returned failure during read")
+        raise _corrupt(file, f"field {k!r} fails its Fletcher-32 checksum: {err}") from None
+    if checked and array_digest(v) != _attr(f[k].attrs.get("sha256")):
+        raise _corrupt(file, f"field {k!r} does not match its SHA-256")
+    return v
+
+
+def verify_chunk(file: str, ident: str | None = None) -> str | None:
+    """Check chunk file ``file`` completely (every field read, every checksum compared):
+    None when intact with SHA-256 checksums, ``"older format"`` when intact by Fletcher-32
+    but written without SHA-256 checksums, else ``CorruptChunk`` (a ``ValueError``)
+    naming the file. ``ident``: also refuse a chunk of another dataset (``ValueError``)."""
+    import h5py
+
+    try:
+        with h5py.File(file, "r") as f:
+            checked = _check_header(f, file)
+            if not bool(f.attrs.get("complete")):
+                raise _corrupt(file, "not marked complete")
+            if ident is not None and f.attrs.get("identity_hash") != ident:
+                raise ValueError(f"{file}: chunk belongs to another dataset")
+            for k in f.keys():
+                _read_field(f, k, file, checked)
+    except CorruptChunk:
+        raise
+    except (OSError, KeyError, RuntimeError) as err:  # HDF5 cannot read its structure
+        raise _corrupt(file, f"HDF5 cannot read it: {err}") from None
+    return None if checked else "older format"
 
 
 def finished_chunks(path: str) -> list[int]:
@@ -256,26 +365,35 @@ def finished_chunks(path: str) -> list[int]:
     return sorted(int(m.group(1)) for m in map(_CHUNK_RE.match, os.listdir(d)) if m)
 
 
-def _chunk_ok(file: str, ident: str) -> bool:
-    import h5py
-
+def chunk_problem(file: str, ident: str) -> str | None:
+    """Why chunk file ``file`` does not count as a finished chunk of the dataset
+    ``ident`` (corrupt: :func:`verify_chunk`; of another dataset; unfinished), or None."""
     try:
-        with h5py.File(file, "r") as f:
-            return bool(f.attrs.get("complete")) and f.attrs.get("identity_hash") == ident
-    except OSError:
-        return False
+        verify_chunk(file, ident)
+    except ValueError as err:
+        return str(err)
+    return None
 
 
 def read_chunk(path: str, c: int, keys=None, ident: str | None = None) -> dict:
-    """Arrays of chunk ``c`` (all fields, or ``keys``)."""
+    """Arrays of chunk ``c`` (all fields, or ``keys``), each checked against its
+    checksums (``CorruptChunk``, a ``ValueError`` naming the file, where one fails)."""
     import h5py
 
     file = os.path.join(path, CHUNKS, chunk_name(c))
-    with h5py.File(file, "r") as f:
-        if ident is not None and f.attrs.get("identity_hash") != ident:
-            raise ValueError(f"{file}: chunk belongs to another dataset")
-        names = list(f.keys()) if keys is None else keys
-        return {k: f[k][()] for k in names}
+    try:
+        with h5py.File(file, "r") as f:
+            checked = _check_header(f, file)
+            if ident is not None and f.attrs.get("identity_hash") != ident:
+                raise ValueError(f"{file}: chunk belongs to another dataset")
+            names = list(f.keys()) if keys is None else keys
+            return {k: _read_field(f, k, file, checked) for k in names}
+    except (CorruptChunk, KeyError):
+        raise
+    except (OSError, RuntimeError) as err:
+        if not os.path.exists(file):
+            raise
+        raise _corrupt(file, f"HDF5 cannot read it: {err}") from None
 
 
 def iter_chunk_files(path: str) -> Iterator[int]:
