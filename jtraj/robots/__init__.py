@@ -16,6 +16,8 @@ import numpy as np
 
 from ._base import Actuator, Friction, Limits, Robot
 from .serial import SerialPlanar, serial_planar
+from .spatial import SpatialSerial, spatial_serial
+from .urdf import from_urdf
 
 # name -> "module:factory" (imported lazily so that a broken optional model cannot
 # break the others)
@@ -26,6 +28,9 @@ _REGISTRY: dict[str, str] = {
     "pkm2": "jtraj.robots.pkm2:pkm2",
     "parallel3": "jtraj.robots.parallel3:parallel3",
     "wmr": "jtraj.robots.wmr:wmr",
+    "panda": "jtraj.robots.urdf:panda",
+    "ur5": "jtraj.robots.urdf:ur5",
+    "ur10": "jtraj.robots.urdf:ur10",
 }
 
 # parameters that must stay strictly positive when overridden
@@ -108,5 +113,5 @@ def get(name: str, **overrides) -> Robot:
     return with_params(_factory(name)(), **overrides)
 
 
-__all__ = ["Actuator", "Friction", "Limits", "Robot", "SerialPlanar", "get", "names",
-           "parameter_names", "serial_planar", "with_params"]
+__all__ = ["Actuator", "Friction", "Limits", "Robot", "SerialPlanar", "SpatialSerial", "from_urdf", "get",
+           "names", "parameter_names", "serial_planar", "spatial_serial", "with_params"]
