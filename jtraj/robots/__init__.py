@@ -31,6 +31,8 @@ _REGISTRY: dict[str, str] = {
     "panda": "jtraj.robots.urdf:panda",
     "ur5": "jtraj.robots.urdf:ur5",
     "ur10": "jtraj.robots.urdf:ur10",
+    "kinova": "jtraj.robots.urdf:kinova",
+    "so100": "jtraj.robots.urdf:so100",
 }
 
 # parameters that must stay strictly positive when overridden

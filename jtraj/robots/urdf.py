@@ -473,3 +473,18 @@ def ur10(**overrides) -> SpatialSerial:
     tip ``tool0``, limits as :func:`ur5`."""
     return from_urdf(_data_file("ur_description", "urdf", "ur10_robot.urdf"), tip_link="tool0",
                      name="ur10", **overrides)
+
+
+def kinova(**overrides) -> SpatialSerial:
+    """The Kinova Jaco2 j2s6s200 (6 DOF) of example-robot-data's ``kinova.urdf``; tip
+    ``j2s6s200_end_effector``. Joints 1, 4 and 6 are continuous (no joint box); the
+    URDF's (fixed) fingers ride on body 6. qdd_max = :data:`DEFAULT_QDD_MAX`."""
+    return from_urdf(_data_file("kinova_description", "robots", "kinova.urdf"),
+                     tip_link="j2s6s200_end_effector", name="kinova", **overrides)
+
+
+def so100(**overrides) -> SpatialSerial:
+    """The SO-100 arm (5 DOF) of example-robot-data's ``so100.urdf``: tip ``gripper``
+    (the wrist-roll body), the jaw locked at 0. qdd_max = :data:`DEFAULT_QDD_MAX`."""
+    return from_urdf(_data_file("so_arm_description", "urdf", "so100.urdf"), tip_link="gripper",
+                     name="so100", **overrides)
