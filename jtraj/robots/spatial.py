@@ -100,21 +100,26 @@ class SpatialSerial(Robot):
         (n, 3) the unit joint axes, all in the world frame."""
         sin, cos = sincos(q)
         K = _skew(self.axes)
-        R, p = self.base_rotation, self.base_translation
-        Rs, ps, zs = [], [], []
-        for i, kind in enumerate(self.joint_types):  # the chain of rotations: static n
-            Rj = _mm(R, self.joint_rotation[i])
-            pj = p + _mv(R, self.joint_translation[i])
-            z = _mv(Rj, self.axes[i])
-            if kind == "revolute":  # Rodrigues: Rot = I + sin K + (1 - cos) K^2
-                RK = _mm(Rj, K[i])
-                R, p = Rj + sin[i] * RK + (1.0 - cos[i]) * _mm(RK, K[i]), pj
-            else:
-                R, p = Rj, pj + z * q[i]
-            Rs.append(R)
-            ps.append(p)
-            zs.append(z)
-        return jnp.stack(Rs), jnp.stack(ps), jnp.stack(zs)
+        rev = self._revolute_mask()
+
+        # one joint per step of a scan: the solver differentiates this chain twice (forward
+        # over reverse) inside vmap, and a rolled loop gives XLA a third less to compile
+        # than the unrolled one at the same run time (panda, the stage derivatives of 41
+        # samples: 30 against 48 s compile)
+        def joint(carry, xs):
+            R, p = carry
+            R0, t0, axis, Ki, s, c, qi, r = xs
+            Rj = _mm(R, R0)
+            pj = p + _mv(R, t0)
+            z = _mv(Rj, axis)
+            RK = _mm(Rj, Ki)  # Rodrigues: Rot = I + sin K + (1 - cos) K^2
+            R_new = Rj + r * (s * RK + (1.0 - c) * _mm(RK, Ki))
+            p_new = pj + (1.0 - r) * z * qi
+            return (R_new, p_new), (R_new, p_new, z)
+
+        xs = (self.joint_rotation, self.joint_translation, self.axes, K, sin, cos, q, rev)
+        _, out = jax.lax.scan(joint, (self.base_rotation, self.base_translation), xs)
+        return out
 
     def tip_pose(self, q: Vec):
         """Tip frame in the world: position (3,) and rotation (3, 3)."""
