@@ -315,3 +315,43 @@ def test_missing_package_message(monkeypatch, tmp_path):
     monkeypatch.setenv("JTRAJ_ROBOT_DATA", str(tmp_path))
     with pytest.raises(ImportError, match=r"pip install 'jtraj\[robots\]'"):
         robots.get("panda")
+
+
+# ----- the command line and the plots -----------------------------------------------------
+@pytest.mark.parametrize("argv, needle", [
+    (["--tip-link", "l3", "--start-q", "0,0,0", "--goal-q", "0,0,0"], "--tip-link needs --urdf"),
+    (["--urdf", "/nonexistent/arm.urdf", "--start-q", "0,0,0", "--goal-q", "0,0,0"], "no URDF file"),
+    (["--urdf", "{arm}", "--tip-link", "hand", "--start-q", "0,0,0", "--goal-q", "0,0,0"], "tip_link 'hand'"),
+    (["--urdf", "{arm}", "--start-q", "0,0", "--goal-q", "0,0,0"], "--start-q must have 3 values"),
+    (["--urdf", "{arm}", "--start-q", "0,0,0.1", "--goal-q", "0,0,0.4"], "--goal-q"),  # prismatic beyond 0.3 m
+])
+def test_cli_urdf_bad_input_exits_2(argv, needle, tmp_path, capsys):
+    from jtraj import cli
+
+    path = tmp_path / "arm3.urdf"
+    path.write_text(ARM)
+    rc = cli.main(["solve", *(a.format(arm=path) for a in argv)])
+    err = capsys.readouterr().err
+    assert rc == 2 and needle in err, err
+
+
+def test_plot_path_in_3d(arm):
+    """The tip path of a spatial arm is drawn in 3-D (the data of the drawn line is the
+    forward kinematics of the given joint path)."""
+    import types
+
+    pytest.importorskip("matplotlib")
+    from jtraj import Problem
+    from jtraj.plotting import plot_path
+
+    q0, q1 = np.array([0.0, 0.3, 0.05]), np.array([0.8, -0.2, 0.2])
+    s = np.linspace(0, 1, 6)[:, None]
+    q = q0 + s * (q1 - q0)
+    sol = types.SimpleNamespace(q=q, qd=np.zeros_like(q), v=np.zeros((5, 3)), tau=np.zeros((5, 3)), h=np.full(5, 0.1))
+    fig = plot_path(Problem(arm, q0, q1, N=5, validate=False), sol)
+    ax = fig.axes[0]
+    assert ax.name == "3d"
+    line = [ln for ln in ax.lines if ln.get_label() == "optimum"][0]
+    x, y, z = line.get_data_3d()
+    tip = np.asarray(jax.vmap(arm.forward_kinematics)(q))
+    assert np.allclose(np.c_[x, y, z], tip)
