@@ -287,10 +287,9 @@ def spatial_serial(joint_rotation, joint_translation, axes, joint_types, masses,
         if np.linalg.eigvalsh(inertia[i]).min() <= 0:
             raise ValueError(f"inertias[{i}] must be positive definite, got {inertia[i].tolist()}")
     eye = np.eye(3)
-    for nm, R in (("joint_rotation", Rj),):
-        err = np.abs(np.einsum("nij,nkj->nik", R, R) - eye).max()
-        if err > 1e-9:
-            raise ValueError(f"{nm} must hold rotation matrices (R R^T = I), off by {err:.2e}")
+    err = np.abs(np.einsum("nij,nkj->nik", Rj, Rj) - eye).max()
+    if err > 1e-9:
+        raise ValueError(f"joint_rotation must hold rotation matrices (R R^T = I), off by {err:.2e}")
     Rt = arr(tip_rotation, "tip_rotation", (3, 3), eye)
     tt = arr(tip_translation, "tip_translation", (3,), np.zeros(3))
     Rb = arr(base_rotation, "base_rotation", (3, 3), eye)

@@ -182,8 +182,8 @@ class _Joint:
         mimic = el.find("mimic")
         self.mimic = None
         if mimic is not None:
-            self.mimic = (mimic.get("joint"), _attr_float(mimic, "multiplier", f"{what} <mimic>") or 1.0,
-                          _attr_float(mimic, "offset", f"{what} <mimic>") or 0.0)
+            mult, off = (_attr_float(mimic, k, f"{what} <mimic>") for k in ("multiplier", "offset"))
+            self.mimic = (mimic.get("joint"), 1.0 if mult is None else mult, 0.0 if off is None else off)
 
     def motion(self, q):
         """(R, t) of the joint's motion by q in its own frame."""
