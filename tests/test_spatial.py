@@ -355,3 +355,22 @@ def test_plot_path_in_3d(arm):
     x, y, z = line.get_data_3d()
     tip = np.asarray(jax.vmap(arm.forward_kinematics)(q))
     assert np.allclose(np.c_[x, y, z], tip)
+
+
+def test_continuous_joint_has_no_position_row(arm):
+    """The decoupled transcription's joint box of an arm with a continuous joint: no row
+    (-1) for that joint at any angle, finite rows for the others."""
+    from jtraj import Problem
+    from jtraj.transcription import Transcription
+
+    problem = Problem(arm, np.array([0.0, 0.3, 0.05]), np.array([0.8, -0.2, 0.2]), N=20)
+    tr = Transcription("decoupled")
+    sd = tr.stage_data(problem)
+    k = 5  # an inner sample
+    sdk = jax.tree_util.tree_map(lambda x: x[k], sd)
+    n = arm.n
+    for q1 in (0.0, 7.0, -40.0):  # far beyond +-2 pi: still no row
+        w = jnp.concatenate([jnp.array([q1, 1.9, 0.29]), jnp.zeros(n), jnp.zeros(n), jnp.array([0.05])])
+        g = np.asarray(tr.stage_constraints(problem, w, sdk)[1]["q"])
+        assert np.isfinite(g).all() and np.all(g[0] == -1.0)
+        assert g[1, 0] == pytest.approx(1.9 / 2 - 1) and g[2, 0] == pytest.approx(0.29 / 0.15 - 1 - 1)
