@@ -32,6 +32,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
 from .._math import sincos
@@ -56,6 +57,16 @@ def _mv(A, v):
 def _mm(A, B):
     """A @ B for 3 x 3 matrices over leading batch axes, elementwise."""
     return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
+
+
+def _prefix(X, reverse=False):
+    """Inclusive prefix sums over the bodies (axis 0) of X (n, 3), or suffix sums with
+    ``reverse``, as a constant 0/1 triangle times X, elementwise: XLA's ``cumsum`` on a
+    CPU is a log-depth ladder of slices and pads, several times dearer under the
+    solver's vmap and forward-over-reverse passes."""
+    n = X.shape[0]
+    tri = np.tri(n) if not reverse else np.tri(n).T
+    return jnp.sum(jnp.asarray(tri, X.dtype)[:, :, None] * X[None], axis=1)
 
 
 class SpatialSerial(Robot):
@@ -190,16 +201,16 @@ class SpatialSerial(Robot):
         zqd, zqdd = z * qd[:, None], z * qdd[:, None]
         # angular velocity and acceleration: prefix sums over the chain
         dw = rev * zqd
-        w = jnp.cumsum(dw, axis=0)
+        w = _prefix(dw)
         w_prev = w - dw
         dwd = rev * (zqdd + jnp.cross(w_prev, zqd))
-        wd = jnp.cumsum(dwd, axis=0)
+        wd = _prefix(dwd)
         wd_prev = wd - dwd
         # acceleration of the body origins (gravity as an upward base acceleration)
         r = p - jnp.concatenate([self.base_translation[None], p[:-1]])
         da = (jnp.cross(wd_prev, r) + jnp.cross(w_prev, jnp.cross(w_prev, r))
               + pri * (2.0 * jnp.cross(w_prev, zqd) + zqdd))
-        a = jnp.cumsum(da, axis=0) - g
+        a = _prefix(da) - g
         rc = _mv(R, self.com)  # body origin -> centre of mass
         ac = a + jnp.cross(wd, rc) + jnp.cross(w, jnp.cross(w, rc))
         # body wrenches; moments about the world origin, accumulated from the tip
@@ -210,8 +221,8 @@ class SpatialSerial(Robot):
         Nb = _mv(self.inertias, wdb) + jnp.cross(wb, Iw)
         c = p + rc
         moment = _mv(R, Nb) + jnp.cross(c, F)
-        f = jnp.cumsum(F[::-1], axis=0)[::-1]
-        n_o = jnp.cumsum(moment[::-1], axis=0)[::-1]
+        f = _prefix(F, reverse=True)
+        n_o = _prefix(moment, reverse=True)
         n_j = n_o - jnp.cross(p, f)  # about each joint's origin
         return jnp.sum(z * (rev * n_j + pri * f), axis=-1)
 
@@ -247,8 +258,6 @@ def spatial_serial(joint_rotation, joint_translation, axes, joint_types, masses,
     zero axis, a non-positive mass or a rotational inertia that is not symmetric
     positive definite.
     """
-    import numpy as np
-
     joint_types = tuple(joint_types)
     n = len(joint_types)
     if n < 1:
