@@ -61,9 +61,8 @@ def _mm(A, B):
 
 def _prefix(X, reverse=False):
     """Inclusive prefix sums over the bodies (axis 0) of X (n, 3), or suffix sums with
-    ``reverse``, as a constant 0/1 triangle times X, elementwise: XLA's ``cumsum`` on a
-    CPU is a log-depth ladder of slices and pads, several times dearer under the
-    solver's vmap and forward-over-reverse passes."""
+    ``reverse``, as a constant 0/1 triangle times X, elementwise (the form of
+    :func:`jtraj.transcription._prefix_sums`)."""
     n = X.shape[0]
     tri = np.tri(n) if not reverse else np.tri(n).T
     return jnp.sum(jnp.asarray(tri, X.dtype)[:, :, None] * X[None], axis=1)
@@ -114,9 +113,9 @@ class SpatialSerial(Robot):
         rev = self._revolute_mask()
 
         # one joint per step of a scan: the solver differentiates this chain twice (forward
-        # over reverse) inside vmap, and a rolled loop gives XLA a third less to compile
-        # than the unrolled one at the same run time (panda, the stage derivatives of 41
-        # samples: 30 against 48 s compile)
+        # over reverse) inside vmap, and a rolled loop gives XLA less to compile than the
+        # unrolled one (panda, the stage derivatives of 41 samples: 30-38 s against 37-48 s)
+        # at the same run time within the noise
         def joint(carry, xs):
             R, p = carry
             R0, t0, axis, Ki, s, c, qi, r = xs
