@@ -112,12 +112,14 @@ def plot_path(problem, solution, ax=None, *, guess: dict | None = None, instants
     from matplotlib.figure import Figure
 
     fig = None
-    if ax is None:
-        fig = Figure(figsize=(5, 5))
-        ax = fig.add_subplot()
     robot = problem.robot
     sol = solution_arrays(solution)
     p = _tip_path(robot, sol["q"])
+    if ax is None:
+        fig = Figure(figsize=(5, 5))
+        ax = fig.add_subplot(projection="3d" if p.shape[1] == 3 else None)
+    if p.shape[1] == 3 and getattr(ax, "name", "") == "3d":
+        return _plot_path_3d(problem, ax, sol, p, guess, instants, fig)
     N = p.shape[0] - 1
     for i, k in enumerate(np.unique(np.linspace(0, N, instants).round().astype(int))):
         pts = _links(robot, sol["q"][k])
@@ -149,6 +151,35 @@ def plot_path(problem, solution, ax=None, *, guess: dict | None = None, instants
     return fig if fig is not None else ax.figure
 
 
+def _plot_path_3d(problem, ax, sol, p, guess, instants, fig):
+    """:func:`plot_path` for a spatial task point: the tip path in 3-D with the arm's
+    polyline (base, joints, tip) at ``instants`` samples."""
+    robot = problem.robot
+    N = p.shape[0] - 1
+    for i, k in enumerate(np.unique(np.linspace(0, N, instants).round().astype(int))):
+        pts = _links(robot, sol["q"][k])
+        if pts is not None and pts.shape[1] == 3:
+            shade = 0.75 - 0.6 * k / max(N, 1)
+            ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], "-o", color=(shade, shade, 1.0), lw=2.5, ms=3,
+                    label="arm (optimum)" if i == 0 else None)
+    if guess is not None:
+        pg = _tip_path(robot, guess["q"])
+        ax.plot(pg[:, 0], pg[:, 1], pg[:, 2], label="cycloidal guess", **_GUESS)
+    ax.plot(p[:, 0], p[:, 1], p[:, 2], ".-", color="C3", label="optimum", ms=3, **_OPT)
+    for q, marker, label in ((problem.q_start, "s", "start"), (problem.q_goal, "*", "goal")):
+        pt = _np(robot.forward_kinematics(q))
+        ax.plot([pt[0]], [pt[1]], [pt[2]], marker, color="k", ms=8, label=label)
+    for vp in problem.via_points:
+        pt = _np(vp.point)
+        ax.plot([pt[0]], [pt[1]], [pt[2]], "x", color="C2", ms=9, mew=2, label="via point")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.set_title("tip path")
+    ax.legend(fontsize=7, loc="best")
+    return fig if fig is not None else ax.figure
+
+
 def plot_solution(problem, solution, *, guess: bool = True, title: str | None = None):
     """The full figure: tip path with the arm, q(t), qd(t) against limits, tau(t)
     against limits (dashed), h_k, and cumulative energy; the cycloidal guess beside
@@ -161,6 +192,9 @@ def plot_solution(problem, solution, *, guess: bool = True, title: str | None = 
     g = guess_trajectory(problem) if guess else None
     fig = Figure(figsize=(15, 8.5), layout="constrained")
     axs = fig.subplots(2, 3)
+    if _tip_path(robot, sol["q"][:1]).shape[1] == 3:  # a spatial arm: the path in 3-D
+        axs[0, 0].remove()
+        axs[0, 0] = fig.add_subplot(2, 3, 1, projection="3d")
     plot_path(problem, solution, axs[0, 0], guess=g)
 
     # q(t)

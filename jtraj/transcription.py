@@ -322,8 +322,11 @@ class Transcription:
         if lim.qd_max is not None:
             ineq["qd"] = box(qd, lim.qd_max, sd.is_inner)
         if lim.q_min is not None:
-            mid, half = (lim.q_max + lim.q_min) / 2, (lim.q_max - lim.q_min) / 2
-            ineq["q"] = box(q - mid, half, sd.is_inner)
+            # a joint with an infinite box (a continuous joint of a URDF arm) has no row
+            bounded = jnp.isfinite(lim.q_min) & jnp.isfinite(lim.q_max)
+            mid = jnp.where(bounded, (lim.q_max + lim.q_min) / 2, 0.0)
+            half = jnp.where(bounded, (lim.q_max - lim.q_min) / 2, 1.0)
+            ineq["q"] = jnp.where(bounded[:, None], box(q - mid, half, sd.is_inner), -1.0)
         needs_p = lim.workspace is not None or len(problem.via_points) > 0
         p = robot.forward_kinematics(q) if needs_p else None
         if lim.workspace is not None:

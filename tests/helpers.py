@@ -70,8 +70,11 @@ def two_link_closed_form(q, qd, l1, m1, m2, d1, d2, I1, I2, g):
 
 
 # ----- catalogue and admissible states ------------------------------------------------
-def catalogue():
-    return robots.names()
+def catalogue(slow=()):
+    """The built-in robots' names as pytest parameters, those in ``slow`` marked slow."""
+    import pytest
+
+    return [pytest.param(n, marks=pytest.mark.slow) if n in slow else n for n in robots.names()]
 
 
 def sample_state(robot, rng, speed=0.5):
@@ -80,7 +83,9 @@ def sample_state(robot, rng, speed=0.5):
     lim = robot.limits
     while True:
         if lim.q_min is not None:
-            mid, half = (np.asarray(lim.q_min) + np.asarray(lim.q_max)) / 2, (np.asarray(lim.q_max) - np.asarray(lim.q_min)) / 2
+            lo, hi = np.asarray(lim.q_min), np.asarray(lim.q_max)
+            lo, hi = np.where(np.isfinite(lo), lo, -np.pi), np.where(np.isfinite(hi), hi, np.pi)  # continuous joints
+            mid, half = (lo + hi) / 2, (hi - lo) / 2
             q = mid + 0.8 * half * rng.uniform(-1, 1, n)
         elif robot.name == "wmr":
             q = np.r_[rng.uniform(2, 22, 2), rng.uniform(-np.pi, np.pi)]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jtraj.robots as robots
-from jtraj.robots import Robot, serial_planar
+from jtraj.robots import Robot, SpatialSerial, serial_planar
 
 from helpers import (catalogue, pin_mass, pin_rnea, pin_tip, pinocchio_planar, sample_state,
                      two_link_closed_form)
@@ -107,6 +107,12 @@ def test_friction_and_ballscrew_drive_against_pinocchio():
 
 
 # ----- catalogue-wide structure -------------------------------------------------------
+# the URDF arms (example-robot-data): panda and ur5 in the default suite, the others (the
+# same code, each checked against Pinocchio in test_spatial.py) with -m slow
+SPATIAL = ("panda", "ur5", "ur10", "kinova", "so100")
+SPATIAL_SLOW = ("ur10", "kinova", "so100")
+
+
 def frictionless(robot):
     """The robot with friction and actuator damping removed (for energy conservation)."""
     act = robot.actuator
@@ -115,7 +121,7 @@ def frictionless(robot):
     return dataclasses.replace(robot, friction=None, actuator=act)
 
 
-@pytest.mark.parametrize("name", catalogue())
+@pytest.mark.parametrize("name", catalogue(slow=SPATIAL_SLOW))
 def test_dynamics_structure(name):
     """M symmetric positive definite, dM/dt - 2C skew-symmetric, C qd = c, inverse and
     forward dynamics inverse to each other, Jacobian = finite differences of the
@@ -155,14 +161,16 @@ def test_dynamics_structure(name):
 ENERGY_TEST_OVERRIDES = {"gough_stewart": dict(gravity_accel=0.0)}
 
 
-@pytest.mark.parametrize("name", catalogue())
+@pytest.mark.parametrize("name", catalogue(slow=SPATIAL_SLOW))
 def test_energy_conservation(name):
     """RK4 of the frictionless, torque-free robot: relative drift <= 1e-8 over 2 s."""
     robot = frictionless(robots.get(name, **ENERGY_TEST_OVERRIDES.get(name, {})))
     rng = np.random.default_rng(3)
     q0, qd0, _ = sample_state(robot, rng, speed=0.2)
     tau0 = jnp.zeros(robot.n_actuators)
-    dt, steps = 2e-3, 1000
+    # the spatial arms fall under gravity with light wrists: RK4's own drift over 2 s is
+    # 8e-7 at 2 ms on ur5, 5e-8 at 1 ms, 4e-9 at 0.5 ms (fourth order); panda 1e-8 at 0.5 ms
+    dt, steps = (2.5e-4, 8000) if isinstance(robot, SpatialSerial) else (2e-3, 1000)
 
     def f(x):
         q, qd = x
@@ -193,10 +201,10 @@ def test_energy_conservation(name):
     assert np.abs(np.asarray(qT) - q0).max() > 1e-3  # it did move
 
 
-# the closed chains compile for about a minute each on a slow 2-core machine: slow (their
-# dynamics stay in the default suite through the Pinocchio and structure tests)
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in ("parallel3", "pkm2", "gough_stewart") else n
-                                  for n in catalogue()])
+# the closed chains and the spatial arms compile for about a minute each on a slow 2-core
+# machine: slow (their dynamics stay in the default suite through the Pinocchio and
+# structure tests)
+@pytest.mark.parametrize("name", catalogue(slow=("parallel3", "pkm2", "gough_stewart", *SPATIAL)))
 def test_transforms_on_every_function(name):
     """jit, vmap and grad (with respect to the state, the torques and the robot's
     parameters) work on every public function and give finite results (one compile)."""

@@ -25,12 +25,16 @@ CONSTANT_ACCELERATION = ("decoupled", "coupled")
 
 def configure(parser):
     parser.add_argument("--robot", default="serial3", help="robot name (see `jtraj robots`), default serial3")
+    parser.add_argument("--urdf", metavar="PATH", help="load a serial arm from a URDF file instead of --robot "
+                        "(jtraj.robots.from_urdf: limits from the file, qdd_max 10 rad/s^2)")
+    parser.add_argument("--tip-link", metavar="NAME", help="with --urdf: the tip link (default: the end of the "
+                        "only branch of movable joints)")
     start = parser.add_mutually_exclusive_group()
     start.add_argument("--start-q", metavar="Q1,Q2,...", help="start configuration (rad, or deg with --deg)")
-    start.add_argument("--start-xy", metavar="X,Y", help="start task point [m] (inverse kinematics)")
+    start.add_argument("--start-xy", metavar="X,Y", help="start task point [m] (X,Y,Z for spatial arms; inverse kinematics)")
     goal = parser.add_mutually_exclusive_group()
     goal.add_argument("--goal-q", metavar="Q1,Q2,...", help="goal configuration (rad, or deg with --deg)")
-    goal.add_argument("--goal-xy", metavar="X,Y", help="goal task point [m] (inverse kinematics)")
+    goal.add_argument("--goal-xy", metavar="X,Y", help="goal task point [m] (X,Y,Z for spatial arms; inverse kinematics)")
     parser.add_argument("--deg", action="store_true", help="--start-q / --goal-q are in degrees")
     parser.add_argument("--N", type=int, default=20, help="number of sampling intervals (default 20)")
     parser.add_argument("--weights", default="time=1,energy=1",
@@ -132,12 +136,21 @@ def build_problem(args):
 
     from jtraj import Problem, ViaPoint, Weights, robots
 
-    if args.robot not in robots.names():
-        raise ValueError(f"--robot must be one of {robots.names()}, got {args.robot!r}")
-    try:
-        robot = robots.get(args.robot)
-    except ModuleNotFoundError as exc:
-        raise ValueError(f"--robot {args.robot}: model not available in this installation ({exc.name})") from None
+    if getattr(args, "tip_link", None) is not None and getattr(args, "urdf", None) is None:
+        raise ValueError("--tip-link needs --urdf")
+    if getattr(args, "urdf", None) is not None:
+        try:
+            robot = robots.from_urdf(args.urdf, tip_link=args.tip_link)
+        except ValueError as exc:
+            raise ValueError(f"--urdf {args.urdf}: {exc}") from None
+        args.robot = robot.name
+    else:
+        if args.robot not in robots.names():
+            raise ValueError(f"--robot must be one of {robots.names()}, got {args.robot!r}")
+        try:
+            robot = robots.get(args.robot)
+        except (ModuleNotFoundError, ImportError) as exc:
+            raise ValueError(f"--robot {args.robot}: model not available in this installation ({exc})") from None
     n = robot.n
     if args.start_q is None and args.start_xy is None:
         raise ValueError("give a start: --start-q Q1,Q2,... (joint space) or --start-xy X,Y (task space)")

@@ -16,6 +16,8 @@ import numpy as np
 
 from ._base import Actuator, Friction, Limits, Robot
 from .serial import SerialPlanar, serial_planar
+from .spatial import SpatialSerial, spatial_serial
+from .urdf import from_urdf
 
 # name -> "module:factory" (imported lazily so that a broken optional model cannot
 # break the others)
@@ -27,6 +29,11 @@ _REGISTRY: dict[str, str] = {
     "parallel3": "jtraj.robots.parallel3:parallel3",
     "wmr": "jtraj.robots.wmr:wmr",
     "gough_stewart": "jtraj.robots.gough_stewart:gough_stewart",
+    "panda": "jtraj.robots.urdf:panda",
+    "ur5": "jtraj.robots.urdf:ur5",
+    "ur10": "jtraj.robots.urdf:ur10",
+    "kinova": "jtraj.robots.urdf:kinova",
+    "so100": "jtraj.robots.urdf:so100",
 }
 
 # parameters that must stay strictly positive when overridden
@@ -110,5 +117,5 @@ def get(name: str, **overrides) -> Robot:
     return with_params(_factory(name)(), **overrides)
 
 
-__all__ = ["Actuator", "Friction", "Limits", "Robot", "SerialPlanar", "get", "names",
-           "parameter_names", "serial_planar", "with_params"]
+__all__ = ["Actuator", "Friction", "Limits", "Robot", "SerialPlanar", "SpatialSerial", "from_urdf", "get",
+           "names", "parameter_names", "serial_planar", "spatial_serial", "with_params"]

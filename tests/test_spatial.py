@@ -1,0 +1,376 @@
+"""Spatial serial arms from URDF against Pinocchio models of the same files (RNEA, CRBA,
+tip placement, frame Jacobian), the Lagrangian path against the Newton-Euler one, and
+from_urdf's validation of bad input."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jtraj.robots as robots
+from jtraj.robots import Robot, from_urdf
+
+BUILTIN = {  # name -> (file under the robots folder, tip frame)
+    "panda": ("panda_description/urdf/panda.urdf", "panda_link8"),
+    "ur5": ("ur_description/urdf/ur5_robot.urdf", "tool0"),
+    "ur10": ("ur_description/urdf/ur10_robot.urdf", "tool0"),
+    "kinova": ("kinova_description/robots/kinova.urdf", "j2s6s200_end_effector"),
+    "so100": ("so_arm_description/urdf/so100.urdf", "gripper"),
+}
+
+
+def _data_dir():
+    from jtraj.robots.urdf import robot_data_dir
+
+    try:
+        return robot_data_dir()
+    except ImportError:
+        pytest.skip("example-robot-data is not installed")
+
+
+def rel_err(a, b):
+    a, b = np.asarray(a), np.asarray(b)
+    return np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300)
+
+
+class PinocchioArm:
+    """The full Pinocchio model of a URDF file, evaluated on one chain of it: the other
+    joints at 0 (where jtraj locks them), at rest; continuous joints as (cos, sin)."""
+
+    def __init__(self, path, joint_names, tip):
+        import pinocchio as pin
+
+        self.pin = pin
+        self.model = pin.buildModelFromUrdf(str(path))
+        self.data = self.model.createData()
+        frames = [i for i, f in enumerate(self.model.frames) if f.name == tip
+                  and f.type in (pin.FrameType.BODY, pin.FrameType.FIXED_JOINT)]
+        self.frame = frames[0]
+        ids = [self.model.getJointId(nm) for nm in joint_names]
+        self.q_idx = [self.model.idx_qs[j] for j in ids]
+        self.nq_of = [self.model.nqs[j] for j in ids]
+        self.v_idx = [self.model.idx_vs[j] for j in ids]
+
+    def q(self, q):
+        qp = self.pin.neutral(self.model)
+        for k, (i, nq) in enumerate(zip(self.q_idx, self.nq_of)):
+            qp[i:i + nq] = (np.cos(q[k]), np.sin(q[k])) if nq == 2 else (q[k],)
+        return qp
+
+    def v(self, v):
+        out = np.zeros(self.model.nv)
+        out[self.v_idx] = v
+        return out
+
+    def evaluate(self, q, qd, qdd):
+        pin, m, d = self.pin, self.model, self.data
+        qp = self.q(q)
+        tau = pin.rnea(m, d, qp, self.v(qd), self.v(qdd))[self.v_idx]
+        M = pin.crba(m, d, qp)
+        M = (np.triu(M) + np.triu(M, 1).T)[np.ix_(self.v_idx, self.v_idx)]
+        pin.framesForwardKinematics(m, d, qp)
+        placement = d.oMf[self.frame]
+        J = pin.computeFrameJacobian(m, d, qp, self.frame, pin.LOCAL_WORLD_ALIGNED)[:, self.v_idx]
+        return tau, M, np.array(placement.translation), np.array(placement.rotation), J
+
+
+def _states(robot, rng, count):
+    lim = robot.limits
+    lo = np.where(np.isfinite(lim.q_min), lim.q_min, -np.pi) if lim.q_min is not None else -np.pi * np.ones(robot.n)
+    hi = np.where(np.isfinite(lim.q_max), lim.q_max, np.pi) if lim.q_max is not None else np.pi * np.ones(robot.n)
+    q = rng.uniform(lo, hi, (count, robot.n))
+    qd = rng.uniform(-1, 1, (count, robot.n)) * np.asarray(lim.qd_max)
+    qdd = rng.uniform(-1, 1, (count, robot.n)) * np.asarray(lim.qdd_max)
+    return q, qd, qdd
+
+
+@pytest.mark.parametrize("name", sorted(BUILTIN))
+def test_builtin_against_pinocchio(name):
+    """100 random states within the limits: inverse dynamics, mass matrix, tip placement
+    and tip Jacobian within 1e-10 relative (per state, relative to its largest entry)."""
+    pytest.importorskip("pinocchio")
+    path, tip = BUILTIN[name]
+    ref = PinocchioArm(_data_dir() / path, robots.get(name).joint_names, tip)
+    robot = robots.get(name)
+
+    @jax.jit
+    @jax.vmap
+    def ours(q, qd, qdd):
+        p, R = robot.tip_pose(q)
+        return (robot.inverse_dynamics(q, qd, qdd), robot.mass_matrix(q), p, R, robot.geometric_jacobian(q))
+
+    q, qd, qdd = _states(robot, np.random.default_rng(7), 100)
+    got = [np.asarray(x) for x in ours(q, qd, qdd)]
+    for k in range(100):
+        tau, M, p, R, J = ref.evaluate(q[k], qd[k], qdd[k])
+        assert rel_err(got[0][k], tau) < 1e-10, k
+        assert rel_err(got[1][k], M) < 1e-10, k
+        assert np.max(np.abs(got[2][k] - p)) < 1e-10 * max(1.0, np.abs(p).max()), k
+        assert np.max(np.abs(got[3][k] - R)) < 1e-10, k
+        assert rel_err(got[4][k], J) < 1e-10, k
+
+
+def test_builtin_structure():
+    pytest.importorskip("pinocchio")
+    _data_dir()
+    panda = robots.get("panda")
+    assert panda.n == 7 and panda.joint_names == tuple(f"panda_joint{i}" for i in range(1, 8))
+    assert np.allclose(panda.limits.qdd_max, (15, 7.5, 10, 12.5, 15, 20, 20))
+    assert np.allclose(panda.limits.tau_max, (87, 87, 87, 87, 12, 12, 12))
+    assert np.allclose(panda.limits.q_max[3], -0.0698)
+    ur5 = robots.get("ur5")
+    assert ur5.n == 6 and ur5.joint_names[0] == "shoulder_pan_joint"
+    kinova = robots.get("kinova")
+    assert np.isinf(np.asarray(kinova.limits.q_min)[[0, 3, 5]]).all()  # continuous joints
+    assert {"panda", "ur5"} <= set(robots.names())
+    # the payload: masses are a parameter, overridable and positive
+    assert "masses" in robots.parameter_names("panda")
+    heavier = robots.get("panda", masses=np.asarray(panda.masses) + np.r_[np.zeros(6), 1.0])
+    assert float(heavier.masses[-1]) == pytest.approx(float(panda.masses[-1]) + 1.0)
+    with pytest.raises(ValueError, match="masses must be > 0"):
+        robots.get("panda", masses=np.zeros(7))
+
+
+# ----- a small hand-written arm (no package data): both dynamics paths -----------------
+ARM = """<robot name="arm3">
+  <link name="base"/>
+  <link name="l1"><inertial><origin xyz="0 0 0.2" rpy="0.1 0 0"/><mass value="2.0"/>
+    <inertia ixx="0.03" ixy="0.001" ixz="0" iyy="0.025" iyz="0" izz="0.01"/></inertial></link>
+  <link name="l2"><inertial><origin xyz="0.15 0.02 0" rpy="0 0.3 0.2"/><mass value="1.5"/>
+    <inertia ixx="0.004" ixy="0" ixz="0.0005" iyy="0.02" iyz="0" izz="0.02"/></inertial></link>
+  <link name="l3"><inertial><origin xyz="0 0 0.05"/><mass value="0.8"/>
+    <inertia ixx="0.002" ixy="0" ixz="0" iyy="0.002" iyz="0" izz="0.001"/></inertial></link>
+  <link name="flange"/>
+  <link name="tool"><inertial><origin xyz="0 0 0.03"/><mass value="0.3"/>
+    <inertia ixx="0.0002" ixy="0" ixz="0" iyy="0.0002" iyz="0" izz="0.0001"/></inertial></link>
+  <joint name="j1" type="continuous"><parent link="base"/><child link="l1"/>
+    <origin xyz="0 0 0.1"/><axis xyz="0 0 1"/><limit effort="50" velocity="2"/></joint>
+  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>
+    <origin xyz="0 0 0.4" rpy="-1.5707963 0 0.2"/><axis xyz="0 1 1"/>
+    <limit lower="-2" upper="2" effort="30" velocity="2"/></joint>
+  <joint name="j3" type="prismatic"><parent link="l2"/><child link="l3"/>
+    <origin xyz="0.3 0 0" rpy="0 1.5707963 0"/><axis xyz="0 0 1"/>
+    <limit lower="0" upper="0.3" effort="100" velocity="0.5"/></joint>
+  <joint name="fl" type="fixed"><parent link="l3"/><child link="flange"/><origin xyz="0 0 0.1" rpy="0 0 0.5"/></joint>
+  <joint name="tl" type="fixed"><parent link="flange"/><child link="tool"/><origin xyz="0.01 0 0.02"/></joint>
+</robot>"""
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return from_urdf(ARM)
+
+
+def test_small_arm_paths_agree(arm):
+    """Newton-Euler (rigid_body_forces), Jacobian mass matrix and the overridden
+    Coriolis/gravity terms against the Lagrangian path of the energies; forward dynamics
+    inverts inverse dynamics; the positional Jacobian is the derivative of the tip."""
+    assert arm.joint_names == ("j1", "j2", "j3") and arm.n == 3
+    assert arm.joint_types == ("revolute", "revolute", "prismatic")
+
+    @jax.jit
+    def both(q, qd, qdd):
+        lagrange = (Robot._mass_matrix_mechanism(arm, q) @ qdd + Robot.coriolis(arm, q, qd)
+                    + Robot.gravity(arm, q))
+        tau = arm.inverse_dynamics(q, qd, qdd)
+        return (arm.rigid_body_forces(q, qd, qdd), lagrange, arm.mass_matrix(q), Robot._mass_matrix_mechanism(arm, q),
+                arm.forward_dynamics(q, qd, tau), arm.jacobian(q), jax.jacfwd(arm.forward_kinematics)(q),
+                arm.coriolis(q, qd), Robot.coriolis(arm, q, qd))
+
+    rng = np.random.default_rng(3)
+    for _ in range(10):
+        q = np.r_[rng.uniform(-3, 3), rng.uniform(-2, 2), rng.uniform(0, 0.3)]
+        qd, qdd = rng.uniform(-2, 2, 3), rng.uniform(-3, 3, 3)
+        ne, lag, M, M_lag, qdd_back, J, J_ad, c, c_lag = (np.asarray(x) for x in both(q, qd, qdd))
+        assert rel_err(ne, lag) < 1e-11
+        assert rel_err(M, M_lag) < 1e-12
+        assert rel_err(c, c_lag) < 1e-11
+        assert np.max(np.abs(qdd_back - qdd)) < 1e-10
+        assert rel_err(J, J_ad) < 1e-12
+        assert np.linalg.eigvalsh(M).min() > 0
+
+
+def test_small_arm_against_pinocchio(arm, tmp_path):
+    pytest.importorskip("pinocchio")
+    path = tmp_path / "arm3.urdf"
+    path.write_text(ARM)
+    ref = PinocchioArm(path, arm.joint_names, "tool")
+    tool = from_urdf(path, tip_link="tool")  # a tip behind two fixed joints
+    assert rel_err(tool.masses, arm.masses) < 1e-15  # the tool rides on body 3 either way
+    ours = jax.jit(lambda q, qd, qdd: (tool.inverse_dynamics(q, qd, qdd), tool.mass_matrix(q), *tool.tip_pose(q),
+                                       tool.geometric_jacobian(q)))
+    rng = np.random.default_rng(4)
+    for _ in range(10):
+        q = np.r_[rng.uniform(-3, 3), rng.uniform(-2, 2), rng.uniform(0, 0.3)]
+        qd, qdd = rng.uniform(-2, 2, 3), rng.uniform(-3, 3, 3)
+        tau, M, p, R, J = ref.evaluate(q, qd, qdd)
+        tau_o, M_o, p_o, R_o, J_o = (np.asarray(x) for x in ours(q, qd, qdd))
+        assert rel_err(tau_o, tau) < 1e-10
+        assert rel_err(M_o, M) < 1e-10
+        assert np.max(np.abs(p_o - p)) < 1e-12 and np.max(np.abs(R_o - R)) < 1e-12
+        assert rel_err(J_o, J) < 1e-10
+
+
+def test_small_arm_limits_and_manipulability(arm):
+    lim = arm.limits
+    assert np.isinf(lim.q_min[0]) and np.isinf(lim.q_max[0])  # continuous
+    assert np.allclose(lim.q_min[1:], (-2, 0)) and np.allclose(lim.q_max[1:], (2, 0.3))
+    assert np.allclose(lim.tau_max, (50, 30, 100)) and np.allclose(lim.qd_max, (2, 2, 0.5))
+    assert np.allclose(lim.qdd_max, 10.0) and lim.qddd_max is None
+    q = jnp.array([0.3, 0.4, 0.1])
+    J6 = arm.geometric_jacobian(q)
+    assert J6.shape == (6, 3)
+    w = float(arm.manipulability(q))  # 3 x 3 positional Jacobian: |det J|
+    assert w == pytest.approx(abs(float(jnp.linalg.det(J6[:3]))), rel=1e-12)
+    custom = from_urdf(ARM, limits=dict(tau_max=(10, 10, 10)), qdd_max=(1, 2, 3), qddd_max=100.0)
+    assert np.allclose(custom.limits.tau_max, 10) and np.allclose(custom.limits.qdd_max, (1, 2, 3))
+    assert np.allclose(custom.limits.qddd_max, 100)
+
+
+def test_payload_sensitivity_is_differentiable(arm):
+    """d tau / d (mass of body 3) by autodiff against a central difference."""
+    q, qd, qdd = jnp.array([0.2, 0.5, 0.1]), jnp.array([0.3, -0.2, 0.1]), jnp.array([1.0, -0.5, 0.2])
+
+    def tau(m3):
+        r = dataclasses.replace(arm, masses=arm.masses.at[2].set(m3))
+        return r.inverse_dynamics(q, qd, qdd)
+
+    m3 = float(arm.masses[2])
+    fd = (np.asarray(tau(m3 + 1e-6)) - np.asarray(tau(m3 - 1e-6))) / 2e-6
+    assert rel_err(jax.jacfwd(tau)(m3), fd) < 1e-7
+
+
+# ----- bad input -------------------------------------------------------------------------
+def _urdf(body):
+    return f'<robot name="bad">{body}</robot>'
+
+
+LINK = ('<link name="{}"><inertial><mass value="1"/><inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" '
+        'izz="0.01"/></inertial></link>')
+LIMIT = '<limit lower="-1" upper="1" effort="10" velocity="1"/>'
+
+
+def _joint(name, parent, child, kind="revolute", extra=LIMIT):
+    return f'<joint name="{name}" type="{kind}"><parent link="{parent}"/><child link="{child}"/>{extra}</joint>'
+
+
+GOOD = LINK.format("a") + LINK.format("b") + _joint("j", "a", "b")
+
+BAD = {
+    "missing file": ("/nonexistent/arm.urdf", {}, "no URDF file"),
+    "malformed XML": ("<robot><link name='a'></robot>", {}, "malformed XML"),
+    "floating joint": (_urdf(GOOD + LINK.format("c") + _joint("f", "b", "c", "floating", "")), {},
+                       "'f'.*floating or planar"),
+    "planar joint": (_urdf(GOOD + LINK.format("c") + _joint("f", "b", "c", "planar", "")), {}, "'f'.*planar"),
+    "closed loop": (_urdf(GOOD + LINK.format("c") + _joint("k", "a", "c") + _joint("loop", "c", "b")), {},
+                    "'b'.*two parent joints.*closed kinematic loop"),
+    "unknown tip": (_urdf(GOOD), {"tip_link": "hand"}, "tip_link 'hand' is not a link"),
+    "tip not below base": (_urdf(GOOD + LINK.format("c") + _joint("k", "a", "c")), {"base_link": "b", "tip_link": "c"},
+                           "tip_link 'c' is not in the tree below base_link 'b'"),
+    "mimic in chain": (_urdf(GOOD + LINK.format("c") + _joint("m", "b", "c", extra=LIMIT + '<mimic joint="j"/>')), {},
+                       "'m'.*mimic joint in the chain"),
+    "zero mass": (_urdf(LINK.format("a") + '<link name="b"/>' + _joint("j", "a", "b")), {},
+                  "'b'.*no mass.*expected a positive <mass>"),
+    "indefinite inertia": (_urdf(LINK.format("a") + '<link name="b"><inertial><mass value="1"/><inertia ixx="0.01" '
+                                 'ixy="0.5" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial></link>'
+                                 + _joint("j", "a", "b")), {}, "'b'.*positive semidefinite"),
+    "singular inertia": (_urdf(LINK.format("a") + '<link name="b"><inertial><mass value="1"/><inertia ixx="0" '
+                               'ixy="0" ixz="0" iyy="0" iyz="0" izz="0"/></inertial></link>'
+                               + _joint("j", "a", "b")), {}, "'b'.*positive definite"),
+    "no limit": (_urdf(LINK.format("a") + LINK.format("b") + _joint("j", "a", "b", extra="")), {},
+                 "'j'.*expected <limit lower=... upper=...>"),
+    "ambiguous tip": (_urdf(GOOD + LINK.format("c") + _joint("k", "a", "c")), {},
+                      r"end in \['b', 'c'\]; expected exactly one"),
+    "no movable joint": (_urdf(GOOD + LINK.format("c") + _joint("k", "b", "c", "fixed", "")),
+                         {"base_link": "b", "tip_link": "c"}, "no movable joint"),
+    "bad origin": (_urdf(LINK.format("a") + LINK.format("b") + _joint("j", "a", "b", extra=LIMIT + '<origin xyz="0 1"/>')),
+                   {}, "'j'.*<origin xyz>: expected 3 finite numbers"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_input(case):
+    source, kwargs, message = BAD[case]
+    with pytest.raises(ValueError, match=message):
+        from_urdf(source, **kwargs)
+
+
+def test_massless_link_carrying_a_fixed_child_is_merged():
+    """A massless moving link is fine when a fixed child gives the body its mass; the
+    body's inertia is the child's moved by the parallel-axis theorem."""
+    src = _urdf(LINK.format("a") + '<link name="b"/>' + LINK.format("c") + _joint("j", "a", "b")
+                + '<joint name="f" type="fixed"><parent link="b"/><child link="c"/><origin xyz="0 0 0.5"/></joint>')
+    robot = from_urdf(src)
+    assert robot.n == 1 and float(robot.masses[0]) == 1.0
+    assert np.allclose(robot.com[0], (0, 0, 0.5)) and np.allclose(robot.inertias[0], 0.01 * np.eye(3))
+    assert np.allclose(robot.tip_translation, (0, 0, 0))  # the default tip: the last movable joint's child
+    assert np.allclose(from_urdf(src, tip_link="c").tip_translation, (0, 0, 0.5))
+
+
+def test_missing_package_message(monkeypatch, tmp_path):
+    from jtraj.robots import urdf
+
+    monkeypatch.setenv("JTRAJ_ROBOT_DATA", str(tmp_path))
+    with pytest.raises(ImportError, match=r"pip install 'jtraj\[robots\]'"):
+        robots.get("panda")
+
+
+# ----- the command line and the plots -----------------------------------------------------
+@pytest.mark.parametrize("argv, needle", [
+    (["--tip-link", "l3", "--start-q", "0,0,0", "--goal-q", "0,0,0"], "--tip-link needs --urdf"),
+    (["--urdf", "/nonexistent/arm.urdf", "--start-q", "0,0,0", "--goal-q", "0,0,0"], "no URDF file"),
+    (["--urdf", "{arm}", "--tip-link", "hand", "--start-q", "0,0,0", "--goal-q", "0,0,0"], "tip_link 'hand'"),
+    (["--urdf", "{arm}", "--start-q", "0,0", "--goal-q", "0,0,0"], "--start-q must have 3 values"),
+    (["--urdf", "{arm}", "--start-q", "0,0,0.1", "--goal-q", "0,0,0.4"], "--goal-q"),  # prismatic beyond 0.3 m
+])
+def test_cli_urdf_bad_input_exits_2(argv, needle, tmp_path, capsys):
+    from jtraj import cli
+
+    path = tmp_path / "arm3.urdf"
+    path.write_text(ARM)
+    rc = cli.main(["solve", *(a.format(arm=path) for a in argv)])
+    err = capsys.readouterr().err
+    assert rc == 2 and needle in err, err
+
+
+def test_plot_path_in_3d(arm):
+    """The tip path of a spatial arm is drawn in 3-D (the data of the drawn line is the
+    forward kinematics of the given joint path)."""
+    import types
+
+    pytest.importorskip("matplotlib")
+    from jtraj import Problem
+    from jtraj.plotting import plot_path
+
+    q0, q1 = np.array([0.0, 0.3, 0.05]), np.array([0.8, -0.2, 0.2])
+    s = np.linspace(0, 1, 6)[:, None]
+    q = q0 + s * (q1 - q0)
+    sol = types.SimpleNamespace(q=q, qd=np.zeros_like(q), v=np.zeros((5, 3)), tau=np.zeros((5, 3)), h=np.full(5, 0.1))
+    fig = plot_path(Problem(arm, q0, q1, N=5, validate=False), sol)
+    ax = fig.axes[0]
+    assert ax.name == "3d"
+    line = [ln for ln in ax.lines if ln.get_label() == "optimum"][0]
+    x, y, z = line.get_data_3d()
+    tip = np.asarray(jax.vmap(arm.forward_kinematics)(q))
+    assert np.allclose(np.c_[x, y, z], tip)
+
+
+def test_continuous_joint_has_no_position_row(arm):
+    """The decoupled transcription's joint box of an arm with a continuous joint: no row
+    (-1) for that joint at any angle, finite rows for the others."""
+    from jtraj import Problem
+    from jtraj.transcription import Transcription
+
+    problem = Problem(arm, np.array([0.0, 0.3, 0.05]), np.array([0.8, -0.2, 0.2]), N=20)
+    tr = Transcription("decoupled")
+    sd = tr.stage_data(problem)
+    k = 5  # an inner sample
+    sdk = jax.tree_util.tree_map(lambda x: x[k], sd)
+    n = arm.n
+    for q1 in (0.0, 7.0, -40.0):  # far beyond +-2 pi: still no row
+        w = jnp.concatenate([jnp.array([q1, 1.9, 0.29]), jnp.zeros(n), jnp.zeros(n), jnp.array([0.05])])
+        g = np.asarray(tr.stage_constraints(problem, w, sdk)[1]["q"])
+        assert np.isfinite(g).all() and np.all(g[0] == -1.0)
+        assert g[1, 0] == pytest.approx(1.9 / 2 - 1) and g[2, 0] == pytest.approx(0.29 / 0.15 - 1 - 1)
