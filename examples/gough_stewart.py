@@ -63,8 +63,10 @@ def main():
     t_start = time.perf_counter()
     robot = jtraj.robots.get(NAME)
     R_l = jnp.asarray(rpy_matrix(jnp.asarray(VIA_RPY)))
+    # the free move carries the same passage with an inactive tolerance (0.999: any
+    # orientation within about 87 degrees), so that both moves share one compiled solver
     free = jtraj.Problem(robot, jnp.asarray(Q_START), jnp.asarray(Q_GOAL), N=N, weights=WEIGHTS,
-                         via_points=[jtraj.ViaPoint(jnp.asarray(VIA_POINT), tol=0.5)])
+                         via_points=[jtraj.ViaPoint(jnp.asarray(VIA_POINT), tol=0.5, rotation=R_l, rot_tol=0.999)])
     sol, t_first, t_last, tries = solve_with_restart(free)
     oriented = jtraj.Problem(robot, jnp.asarray(Q_START), jnp.asarray(Q_GOAL), N=N, weights=WEIGHTS,
                              via_points=[jtraj.ViaPoint(jnp.asarray(VIA_POINT), tol=0.5, rotation=R_l, rot_tol=VIA_EPS)])

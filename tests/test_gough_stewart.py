@@ -234,8 +234,10 @@ def test_solve_platform_move_with_orientation_passage(robot):
     weights = jtraj.Weights(time=1.0, energy=0.1)
     R_l = np.asarray(scipy_rotation(np.array([0, 0, 0, 0.2, 0.15, -0.1])))
     via = jtraj.ViaPoint(jnp.array([0.05, 0.0, 1.05]), tol=0.5, rotation=jnp.asarray(R_l), rot_tol=1e-3)
+    # the same passage with an inactive orientation tolerance: one compiled solver for both
     plain = jtraj.Problem(robot, jnp.asarray(START), jnp.asarray(GOAL), N=20, weights=weights,
-                          via_points=[jtraj.ViaPoint(jnp.array([0.05, 0.0, 1.05]), tol=0.5)])
+                          via_points=[jtraj.ViaPoint(jnp.array([0.05, 0.0, 1.05]), tol=0.5,
+                                                     rotation=jnp.asarray(R_l), rot_tol=0.999)])
     sol = jtraj.solve(plain)
     assert bool(sol.converged), jtraj.Status(int(sol.status)).name
     q, qd, tau = (np.asarray(a) for a in (sol.q, sol.qd, sol.tau))
