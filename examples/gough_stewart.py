@@ -68,9 +68,11 @@ def main():
     free = jtraj.Problem(robot, jnp.asarray(Q_START), jnp.asarray(Q_GOAL), N=N, weights=WEIGHTS,
                          via_points=[jtraj.ViaPoint(jnp.asarray(VIA_POINT), tol=0.5, rotation=R_l, rot_tol=0.999)])
     sol, t_first, t_last, tries = solve_with_restart(free)
+    print(f"free move: {status_text(sol, t_last)}, T = {float(sol.T):.4f} s, first call {t_first:.0f} s", flush=True)
     oriented = jtraj.Problem(robot, jnp.asarray(Q_START), jnp.asarray(Q_GOAL), N=N, weights=WEIGHTS,
                              via_points=[jtraj.ViaPoint(jnp.asarray(VIA_POINT), tol=0.5, rotation=R_l, rot_tol=VIA_EPS)])
     sol2, t2_first, t2_last, tries2 = solve_with_restart(oriented, init=(sol.v, sol.h))
+    print(f"passage: {status_text(sol2, t2_last)}, T = {float(sol2.T):.4f} s", flush=True)
     k = free.via_samples()[0]
 
     def via_err(s):
