@@ -259,3 +259,32 @@ def test_solve_platform_move_with_orientation_passage(robot):
     assert err <= 1e-3 + 1e-6
     assert float(sol2.max_violation["via_rotation"]) <= 1e-6
     assert float(sol2.cost) >= float(sol.cost) - 1e-9  # an added constraint cannot lower the optimum
+
+
+def test_orientation_passage_constraint_rows(robot):
+    """The transcription's orientation passage: at the via sample the rows are
+    ``(+-e - w) / (1 + w)`` with ``e = vect(R(q_k)^T R_l)`` and ``w = rot_tol / sqrt(3)``
+    (the box inscribed in the ball of radius rot_tol), -1 at every other sample; a
+    position-only via point leaves the stage data without orientation fields."""
+    from jtraj.initial_guess import cycloidal
+    from jtraj.transcription import Transcription
+
+    R_l = jnp.asarray(scipy_rotation(np.array([0, 0, 0, 0.2, 0.15, -0.1])))
+    via = jtraj.ViaPoint(jnp.array([0.05, 0.0, 1.05]), tol=0.5, rotation=R_l, rot_tol=0.01)
+    problem = jtraj.Problem(robot, jnp.asarray(START), jnp.asarray(GOAL), N=6, via_points=[via])
+    tr = Transcription("decoupled")
+    layout, sd = tr.layout(problem), tr.stage_data(problem)
+    z = layout.pack(*cycloidal(problem))
+    W = tr.stage_vectors(problem, layout, z)
+    ineq = eqx.filter_jit(jax.vmap(lambda w, s: tr.stage_constraints(problem, w, s)[1]["via_rotation"]))(W, sd)
+    k = problem.via_samples()[0]
+    q_k = W[k, :6]
+    e = np.asarray(orientation_error(robot.rotation(q_k), R_l))
+    w = 0.01 / np.sqrt(3)
+    np.testing.assert_allclose(np.asarray(ineq[k]), np.stack([(e - w) / (1 + w), (-e - w) / (1 + w)], axis=-1),
+                               atol=1e-14)
+    others = np.delete(np.asarray(ineq), k, axis=0)
+    assert np.all(others == -1.0)
+    plain = jtraj.Problem(robot, jnp.asarray(START), jnp.asarray(GOAL), N=6,
+                          via_points=[jtraj.ViaPoint(jnp.array([0.05, 0.0, 1.05]), tol=0.5)])
+    assert tr.stage_data(plain).via_rotation is None
