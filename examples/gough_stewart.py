@@ -30,10 +30,10 @@ NAME = "gough_stewart"
 # the platform rises 0.1 m, moves 0.18 m sideways and turns by (0.1, -0.1, 0.2) rad
 Q_START = (0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 Q_GOAL = (0.15, -0.1, 1.1, 0.1, -0.1, 0.2)
-# the passage: orientation (0.2, 0.15, -0.1) rad (roll, pitch, yaw) to eps = 1e-3 at the
+# the passage: orientation (0.1, 0.0, 0.05) rad (roll, pitch, yaw) to eps = 1e-3 at the
 # middle sample; its position tolerance (0.5 m) leaves the position free
 VIA_POINT = (0.05, 0.0, 1.05)
-VIA_RPY = (0.2, 0.15, -0.1)
+VIA_RPY = (0.1, 0.0, 0.05)
 VIA_EPS = 1e-3
 N = 20
 WEIGHTS = jtraj.Weights(time=1.0, energy=0.1)
