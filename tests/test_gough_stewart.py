@@ -226,16 +226,16 @@ GOAL = (0.15, -0.1, 1.1, 0.1, -0.1, 0.2)
 
 
 @pytest.mark.slow
-def test_solve_platform_move_with_orientation_passage(robot):
+def test_solve_platform_move(robot):
     """A short move, N = 20, time 1 / energy 0.1, converges and its verified result
     keeps leg lengths, leg speeds and leg forces within their bounds (rechecked here from
-    the returned states); then the same move through a passage whose orientation is
-    imposed to 1e-3 (position tolerance 0.5 m: the passage is about the orientation)."""
+    the returned states). The problem carries an orientation passage with an inactive
+    tolerance (0.999), the free move of examples/gough_stewart.py."""
     weights = jtraj.Weights(time=1.0, energy=0.1)
     R_l = np.asarray(scipy_rotation(np.array([0, 0, 0, 0.2, 0.15, -0.1])))
-    via = jtraj.ViaPoint(jnp.array([0.05, 0.0, 1.05]), tol=0.5, rotation=jnp.asarray(R_l), rot_tol=1e-3)
     plain = jtraj.Problem(robot, jnp.asarray(START), jnp.asarray(GOAL), N=20, weights=weights,
-                          via_points=[jtraj.ViaPoint(jnp.array([0.05, 0.0, 1.05]), tol=0.5)])
+                          via_points=[jtraj.ViaPoint(jnp.array([0.05, 0.0, 1.05]), tol=0.5,
+                                                     rotation=jnp.asarray(R_l), rot_tol=0.999)])
     sol = jtraj.solve(plain)
     assert bool(sol.converged), jtraj.Status(int(sol.status)).name
     q, qd, tau = (np.asarray(a) for a in (sol.q, sol.qd, sol.tau))
@@ -246,14 +246,34 @@ def test_solve_platform_move_with_orientation_passage(robot):
     assert np.abs(tau).max() <= 1500 * (1 + 1e-6)
     np.testing.assert_allclose(q[-1], GOAL, atol=1e-6)
     k = plain.via_samples()[0]
-    free = np.linalg.norm(np.asarray(orientation_error(robot.rotation(jnp.asarray(q[k])), jnp.asarray(R_l))))
-    assert free > 0.01  # without the passage the orientation at sample k is elsewhere
+    err = np.linalg.norm(np.asarray(orientation_error(robot.rotation(jnp.asarray(q[k])), jnp.asarray(R_l))))
+    assert 0.01 < err < 0.999  # the passage is inactive: the orientation at sample k is elsewhere
 
-    oriented = jtraj.Problem(robot, jnp.asarray(START), jnp.asarray(GOAL), N=20, weights=weights, via_points=[via])
-    sol2 = jtraj.solve(oriented)
-    assert bool(sol2.converged), jtraj.Status(int(sol2.status)).name
-    q2 = np.asarray(sol2.q)
-    err = np.linalg.norm(np.asarray(orientation_error(robot.rotation(jnp.asarray(q2[k])), jnp.asarray(R_l))))
-    assert err <= 1e-3 + 1e-6
-    assert float(sol2.max_violation["via_rotation"]) <= 1e-6
-    assert float(sol2.cost) >= float(sol.cost) - 1e-9  # an added constraint cannot lower the optimum
+
+def test_orientation_passage_constraint_rows(robot):
+    """The transcription's orientation passage: at the via sample the rows are
+    ``(+-e - w) / (1 + w)`` with ``e = vect(R(q_k)^T R_l)`` and ``w = rot_tol / sqrt(3)``
+    (the box inscribed in the ball of radius rot_tol), -1 at every other sample; a
+    position-only via point leaves the stage data without orientation fields."""
+    from jtraj.initial_guess import cycloidal
+    from jtraj.transcription import Transcription
+
+    R_l = jnp.asarray(scipy_rotation(np.array([0, 0, 0, 0.2, 0.15, -0.1])))
+    via = jtraj.ViaPoint(jnp.array([0.05, 0.0, 1.05]), tol=0.5, rotation=R_l, rot_tol=0.01)
+    problem = jtraj.Problem(robot, jnp.asarray(START), jnp.asarray(GOAL), N=6, via_points=[via])
+    tr = Transcription("decoupled")
+    layout, sd = tr.layout(problem), tr.stage_data(problem)
+    z = layout.pack(*cycloidal(problem))
+    W = tr.stage_vectors(problem, layout, z)
+    ineq = eqx.filter_jit(jax.vmap(lambda w, s: tr.stage_constraints(problem, w, s)[1]["via_rotation"]))(W, sd)
+    k = problem.via_samples()[0]
+    q_k = W[k, :6]
+    e = np.asarray(orientation_error(robot.rotation(q_k), R_l))
+    w = 0.01 / np.sqrt(3)
+    np.testing.assert_allclose(np.asarray(ineq[k]), np.stack([(e - w) / (1 + w), (-e - w) / (1 + w)], axis=-1),
+                               atol=1e-14)
+    others = np.delete(np.asarray(ineq), k, axis=0)
+    assert np.all(others == -1.0)
+    plain = jtraj.Problem(robot, jnp.asarray(START), jnp.asarray(GOAL), N=6,
+                          via_points=[jtraj.ViaPoint(jnp.array([0.05, 0.0, 1.05]), tol=0.5)])
+    assert tr.stage_data(plain).via_rotation is None
