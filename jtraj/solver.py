@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _packing, _tracecache, ipm, lq
+from . import _packing, _tracecache, implicit, ipm, lq
 from ._compile import SOLVER_XLA_OPTIONS, supported_options
 from ._compile import solver_jit as _jit
 from ._math import log1p
@@ -1768,7 +1768,7 @@ def _solve_jit(problem, opts, transcription, init, warm, guess):
 
 
 def solve(problem: Problem, *, options: SolverOptions | None = None, transcription: str = "decoupled",
-          init: tuple[Any, Any] | None = None, warm: str = "full") -> Solution:
+          init: tuple[Any, Any] | None = None, warm: str = "full", on_failure: str = "nan") -> Solution:
     """Solve one trajectory problem; compiled once per robot type, shape and the options'
     structure (see :class:`SolverOptions`).
 
@@ -1790,8 +1790,18 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
             start's multipliers and penalty: right for a rough guess (a learned plan).
             The interior-point method (``options.method``) starts its barrier at ``init``
             either way.
+        on_failure: what derivatives of a solve that did not converge are (see
+            :mod:`jtraj.implicit`): "nan" (default) or "raise" (a run-time error when
+            the solve is differentiated, inside ``jit`` too).
+
+    ``jax.grad``, ``jax.jvp``, ``jax.jacobian``, ``jax.vmap`` and ``jax.jit`` work
+    through it: with traced array leaves in ``problem`` the derivatives of the
+    solution's q, qd, v, tau, h, T, cost, cost_terms and energy come from implicit
+    differentiation of the KKT conditions at the optimum (:mod:`jtraj.implicit`).
     """
     Transcription(transcription)  # validates the name
+    if on_failure not in ("nan", "raise"):
+        raise ValueError(f"on_failure must be 'nan' or 'raise', got {on_failure!r}")
     if not isinstance(problem, Problem):
         raise ValueError(f"problem must be a jtraj.Problem, got {type(problem).__name__}")
     _check_efforts(problem.efforts, transcription)
@@ -1804,6 +1814,8 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
         init = _placeholder_init(problem.N, Transcription(transcription).control_dim(problem))
     else:
         init = _check_init(problem, init, transcription)
+    if implicit.any_traced((problem, init)):  # inside jit / vmap / a derivative
+        return implicit.solve_traced(problem, opts, transcription, init, warm, guess, on_failure)
     return _solve_jit(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
 
 
@@ -1856,6 +1868,8 @@ def _check_init(problem, init, transcription):
         raise ValueError(f"init[0] must have shape ({problem.N}, {m_u}), got {u.shape}")
     if h.shape != (problem.N,):
         raise ValueError(f"init[1] must have shape ({problem.N},), got {h.shape}")
+    if implicit.any_traced((u, h)):  # values checked only where concrete
+        return u, h
     if not (jnp.all(jnp.isfinite(u)) and jnp.all(jnp.isfinite(h))):
         raise ValueError("init must be finite")
     return u, h
@@ -2343,9 +2357,12 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     if not isinstance(robot, Robot):
         raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
     n = robot.n
-    # the inputs on the host (NumPy): their checks and broadcasts dispatch no programs
-    q_start = np.asarray(q_start, float)
-    q_goal = np.asarray(q_goal, float)
+    traced = implicit.any_traced((robot, q_start, q_goal, qd_start, qd_goal, T_max, weights, init))
+    # the inputs on the host (NumPy): their checks and broadcasts dispatch no programs;
+    # traced inputs (jit, vmap, derivatives) stay arrays
+    xp = jnp if traced else np
+    q_start = xp.asarray(q_start, float)
+    q_goal = xp.asarray(q_goal, float)
     if q_start.ndim != 2 or q_start.shape[1] != n:
         raise ValueError(f"q_start must have shape (B, {n}), got {q_start.shape}")
     if q_goal.shape != q_start.shape:
@@ -2356,14 +2373,14 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
 
     def per_sample(x, name):
         if x is None:
-            return np.zeros((B, n))
-        x = np.asarray(x, float)
+            return xp.zeros((B, n))
+        x = xp.asarray(x, float)
         if x.shape not in ((), (n,), (B, n)):
             raise ValueError(f"{name} must be a scalar, ({n},) or ({B}, {n}), got shape {x.shape}")
-        return np.broadcast_to(x, (B, n))
+        return xp.broadcast_to(x, (B, n))
 
     qd_start, qd_goal = per_sample(qd_start, "qd_start"), per_sample(qd_goal, "qd_goal")
-    T_max = np.broadcast_to(np.asarray(np.inf if T_max is None else T_max, float), (B,))
+    T_max = xp.broadcast_to(xp.asarray(np.inf if T_max is None else T_max, float), (B,))
     Transcription(transcription)
     _check_efforts(efforts, transcription)
     opts = _resolve_method(options, transcription, robot)
@@ -2390,6 +2407,16 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
     if not isinstance(segment, int) or segment < 1:
         raise ValueError(f"segment must be a positive integer, got {segment!r}")
+    if traced or implicit.any_traced(init):  # derivatives per sample (jtraj.implicit)
+        return implicit.solve_batch_traced(problems, opts, transcription, init, warm, slots, segment)
+    return _solve_problems(problems, opts, transcription, init, warm, slots, segment)
+
+
+def _solve_problems(problems, opts, transcription, init, warm: bool, slots, segment: int) -> Solution:
+    """:func:`solve_batch`'s solve of built problems (a batch of :class:`Problem`) from
+    ``init`` (arrays), by the host-driven lane driver (see ``slots`` there)."""
+    B = int(jax.tree.leaves(problems.q_start)[0].shape[0])
+    warm = bool(warm)
     if opts.method == "ip":
         return _solve_batch_ip(problems, opts, transcription, init, jax.device_put(warm), slots or B, segment)
     if slots is not None and B > min(_lane_counts(slots)):
