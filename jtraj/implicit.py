@@ -279,11 +279,20 @@ def _from_float(sol):
                                outer_iterations=sol.outer_iterations.astype(count))
 
 
+@functools.lru_cache(maxsize=None)
+def _nested(fn):
+    """A solver entry point (decorated by ``jtraj.solver._options_jit``) as a plain
+    ``eqx.filter_jit`` for use inside another trace: XLA compiler options are for
+    top-level programs only."""
+    return eqx.filter_jit(fn.__wrapped__)
+
+
 def _primal_single(cfg: _Config, dyn, init):
     from .solver import _solve_jit
 
     problem = eqx.combine(dyn, cfg.static)
-    return _solve_jit(problem, cfg.opts, cfg.transcription, init, np.bool_(cfg.warm), np.bool_(cfg.guess))
+    run = _nested(_solve_jit) if any_traced((dyn, init)) else _solve_jit
+    return run(problem, cfg.opts, cfg.transcription, init, np.bool_(cfg.warm), np.bool_(cfg.guess))
 
 
 def _primal_batch(cfg: _Config, dyn, init):
@@ -292,18 +301,22 @@ def _primal_batch(cfg: _Config, dyn, init):
     problems = eqx.combine(dyn, cfg.static)
     leaves = jax.tree.leaves((dyn, init))
     if any(isinstance(x, jax.core.Tracer) for x in leaves):  # inside jit or vmap: one vmapped program
-        return _solve_batch_jit(problems, cfg.opts, cfg.transcription, init, jnp.asarray(cfg.warm))
+        return _nested(_solve_batch_jit)(problems, cfg.opts, cfg.transcription, init, jnp.asarray(cfg.warm))
     slots, segment = cfg.batch  # concrete values: the host-driven lane driver
     return _solve_problems(problems, cfg.opts, cfg.transcription, init, cfg.warm, slots, segment)
 
 
-@eqx.filter_jit
 def _tangent_solution(cfg: _Config, dyn, ddyn, sol):
     """The Solution-shaped tangent of one solve (floats everywhere, see _to_float)."""
-    tr = Transcription(cfg.transcription)
-    problem = eqx.combine(dyn, cfg.static)
+    return _tangent_program(cfg.static, cfg.transcription, cfg.on_failure, dyn, ddyn, sol)
+
+
+@eqx.filter_jit  # keyed by the problem's structure, not by the solver options
+def _tangent_program(static, transcription: str, on_failure: str, dyn, ddyn, sol):
+    tr = Transcription(transcription)
+    problem = eqx.combine(dyn, static)
     _, dout, _, valid = implicit_tangent(problem, tr, sol, ddyn, sol.status == 0)
-    if cfg.on_failure == "zero":
+    if on_failure == "zero":
         dout = jax.tree.map(lambda t: jnp.where(valid, t, 0.0), dout)
     else:  # a product with a primal factor: NaN in forward and in reverse mode
         factor = jnp.where(valid, 1.0, jnp.nan)
@@ -373,3 +386,27 @@ def solve_batch_traced(problems, opts, transcription: str, init, warm: bool, slo
 def any_traced(tree) -> bool:
     """Whether a leaf of ``tree`` is a JAX tracer (inside jit, vmap or a derivative)."""
     return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(tree))
+
+
+def envelope(problem: Problem, tr: Transcription, solution) -> tuple[Any, dict]:
+    """The envelope-theorem gradient of the optimal cost in every inexact-array leaf of
+    ``problem`` (a pytree like its :func:`equinox.partition`-ed array part): the
+    parameters' partial derivative of the Lagrangian at ``(z*, lambda*)`` with the
+    bound-held variables following their bounds. At a KKT point it equals the chain
+    rule through the implicit tangent (``d cost``); :func:`jtraj.sensitivity` reports
+    both. Also returns the active set's sizes (``kkt_size``, ``n_active``, ``n_bound``)."""
+    dyn, static = eqx.partition(problem, eqx.is_inexact_array)
+    z = z_of(problem, tr, solution)
+    act = active_set(problem, tr, z)
+    fixed = act.at_lo | act.at_hi
+
+    def lagrangian(d):
+        p = eqx.combine(d, static)
+        nlp = _nlp(p, tr)
+        zz = jnp.where(act.at_lo, nlp.layout.z_lo, jnp.where(act.at_hi, nlp.layout.z_hi, z))
+        zz = jnp.where(fixed, zz, jax.lax.stop_gradient(zz))
+        c = _rows(nlp, zz)[0]
+        return _cost(nlp, zz) + jnp.sum(jnp.where(act.on, act.mult, 0.0) * c[act.idx])
+
+    counts = {"kkt_size": z.shape[0] + act.idx.shape[0], "n_active": jnp.sum(act.on), "n_bound": jnp.sum(fixed)}
+    return jax.grad(lagrangian)(dyn), counts

@@ -2351,6 +2351,14 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     Returns a :class:`Solution` whose fields carry a leading batch axis. Samples with
     non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch
     never raises for one bad sample); shapes and the robot are checked up front.
+
+    Derivatives (``jax.grad``, ``jax.jvp``, ``jax.jacobian``, under ``jit`` and ``vmap``
+    too) with respect to traced inputs (q_start, q_goal, boundary velocities, T_max,
+    the weights' and the robot's arrays) come per sample from :mod:`jtraj.implicit`;
+    a sample that did not converge gets zero derivatives
+    (:func:`jtraj.valid_derivatives` gives the mask). With concrete primal values (a
+    derivative outside ``jit``) the solve itself runs on the lane driver above; inside
+    ``jit`` or ``vmap`` it is one vmapped program.
     """
     from .robots import Robot
 

@@ -37,7 +37,7 @@ def base():
     return sol
 
 
-def _fd(make, x0, out, base, rel=1e-5, absolute=None):
+def _fd(make, x0, out, base, rel=1e-5, absolute=None, options=TIGHT):
     """Central differences of out(solve(make(x))) in each entry of x0 (warm re-solves)."""
     x0 = np.asarray(x0, float)
     cols = []
@@ -47,7 +47,7 @@ def _fd(make, x0, out, base, rel=1e-5, absolute=None):
         for sign in (1.0, -1.0):
             x = x0.copy()
             x.flat[i] += sign * step
-            s = jtraj.solve(make(x), options=TIGHT, init=(base.v, base.h))
+            s = jtraj.solve(make(x), options=options, init=(base.v, base.h))
             assert bool(s.converged), s.status_message
             vals.append(np.asarray(out(s)))
         cols.append((vals[0] - vals[1]) / (2 * step))
@@ -106,29 +106,34 @@ def test_jvp_wrt_weights_and_mass(base):
         robot = jtraj.robots.get("serial3", masses=np.asarray(ROBOT.masses) + t * np.array([0.0, 1.0, 0.0]))
         return _problem(robot=robot, weights=jtraj.Weights(time=1.0 + 0.5 * t, energy=0.1 + 0.02 * t))
 
-    fd = _fd(make, [0.0], lambda s: np.array([s.T, s.cost, s.energy]), base, absolute=1e-5)[:, 0]
-    _close(tangent, fd)
+    # T and the energy are not stationary at the optimum: re-solve noise (~1e-9) needs a
+    # longer step than the cost's
+    fd = _fd(make, [0.0], lambda s: np.array([s.T, s.cost, s.energy]), base, absolute=1e-3)[:, 0]
+    _close(tangent, fd, rtol=1e-4)
 
 
 def test_grad_wrt_torque_limit_and_binding_T_max(base):
-    T_max = 0.995 * float(base.T)
+    T_max = 0.998 * float(base.T)
+    opts = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-8, max_iter=3000, method="al")
 
     def f(tau_max, t_max):
         robot = eqx.tree_at(lambda r: r.limits.tau_max, ROBOT, tau_max)
-        s = jtraj.solve(_problem(robot=robot, T_max=t_max), options=TIGHT)
+        s = jtraj.solve(_problem(robot=robot, T_max=t_max), options=opts)
         return s.cost
 
     tau0 = np.asarray(ROBOT.limits.tau_max)
     g_tau, g_T = jax.grad(f, argnums=(0, 1))(jnp.asarray(tau0), jnp.asarray(T_max))
-    ref = jtraj.solve(_problem(T_max=T_max), options=TIGHT)
-    assert bool(ref.converged) and abs(float(ref.T) - T_max) < 1e-8  # the bound is binding
+    ref = jtraj.solve(_problem(T_max=T_max), options=opts)
+    assert bool(ref.converged), ref.status_message
+    assert abs(float(ref.T) - T_max) < 1e-8  # the bound is binding
     fd_tau = _fd(lambda t: _problem(robot=jtraj.robots.get("serial3", tau_max=t), T_max=T_max), tau0,
-                 lambda s: s.cost, ref)
-    fd_T = _fd(lambda t: _problem(T_max=float(t[0])), [T_max], lambda s: s.cost, ref)[0]
+                 lambda s: s.cost, ref, options=opts)
+    fd_T = _fd(lambda t: _problem(T_max=float(t[0])), [T_max], lambda s: s.cost, ref, options=opts)[0]
     _close(g_tau, fd_tau)
     _close(g_T, fd_T)
 
 
+@pytest.mark.slow  # the whole solver compiled inside an outer jit: minutes
 def test_jit_of_the_whole_equals_eager(base):
     def f(g):
         return jtraj.solve(_problem(q_goal=g), options=TIGHT).T
@@ -220,3 +225,18 @@ def test_path_constrained_robot_pkm2():
     g = jax.grad(lambda x: jtraj.solve(make(x), options=TIGHT).cost)(jnp.asarray(qg))
     fd = _fd(make, qg, lambda s: s.cost, base, absolute=1e-6)
     _close(g, fd, rtol=1e-4)
+
+
+def test_grad_wrt_masses_through_robots_get(base):
+    """The masses traced through ``robots.get(..., masses=m)`` (host checks skipped)."""
+    m0 = np.asarray(ROBOT.masses)
+
+    def f(m):
+        s = jtraj.solve(_problem(robot=jtraj.robots.get("serial3", masses=m)), options=TIGHT)
+        return jnp.stack([s.cost, s.T])
+
+    J = jax.jacrev(f)(jnp.asarray(m0))
+    fd = _fd(lambda m: _problem(robot=jtraj.robots.get("serial3", masses=m)), m0,
+             lambda s: np.array([s.cost, s.T]), base, rel=1e-4)
+    _close(J[0], fd[0])
+    _close(J[1], fd[1], rtol=1e-4)
