@@ -2397,11 +2397,13 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     def make(a, b, c, d, t):
         return _problem(robot, a, b, c, d, t, N, weights, efforts)
 
-    problems = _problems_jit(robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts)
+    # (inside another trace: the programs without their XLA options, see implicit._nested)
+    problems = (implicit._nested(_problems_jit) if traced else _problems_jit)(
+        robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts)
     warm = init is not None
     if init is None:
         # non-finite samples get a finite placeholder guess; they are flagged invalid
-        init = _guess_batch_jit(problems, opts, transcription)
+        init = (implicit._nested(_guess_batch_jit) if traced else _guess_batch_jit)(problems, opts, transcription)
     else:
         m_u = Transcription(transcription).control_dim(make(q_start[0], q_goal[0], qd_start[0], qd_goal[0], T_max[0]))
         u, h = jnp.asarray(init[0], float), jnp.asarray(init[1], float)
