@@ -245,9 +245,11 @@ class Problem(eqx.Module):
                  efforts: str = "samples", validate: bool = True):
         if not isinstance(robot, Robot):
             raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
+        if isinstance(N, jax.core.Tracer):
+            raise ValueError("N (the number of intervals) is static: it cannot be traced or differentiated")
         if not isinstance(N, (int, np.integer)) or isinstance(N, bool) or N < 2:
             raise ValueError(f"N must be an integer >= 2, got {N!r}")
-        if efforts not in EFFORTS:
+        if not isinstance(efforts, str) or efforts not in EFFORTS:
             raise ValueError(f"efforts must be one of {EFFORTS}, got {efforts!r}")
         n = robot.n
         self.robot = robot
@@ -273,7 +275,10 @@ class Problem(eqx.Module):
             if is_concrete(T_max) and not (float(T_max) > 0):
                 raise ValueError(f"T_max must be > 0 or None, got {T_max!r}")
             self.T_max = jnp.asarray(T_max, dtype=float)
-        if validate and all(is_concrete(x) for x in (self.q_start, self.q_goal, self.T_max)):
+        # the host-side checks need concrete values: skipped where any is traced (a
+        # solve then flags such a problem INVALID_INPUT instead, see infeasible_on_its_face)
+        if validate and all(is_concrete(x) for x in jax.tree.leaves(
+                (robot, self.q_start, self.q_goal, self.qd_start, self.qd_goal, self.T_max))):
             self._check_feasible()
 
     def via_samples(self) -> tuple[int, ...]:

@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _packing, _setup, _tracecache, ipm, lq
+from . import _packing, _setup, _tracecache, implicit, ipm, lq
 from ._compile import SOLVER_XLA_OPTIONS, supported_options
 from ._compile import solver_jit as _jit
 from ._math import log1p
@@ -1571,7 +1571,7 @@ def _solve_jit(problem, opts, transcription, init, warm, guess):
 
 
 def solve(problem: Problem, *, options: SolverOptions | None = None, transcription: str = "decoupled",
-          init: tuple[Any, Any] | None = None, warm: str = "full") -> Solution:
+          init: tuple[Any, Any] | None = None, warm: str = "full", on_failure: str = "nan") -> Solution:
     """Solve one trajectory problem; compiled once per robot type, shape and the options'
     structure (see :class:`SolverOptions`).
 
@@ -1598,8 +1598,18 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
             start's multipliers and penalty: right for a rough guess (a learned plan).
             The interior-point method (``options.method``) starts its barrier at ``init``
             either way.
+        on_failure: what derivatives of a solve that did not converge are (see
+            :mod:`jtraj.implicit`): "nan" (default) or "raise" (a run-time error when
+            the solve is differentiated, inside ``jit`` too).
+
+    ``jax.grad``, ``jax.jvp``, ``jax.jacobian``, ``jax.vmap`` and ``jax.jit`` work
+    through it: with traced array leaves in ``problem`` the derivatives of the
+    solution's q, qd, v, tau, h, T, cost, cost_terms and energy come from implicit
+    differentiation of the KKT conditions at the optimum (:mod:`jtraj.implicit`).
     """
     Transcription(transcription)  # validates the name
+    if on_failure not in ("nan", "raise"):
+        raise ValueError(f"on_failure must be 'nan' or 'raise', got {on_failure!r}")
     if not isinstance(problem, Problem):
         raise ValueError(f"problem must be a jtraj.Problem, got {type(problem).__name__}")
     _check_efforts(problem.efforts, transcription)
@@ -1615,6 +1625,8 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
         init = _placeholder_init(problem.N, Transcription(transcription).control_dim(problem))
     else:
         init = _check_init(problem, init, transcription)
+    if implicit.any_traced((problem, init)):  # inside jit / vmap / a derivative
+        return implicit.solve_traced(problem, opts, transcription, init, warm, guess, on_failure)
     sol = _solve_jit(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
     _setup.compiled(key)
     return sol
@@ -1669,6 +1681,8 @@ def _check_init(problem, init, transcription):
         raise ValueError(f"init[0] must have shape ({problem.N}, {m_u}), got {u.shape}")
     if h.shape != (problem.N,):
         raise ValueError(f"init[1] must have shape ({problem.N},), got {h.shape}")
+    if implicit.any_traced((u, h)):  # values checked only where concrete
+        return u, h
     if not (jnp.all(jnp.isfinite(u)) and jnp.all(jnp.isfinite(h))):
         raise ValueError("init must be finite")
     return u, h
@@ -2131,15 +2145,26 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch
     never raises for one bad sample); shapes and the robot are checked up front, and
     float64 as in :func:`solve`.
+
+    Derivatives (``jax.grad``, ``jax.jvp``, ``jax.jacobian``, under ``jit`` and ``vmap``
+    too) with respect to traced inputs (q_start, q_goal, boundary velocities, T_max,
+    the weights' and the robot's arrays) come per sample from :mod:`jtraj.implicit`;
+    a sample that did not converge gets zero derivatives
+    (:func:`jtraj.valid_derivatives` gives the mask). With concrete primal values (a
+    derivative outside ``jit``) the solve itself runs on the lane driver above; inside
+    ``jit`` or ``vmap`` it is one vmapped program.
     """
     from .robots import Robot
 
     if not isinstance(robot, Robot):
         raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
     n = robot.n
-    # the inputs on the host (NumPy): their checks and broadcasts dispatch no programs
-    q_start = np.asarray(q_start, float)
-    q_goal = np.asarray(q_goal, float)
+    traced = implicit.any_traced((robot, q_start, q_goal, qd_start, qd_goal, T_max, weights, init))
+    # the inputs on the host (NumPy): their checks and broadcasts dispatch no programs;
+    # traced inputs (jit, vmap, derivatives) stay arrays
+    xp = jnp if traced else np
+    q_start = xp.asarray(q_start, float)
+    q_goal = xp.asarray(q_goal, float)
     if q_start.ndim != 2 or q_start.shape[1] != n:
         raise ValueError(f"q_start must have shape (B, {n}), got {q_start.shape}")
     if q_goal.shape != q_start.shape:
@@ -2150,14 +2175,14 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
 
     def per_sample(x, name):
         if x is None:
-            return np.zeros((B, n))
-        x = np.asarray(x, float)
+            return xp.zeros((B, n))
+        x = xp.asarray(x, float)
         if x.shape not in ((), (n,), (B, n)):
             raise ValueError(f"{name} must be a scalar, ({n},) or ({B}, {n}), got shape {x.shape}")
-        return np.broadcast_to(x, (B, n))
+        return xp.broadcast_to(x, (B, n))
 
     qd_start, qd_goal = per_sample(qd_start, "qd_start"), per_sample(qd_goal, "qd_goal")
-    T_max = np.broadcast_to(np.asarray(np.inf if T_max is None else T_max, float), (B,))
+    T_max = xp.broadcast_to(xp.asarray(np.inf if T_max is None else T_max, float), (B,))
     Transcription(transcription)
     _check_efforts(efforts, transcription)
     opts = _resolve_method(options, transcription, robot)
@@ -2168,11 +2193,13 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     def make(a, b, c, d, t):
         return _problem(robot, a, b, c, d, t, N, weights, efforts)
 
-    problems = _problems_jit(robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts)
+    # (inside another trace: the programs without their XLA options, see implicit._nested)
+    problems = (implicit._nested(_problems_jit) if traced else _problems_jit)(
+        robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts)
     warm = init is not None
     if init is None:
         # non-finite samples get a finite placeholder guess; they are flagged invalid
-        init = _guess_batch_jit(problems, opts, transcription)
+        init = (implicit._nested(_guess_batch_jit) if traced else _guess_batch_jit)(problems, opts, transcription)
     else:
         m_u = Transcription(transcription).control_dim(make(q_start[0], q_goal[0], qd_start[0], qd_goal[0], T_max[0]))
         u, h = jnp.asarray(init[0], float), jnp.asarray(init[1], float)
@@ -2186,11 +2213,22 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
     if not isinstance(segment, int) or segment < 1:
         raise ValueError(f"segment must be a positive integer, got {segment!r}")
+    if traced or implicit.any_traced(init):  # derivatives per sample (jtraj.implicit)
+        return implicit.solve_batch_traced(problems, opts, transcription, init, warm, slots, segment)
+    sol = _solve_problems(problems, opts, transcription, init, warm, slots, segment)
+    _setup.compiled(key)
+    return sol
+
+
+def _solve_problems(problems, opts, transcription, init, warm: bool, slots, segment: int) -> Solution:
+    """:func:`solve_batch`'s solve of built problems (a batch of :class:`Problem`) from
+    ``init`` (arrays), by the host-driven lane driver (see ``slots`` there)."""
+    B = int(jax.tree.leaves(problems.q_start)[0].shape[0])
+    warm = bool(warm)
     if opts.method == "ip":
         sol = _solve_batch_ip(problems, opts, transcription, init, jax.device_put(warm), slots or B, segment)
     elif slots is not None and B > min(_lane_counts(slots)):
         sol = _solve_compacted(problems, opts, transcription, init, jax.device_put(warm), slots, segment)
     else:
         sol = _solve_batch_jit(problems, opts, transcription, init, jax.device_put(warm))
-    _setup.compiled(key)
     return sol

@@ -1,4 +1,4 @@
-"""jtraj.sensitivity: implicit differentiation of the optimum against re-solves.
+"""jtraj.sensitivity (a layer over jtraj.implicit) against re-solves.
 
 The comparison uses tight solver tolerances (1e-10): the optimal *cost* is insensitive
 to first-order errors in z (envelope theorem), but the optimal *T* is not, so central
@@ -44,7 +44,8 @@ def _check_against_resolves(base_solve, resolve):
     assert bool(base.converged), base.status_message
     d = sensitivity(problem, "masses", solution=base, options=TIGHT, details=True)
     assert d["cost"].shape == (3,) and d["T"].shape == (3,)
-    # envelope theorem and chain rule through dz*/dtheta agree
+    assert bool(d["solution"].converged)
+    # envelope theorem and chain rule through the implicit tangent agree
     np.testing.assert_allclose(d["cost"], d["cost_chain"], rtol=1e-4, atol=1e-9)
 
     m0 = np.asarray(problem.robot.masses)

@@ -11,6 +11,7 @@ import dataclasses
 import importlib
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -85,6 +86,15 @@ def with_params(robot: Robot, **overrides) -> Robot:
             if key not in limit_fields:
                 raise ValueError(f"override {key} cannot be None")
             limit_changes[key] = None
+            continue
+        if isinstance(value, jax.core.Tracer):  # traced (a derivative): its shape checked only
+            shape = np.shape(current) if current is not None else value.shape
+            if value.shape != shape:
+                raise ValueError(f"override {key} must have shape {shape}, got {value.shape}")
+            if key in limit_fields:
+                limit_changes[key] = value
+            else:
+                own_changes[key] = value
             continue
         try:
             arr = np.asarray(value, dtype=float)

@@ -76,9 +76,10 @@ class Limits(eqx.Module):
             return None if x is None else as_vector(x, name, n, allow_inf=True, **kw)
 
         lo, hi = vec(q_min, "q_min"), vec(q_max, "q_max")
-        if lo is not None and hi is not None and bool(jnp.any(lo >= hi)):
+        concrete = not any(isinstance(x, jax.core.Tracer) for x in (lo, hi, h_min, h_max))
+        if concrete and lo is not None and hi is not None and bool(jnp.any(lo >= hi)):
             raise ValueError(f"q_min must be < q_max element-wise, got {lo} and {hi}")
-        if not (0 < float(h_min) < float(h_max)):
+        if concrete and not (0 < float(h_min) < float(h_max)):
             raise ValueError(f"need 0 < h_min < h_max, got h_min={h_min}, h_max={h_max}")
         if workspace is not None:
             workspace = jnp.asarray(workspace, dtype=float)
@@ -95,7 +96,8 @@ class Limits(eqx.Module):
                                                            allow_inf=True),
             # 0-d (weakly typed) arrays, not Python floats: traced under jit, so robots that
             # differ only in their period bounds share one compiled solver
-            h_min=jnp.asarray(float(h_min)), h_max=jnp.asarray(float(h_max)), workspace=workspace,
+            h_min=h_min if isinstance(h_min, jax.core.Tracer) else jnp.asarray(float(h_min)),
+            h_max=h_max if isinstance(h_max, jax.core.Tracer) else jnp.asarray(float(h_max)), workspace=workspace,
         )
 
 

@@ -1,0 +1,255 @@
+"""Derivatives through jtraj.solve / solve_batch (jtraj.implicit) against central finite
+differences of warm re-solves.
+
+The re-solves use the AL method at tight tolerances (1e-10): the interior-point method
+ends at its own ``ip_tol`` (a barrier parameter of 1e-8, variables up to 1e-4 inside a
+bound they press on), which limits central differences of T to about 1e-3 relative.
+Every test solves serial3 at N = 10 with the same options, so they share one compiled
+solver and one compiled tangent program. Agreement: 1e-5 relative (plus a small absolute
+floor for entries near zero).
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jtraj
+from jtraj.implicit import valid_derivatives
+
+START, GOAL = np.array((0.2, -0.3, 0.4)), np.array((0.3, -0.2, 0.3))
+WEIGHTS = dict(time=1.0, energy=0.1)
+TIGHT = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=1000, method="al")
+ROBOT = jtraj.robots.get("serial3")
+N = 10
+
+
+def _problem(robot=ROBOT, q_start=START, q_goal=GOAL, weights=None, **kw):
+    w = jtraj.Weights(**WEIGHTS) if weights is None else weights
+    return jtraj.Problem(robot, q_start, q_goal, N=N, weights=w, **kw)
+
+
+@pytest.fixture(scope="module")
+def base():
+    sol = jtraj.solve(_problem(), options=TIGHT)
+    assert bool(sol.converged), sol.status_message
+    return sol
+
+
+def _fd(make, x0, out, base, rel=1e-5, absolute=None, options=TIGHT):
+    """Central differences of out(solve(make(x))) in each entry of x0 (warm re-solves)."""
+    x0 = np.asarray(x0, float)
+    cols = []
+    for i in range(x0.size):
+        step = absolute if absolute is not None else rel * max(abs(x0.flat[i]), 1e-3)
+        vals = []
+        for sign in (1.0, -1.0):
+            x = x0.copy()
+            x.flat[i] += sign * step
+            s = jtraj.solve(make(x), options=options, init=(base.v, base.h))
+            assert bool(s.converged), s.status_message
+            vals.append(np.asarray(out(s)))
+        cols.append((vals[0] - vals[1]) / (2 * step))
+    return np.stack(cols, axis=-1).reshape(np.shape(out(base)) + x0.shape)
+
+
+def _close(a, b, rtol=1e-5, floor=1e-7):
+    a, b = np.asarray(a), np.asarray(b)
+    scale = np.max(np.abs(b))
+    np.testing.assert_allclose(a, b, rtol=rtol, atol=floor + rtol * 1e-2 * scale)
+
+
+def test_grad_of_T_and_cost_wrt_goal(base):
+    def f(g):
+        s = jtraj.solve(_problem(q_goal=g), options=TIGHT)
+        return s.T, s.cost
+
+    (gT, gc) = [jax.grad(lambda g, i=i: f(g)[i])(jnp.asarray(GOAL)) for i in range(2)]
+    fd = _fd(lambda g: _problem(q_goal=g), GOAL, lambda s: np.array([s.T, s.cost]), base, absolute=1e-5)
+    _close(gT, fd[0])
+    _close(gc, fd[1])
+
+
+@pytest.mark.slow  # jacfwd batches the tangent program: one more compilation
+def test_jacobian_of_q_and_h_wrt_start_forward_and_reverse(base):
+    def f(q0):
+        s = jtraj.solve(_problem(q_start=q0), options=TIGHT)
+        return s.q, s.h
+
+    Jq_f, Jh_f = jax.jacfwd(f)(jnp.asarray(START))
+    Jq_r, Jh_r = jax.jacrev(f)(jnp.asarray(START))
+    np.testing.assert_allclose(Jq_f, Jq_r, rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(Jh_f, Jh_r, rtol=1e-9, atol=1e-11)
+    # the periods of re-solves carry ~5e-9 of noise at these tolerances: a step of 1e-4
+    fd_h = _fd(lambda q0: _problem(q_start=q0), START, lambda s: s.h, base, absolute=1e-4)
+    _close(Jh_f, fd_h, rtol=1e-4, floor=5e-5)
+    fd_q = _fd(lambda q0: _problem(q_start=q0), START, lambda s: s.q, base, absolute=1e-4)
+    _close(Jq_f, fd_q, rtol=1e-4, floor=5e-5)
+
+
+def test_jvp_wrt_weights_and_mass(base):
+    """Forward mode along a direction that moves the weights and a link mass at once."""
+    p0 = _problem()
+
+    def out(p):
+        s = jtraj.solve(p, options=TIGHT)
+        return jnp.stack([s.T, s.cost, s.energy])
+
+    direction = jax.tree.map(jnp.zeros_like, eqx.filter(p0, eqx.is_inexact_array))
+    direction = eqx.tree_at(lambda p: (p.weights.time, p.weights.energy, p.robot.masses), direction,
+                            (jnp.asarray(0.5), jnp.asarray(0.02), jnp.array([0.0, 1.0, 0.0])))
+    dyn, static = eqx.partition(p0, eqx.is_inexact_array)
+    _, tangent = jax.jvp(lambda d: out(eqx.combine(d, static)), (dyn,), (direction,))
+
+    def make(t):
+        t = float(t[0])
+        robot = jtraj.robots.get("serial3", masses=np.asarray(ROBOT.masses) + t * np.array([0.0, 1.0, 0.0]))
+        return _problem(robot=robot, weights=jtraj.Weights(time=1.0 + 0.5 * t, energy=0.1 + 0.02 * t))
+
+    # T and the energy are not stationary at the optimum: re-solve noise (~1e-9) needs a
+    # longer step than the cost's
+    fd = _fd(make, [0.0], lambda s: np.array([s.T, s.cost, s.energy]), base, absolute=1e-3)[:, 0]
+    _close(tangent, fd, rtol=1e-4)
+
+
+def test_grad_wrt_torque_limit_and_binding_T_max(base):
+    T_max = 0.998 * float(base.T)
+    opts = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-8, max_iter=3000, method="al")
+
+    def f(tau_max, t_max):
+        robot = eqx.tree_at(lambda r: r.limits.tau_max, ROBOT, tau_max)
+        s = jtraj.solve(_problem(robot=robot, T_max=t_max), options=opts)
+        return s.cost
+
+    tau0 = np.asarray(ROBOT.limits.tau_max)
+    g_tau, g_T = jax.grad(f, argnums=(0, 1))(jnp.asarray(tau0), jnp.asarray(T_max))
+    ref = jtraj.solve(_problem(T_max=T_max), options=opts)
+    assert bool(ref.converged), ref.status_message
+    assert abs(float(ref.T) - T_max) < 1e-8  # the bound is binding
+    fd_tau = _fd(lambda t: _problem(robot=jtraj.robots.get("serial3", tau_max=t), T_max=T_max), tau0,
+                 lambda s: s.cost, ref, options=opts)
+    fd_T = _fd(lambda t: _problem(T_max=float(t[0])), [T_max], lambda s: s.cost, ref, options=opts)[0]
+    _close(g_tau, fd_tau)
+    _close(g_T, fd_T)
+
+
+@pytest.mark.slow  # the whole solver compiled inside an outer jit: minutes
+def test_jit_of_the_whole_equals_eager(base):
+    def f(g):
+        return jtraj.solve(_problem(q_goal=g), options=TIGHT).T
+
+    g = jnp.asarray(GOAL)
+    np.testing.assert_allclose(jax.jit(jax.grad(f))(g), jax.grad(f)(g), rtol=1e-7)
+    np.testing.assert_allclose(jax.jit(f)(g), base.T, rtol=1e-9)
+
+
+def test_unconverged_single_solve_gives_nan_or_raises():
+    short = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2, method="al",
+                                restart_iter=0)
+
+    def f(g, mode="nan"):
+        s = jtraj.solve(_problem(q_goal=g), options=short, on_failure=mode)
+        return s.T
+
+    g = jax.grad(f)(jnp.asarray(GOAL))
+    assert np.all(np.isnan(g))
+    _, t = jax.jvp(f, (jnp.asarray(GOAL),), (jnp.ones(3),))
+    assert np.isnan(t)
+    with pytest.raises(Exception, match="did not converge"):
+        jax.block_until_ready(jax.grad(lambda g: f(g, "raise"))(jnp.asarray(GOAL)))
+
+
+def test_static_inputs_are_refused_when_traced():
+    with pytest.raises(ValueError, match="N"):
+        jax.grad(lambda n: jtraj.Problem(ROBOT, START, GOAL, N=n).T_max)(3.0)
+    with pytest.raises(ValueError, match="on_failure"):
+        jtraj.solve(_problem(), on_failure="zero")
+
+
+@pytest.mark.slow  # a vmapped solver and a vmapped tangent program: minutes of compilation
+def test_batch_derivatives_equal_per_sample_and_flag_failures(base):
+    goals = np.stack([GOAL, GOAL + np.array([0.05, -0.02, 0.01]), GOAL])
+    short_T = np.array([np.inf, np.inf, 0.2])  # the last one cannot make it: infeasible
+
+    def total_T(g):
+        s = jtraj.solve_batch(ROBOT, np.broadcast_to(START, g.shape), g, N=N, weights=jtraj.Weights(**WEIGHTS),
+                              T_max=short_T, options=TIGHT, slots=None)
+        return jnp.sum(jnp.where(valid_derivatives(s), s.T, 0.0)), s
+
+    (_, sol), grads = jax.value_and_grad(total_T, has_aux=True)(jnp.asarray(goals))
+    mask = np.asarray(valid_derivatives(sol))
+    assert mask.tolist() == [True, True, False]
+    assert np.all(grads[2] == 0) and np.all(np.isfinite(grads))
+
+    def one(g):
+        return jtraj.solve(_problem(q_goal=g), options=TIGHT).T
+
+    per = np.stack([jax.grad(one)(jnp.asarray(g)) for g in goals[:2]])
+    np.testing.assert_allclose(grads[:2], per, rtol=1e-6, atol=1e-9)
+    fd = _fd(lambda g: _problem(q_goal=g), goals[1], lambda s: s.T, base, absolute=1e-5)
+    _close(grads[1], fd)
+
+
+@pytest.mark.slow  # the whole solver vmapped inside the derivative's trace: minutes
+def test_vmap_of_grad_equals_per_sample_grad():
+    goals = np.stack([GOAL, GOAL + np.array([0.05, -0.02, 0.01])])
+
+    def one(g):
+        return jtraj.solve(_problem(q_goal=g), options=TIGHT).T
+
+    per = np.stack([jax.grad(one)(jnp.asarray(g)) for g in goals])
+    vm = jax.vmap(jax.grad(one))(jnp.asarray(goals))
+    np.testing.assert_allclose(vm, per, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_via_point_position_and_tolerance():
+    p_mid = np.asarray(ROBOT.forward_kinematics(jnp.asarray((START + GOAL) / 2))) + np.array([0.01, 0.0])
+
+    def make(x):
+        x = np.asarray(x, float)
+        return _problem(via_points=[jtraj.ViaPoint(point=x[:2], tol=x[2])])
+
+    x0 = np.r_[p_mid, 1e-3]
+    base = jtraj.solve(make(x0), options=TIGHT)
+    assert bool(base.converged), base.status_message
+
+    def f(x):
+        return jtraj.solve(_problem(via_points=[jtraj.ViaPoint(point=x[:2], tol=x[2])]), options=TIGHT).T
+
+    g = jax.grad(f)(jnp.asarray(x0))
+    fd = _fd(make, x0, lambda s: s.T, base)
+    _close(g, fd, rtol=1e-4)
+
+
+@pytest.mark.slow
+def test_path_constrained_robot_pkm2():
+    robot = jtraj.robots.get("pkm2")
+    q0 = np.asarray(robot.limits.q_min) * 0.5 + np.asarray(robot.limits.q_max) * 0.5
+    lo, hi = np.asarray(robot.limits.q_min), np.asarray(robot.limits.q_max)
+    qs, qg = q0 - 0.1 * (hi - lo), q0 + 0.1 * (hi - lo)
+
+    def make(g):
+        return jtraj.Problem(robot, qs, np.asarray(g), N=N, weights=jtraj.Weights(**WEIGHTS))
+
+    base = jtraj.solve(make(qg), options=TIGHT)
+    assert bool(base.converged), base.status_message
+    g = jax.grad(lambda x: jtraj.solve(make(x), options=TIGHT).cost)(jnp.asarray(qg))
+    fd = _fd(make, qg, lambda s: s.cost, base, absolute=1e-6)
+    _close(g, fd, rtol=1e-4)
+
+
+def test_grad_wrt_masses_through_robots_get(base):
+    """The masses traced through ``robots.get(..., masses=m)`` (host checks skipped)."""
+    m0 = np.asarray(ROBOT.masses)
+
+    def f(m):
+        s = jtraj.solve(_problem(robot=jtraj.robots.get("serial3", masses=m)), options=TIGHT)
+        return jnp.stack([s.cost, s.T])
+
+    J = jax.jacrev(f)(jnp.asarray(m0))
+    fd = _fd(lambda m: _problem(robot=jtraj.robots.get("serial3", masses=m)), m0,
+             lambda s: np.array([s.cost, s.T]), base, rel=1e-4)
+    _close(J[0], fd[0])
+    _close(J[1], fd[1], rtol=1e-4)
