@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _packing, _tracecache, ipm, lq
+from . import _packing, _resources, _tracecache, ipm, lq
 from ._compile import SOLVER_XLA_OPTIONS, supported_options
 from ._compile import solver_jit as _jit
 from ._math import log1p
@@ -117,8 +117,11 @@ class SolverOptions(eqx.Module):
             (on 96 serial3 dataset pairs: 15 -> 57, 25 -> 70, 40 -> 76, 60 -> 82 of the
             88 IPOPT-feasible pairs converged, same mean iterations for 40 and 60).
         tol_optimality: target on the projected gradient of the augmented Lagrangian in
-            the scaled variables z (accelerations / qdd_max, h / (h_max / 4)), and on the
-            certificate's KKT error (``Solution.kkt_error``). Measured (2 cores) on the 256
+            the scaled variables z (accelerations / qdd_max, h / (h_max / 4)), on the
+            interior-point method's dual and complementarity parts (caps ``ip_dual_tol``
+            and ``ip_compl_tol``), and on the certificate's KKT error: a converged
+            solution's ``Solution.kkt_error`` is at most ``max(tol_optimality, ip_tol)``.
+            Measured (2 cores) on the 256
             pairs of bench_solver (IPOPT verified 231), 1e-4 / 3e-4 / 1e-3: converged
             228 / 231 / 230, Newton iterations 35,955 / 32,555 / 29,245, cost above
             IPOPT's median +0.0054 / +0.012 / +0.021 %, 99th percentile +0.084 / +0.17 /
@@ -1575,12 +1578,18 @@ class Solution(eqx.Module):
         status: int code of :class:`Status`; iterations: Newton iterations;
         outer_iterations: multiplier updates;
         history: (max_outer, 3) per outer iteration: cost, violation, penalty (NaN-padded).
-        kkt_error: first-order optimality error of the original problem at the returned
-            trajectory (projected gradient of the Lagrangian with least-squares
-            multipliers, and complementarity; units of ``SolverOptions.tol_optimality``).
-            A ``FEASIBLE_NOT_OPTIMAL`` result says here how far it is from certified; a
-            converged one was certified either by it or by the AL loop's own stationarity
-            test at the end of a subproblem.
+        kkt_error: first-order optimality error, in the scaled variables z (units of
+            ``SolverOptions.tol_optimality``): the smallest of (a) the projected gradient
+            of the Lagrangian and the complementarity at the returned trajectory, with
+            the solver's own multipliers or, after the AL loop, least-squares ones, and
+            (b) for a certified point, the value of the test that certified it: the AL
+            loop's stationarity test (the AL's projected gradient at the end of its last
+            subproblem, before the final polish) or the interior-point method's
+            (IPOPT's scaled dual infeasibility and complementarity, divided by
+            ``s_d = max(1, mean |multiplier| / 100)``, at its last iterate before its
+            active bounds are snapped on). Every ``CONVERGED`` solution reports at most
+            ``max(tol_optimality, ip_tol)`` (``tol_optimality`` at the defaults); a
+            ``FEASIBLE_NOT_OPTIMAL`` one says how far (a) is from it.
     """
 
     q: Array
@@ -1690,7 +1699,8 @@ def _ip_result(nlp: _NLP, state: _State, ip) -> _State:
     snapped = ipm.snap_to_bounds(nlp, ip)
     keep = _violation(*nlp.constraints(snapped)) <= jnp.maximum(1e-7, _violation(*nlp.constraints(ip.z)))
     return state._replace(z=jnp.where(keep, snapped, ip.z), mult=ipm.multipliers(nlp, ip), done=solved,
-                          stalled=~solved, it=ip.it, stationarity=jnp.zeros_like(state.stationarity))
+                          stalled=~solved, it=ip.it,
+                          stationarity=jnp.where(solved, ip.certified, jnp.inf).astype(state.stationarity.dtype))
 
 
 def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> Solution:
@@ -1704,8 +1714,12 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> So
     needs it, so :func:`_finish_lanes` groups the light problems together."""
     nlp = _with_phase(nlp, s)
     problem, tr = nlp.problem, nlp.tr
+    # a Python True (one interior-point result, :mod:`jtraj._staged`): neither the polish
+    # nor the least-squares KKT error is in the program
+    static_light = light is True
     light = jnp.asarray(light)
-    s = s._replace(z=_final_polish(nlp, s.z, opts, skip=light))
+    if not static_light:
+        s = s._replace(z=_final_polish(nlp, s.z, opts, skip=light))
     _, h = nlp.layout.unpack(s.z)
     W = nlp.W(s.z)
     q, qd, c, _ = jax.vmap(lambda w: tr.split_stage(problem, w))(W)
@@ -1740,8 +1754,11 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> So
     # the loop certifies optimality on the AL's own measure at the end of a subproblem;
     # a point it left uncertified (iteration limit) may still be a KKT point of the
     # original problem: the KKT error with the best of three multiplier estimates decides
-    kkt_ls = _at_most_once(~light, lambda zz: _kkt_error(nlp, zz), s.z, fill=jnp.inf)
-    kkt = jnp.minimum(kkt_ls, _al_kkt_error(nlp, s.z, s.mult, s.mu))
+    kkt = _al_kkt_error(nlp, s.z, s.mult, s.mu)
+    if not static_light:
+        kkt = jnp.minimum(_at_most_once(~light, lambda zz: _kkt_error(nlp, zz), s.z, fill=jnp.inf), kkt)
+    # a certified point reports at most its certifying test's value (Solution.kkt_error)
+    kkt = jnp.minimum(kkt, jnp.where(s.done & ~s.failed, s.stationarity, jnp.inf))
     certified = s.done | (kkt <= opts.tol_optimality)
     unfinished = jnp.where(s.stalled, Status.LIKELY_INFEASIBLE, Status.MAX_ITERATIONS)
     status = jnp.where(
@@ -1804,7 +1821,18 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
         init = _placeholder_init(problem.N, Transcription(transcription).control_dim(problem))
     else:
         init = _check_init(problem, init, transcription)
+    _resources.check(problem.N, problem.robot.n)  # ValueError naming N beyond the memory limit
+    if not _traced(problem, init):  # concrete arrays: the programs a problem needs, in stages
+        from . import _staged
+
+        return _staged.solve(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
     return _solve_jit(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
+
+
+def _traced(*trees) -> bool:
+    """Whether a leaf of ``trees`` is a tracer (a solve inside an outer jit, vmap or grad):
+    then the solve is one traced program (:func:`_solve_jit`)."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trees))
 
 
 @functools.lru_cache(maxsize=16)
@@ -2372,6 +2400,13 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     def make(a, b, c, d, t):
         return _problem(robot, a, b, c, d, t, N, weights, efforts)
 
+    if slots == "auto":
+        slots = _cpu_lanes(N * (n + 1)) if jax.default_backend() == "cpu" else 1024
+    if slots is not None and (not isinstance(slots, int) or isinstance(slots, bool) or slots < 1):
+        raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
+    if not isinstance(segment, int) or segment < 1:
+        raise ValueError(f"segment must be a positive integer, got {segment!r}")
+    _resources.check(N, n, B, lanes=slots or B)  # ValueError naming N or B beyond the memory limit
     problems = _problems_jit(robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts)
     warm = init is not None
     if init is None:
@@ -2384,12 +2419,6 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
             raise ValueError(f"init must be (u (B, N, {m_u}), h (B, N)) = ({(B, N, m_u)}, {(B, N)}), "
                              f"got ({u.shape}, {h.shape})")
         init = (u, h)
-    if slots == "auto":
-        slots = _cpu_lanes(N * (n + 1)) if jax.default_backend() == "cpu" else 1024
-    if slots is not None and (not isinstance(slots, int) or isinstance(slots, bool) or slots < 1):
-        raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
-    if not isinstance(segment, int) or segment < 1:
-        raise ValueError(f"segment must be a positive integer, got {segment!r}")
     if opts.method == "ip":
         return _solve_batch_ip(problems, opts, transcription, init, jax.device_put(warm), slots or B, segment)
     if slots is not None and B > min(_lane_counts(slots)):
