@@ -3,7 +3,15 @@ HLO sizes of the single-problem solve and of its pieces (serial3 quick-start pro
 
 Run in a fresh process with private caches, e.g.::
 
-    JTRAJ_NATIVE_DIR=$(mktemp -d) python benchmarks/profile_compile.py --pieces
+    JTRAJ_NATIVE_DIR=$(mktemp -d) python benchmarks/profile_compile.py --full --staged --pieces
+
+``--full``: the single traced program (``jtraj.solver._solve_jit``, what a solve under
+an outer jit runs); ``--staged``: the two programs of a concrete single solve
+(:mod:`jtraj._staged`), at their own optimisation level and, for comparison, the
+interior-point one at XLA's default; ``--pieces``: the parts of the single program
+compiled apart. Each program is traced and lowered by ``jax.jit`` in this process (the
+first trace of a process also pays JAX's one-time set-up), then compiled; HLO ops
+counts the instructions of the optimised module.
 """
 
 from __future__ import annotations
@@ -54,6 +62,7 @@ def main():
     ap.add_argument("--N", type=int, default=20)
     ap.add_argument("--pieces", action="store_true")
     ap.add_argument("--full", action="store_true")
+    ap.add_argument("--staged", action="store_true", help="the staged single solve's two programs")
     args = ap.parse_args()
     t0 = time.perf_counter()
     import jax.numpy as jnp
@@ -80,6 +89,24 @@ def main():
             o = solver._TracedOptions(split)
             return solver._solve_jit.__wrapped__(problem, o, "decoupled", init, np.bool_(False), np.bool_(True))
         measure("full _solve_jit", full, problem, split, init, options=xla)
+
+    if args.staged:
+        from jtraj import _staged
+        from jtraj._compile import single_solve_options
+
+        staged = supported_options(single_solve_options())
+        yes, no = np.bool_(True), np.bool_(False)
+
+        def ip_program(problem, split, init):
+            return _staged._solve_ip_jit.__wrapped__(problem, solver._TracedOptions(split), "decoupled", init, no, yes)
+
+        def al_program(problem, split, init):
+            return _staged._solve_al_jit.__wrapped__(problem, solver._TracedOptions(split), "decoupled", init, no, yes,
+                                                     None)
+        measure("staged: interior point", ip_program, problem, split, init, options=staged)
+        measure("staged: AL fallback", al_program, problem, split, init, options=staged)
+        if "xla_backend_optimization_level" in staged:
+            measure("staged: interior point, O3", ip_program, problem, split, init, options=xla)
 
     if args.pieces:
         def prep(problem, split):

@@ -51,7 +51,7 @@ import numpy as np
 from jaxtyping import Array
 
 from . import _packing, _resources, _tracecache, ipm, lq
-from ._compile import SOLVER_XLA_OPTIONS, supported_options
+from ._compile import SOLVER_XLA_OPTIONS, cpu_jit, supported_options
 from ._compile import solver_jit as _jit
 from ._math import log1p
 from .problem import Problem, Weights
@@ -549,23 +549,25 @@ def _split_cached(opts: SolverOptions, _width) -> _SplitOptions:
     return _SplitOptions(static=dataclasses.replace(opts, **static), values=values)
 
 
-def _options_jit():
+def _options_jit(xla_options: dict | None = None):
     """Like the solver's jit decorator (:func:`jtraj._compile.solver_jit`), but every
     :class:`SolverOptions` argument crosses the boundary split by :func:`_split_options`
     and is read inside as :class:`_TracedOptions`. On a CPU the traced program is kept
-    across processes where the compilation cache is on (:mod:`jtraj._tracecache`)."""
+    across processes where the compilation cache is on (:mod:`jtraj._tracecache`).
+    ``xla_options``: the XLA CPU options (default ``SOLVER_XLA_OPTIONS``)."""
+    xla_options = SOLVER_XLA_OPTIONS if xla_options is None else xla_options
 
     def decorate(fn):
         def unsplit(*args):
             return fn(*(_TracedOptions(a) if isinstance(a, _SplitOptions) else a for a in args))
 
-        inner = _jit(functools.wraps(fn)(unsplit))
+        inner = (_jit if xla_options is SOLVER_XLA_OPTIONS else cpu_jit(xla_options))(functools.wraps(fn)(unsplit))
 
         @functools.lru_cache(maxsize=1)
         def kept():
             # the solver's programs kept across processes (jtraj._tracecache), on a CPU
             return _tracecache.cached(fn.__qualname__, unsplit, f"{fn.__module__}.{fn.__qualname__}",
-                                      supported_options(SOLVER_XLA_OPTIONS), fallback=inner, lean=True)
+                                      supported_options(xla_options), fallback=inner, lean=True)
 
         @functools.wraps(fn)
         def call(*args):
