@@ -20,17 +20,22 @@ from __future__ import annotations
 import os
 from typing import NamedTuple
 
-#: bytes of a process that has imported JAX and jtraj and compiled the solver
+#: bytes of a process that has imported JAX and jtraj and compiled the solver (one
+#: interior-point solve of serial3 peaks at 0.48-0.52 GiB from N = 20 to N = 1,000,
+#: ``benchmarks/bench_memory.py``)
 _BASE = 0.6 * 2**30
-#: per problem solved at once: bytes per N^2 (n + 1)^2 (the measured peak of one solve
-#: of serial3 at N = 160 .. 1,000, fallback programs included, with a margin)
-_QUADRATIC = 24.0
+#: per problem solved at once: bytes per N^2 (n + 1)^2, sized for the AL fallback and
+#: the final polish (the dense Jacobian of ~4n N constraint rows by N (n + 1) variables,
+#: in three copies, and two normal matrices of N (n + 1) squared, in float64: about 90
+#: such bytes), with a margin for the forward-mode tangents that build them
+_QUADRATIC = 128.0
 #: per problem stored (a batch keeps every problem's state): bytes per N (n + 1)
 _LINEAR = 4096.0
-#: HLO instructions of the solver's programs (the interior-point program and the
-#: fallback's) per joint, and a joint-independent part (serial3: about 11,000 + 19,000)
-_OPS_PER_JOINT = 7000
-_OPS_BASE = 9000
+#: HLO instructions of a single solve's two programs (the interior-point one and the AL
+#: fallback's), taken as proportional to the number of joints (the dynamics are unrolled
+#: per joint; measured on serial3 only: about 30,000 at n = 3, for any N)
+_OPS_PER_JOINT = 10000
+_OPS_BASE = 0
 
 
 class Estimate(NamedTuple):
