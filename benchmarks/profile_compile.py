@@ -7,8 +7,8 @@ Run in a fresh process with private caches, e.g.::
 
 ``--full``: the single traced program (``jtraj.solver._solve_jit``, what a solve under
 an outer jit runs); ``--staged``: the two programs of a concrete single solve
-(:mod:`jtraj._staged`), at their own optimisation level and, for comparison, the
-interior-point one at XLA's default; ``--pieces``: the parts of the single program
+(:mod:`jtraj._staged`), and the interior-point one again at XLA's LLVM optimisation
+level 1 (see ``bench_opt_level.py``); ``--pieces``: the parts of the single program
 compiled apart. Each program is traced and lowered by ``jax.jit`` in this process (the
 first trace of a process also pays JAX's one-time set-up), then compiled; HLO ops
 counts the instructions of the optimised module.
@@ -92,9 +92,7 @@ def main():
 
     if args.staged:
         from jtraj import _staged
-        from jtraj._compile import single_solve_options
-
-        staged = supported_options(single_solve_options())
+        staged = supported_options({**SOLVER_XLA_OPTIONS, "xla_backend_optimization_level": 1})
         yes, no = np.bool_(True), np.bool_(False)
 
         def ip_program(problem, split, init):
@@ -103,10 +101,10 @@ def main():
         def al_program(problem, split, init):
             return _staged._solve_al_jit.__wrapped__(problem, solver._TracedOptions(split), "decoupled", init, no, yes,
                                                      None)
-        measure("staged: interior point", ip_program, problem, split, init, options=staged)
-        measure("staged: AL fallback", al_program, problem, split, init, options=staged)
+        measure("staged: interior point", ip_program, problem, split, init, options=xla)
+        measure("staged: AL fallback", al_program, problem, split, init, options=xla)
         if "xla_backend_optimization_level" in staged:
-            measure("staged: interior point, O3", ip_program, problem, split, init, options=xla)
+            measure("staged: interior point, O1", ip_program, problem, split, init, options=staged)
 
     if args.pieces:
         def prep(problem, split):

@@ -4,7 +4,6 @@ solver's (used by :mod:`jtraj.solver` and :mod:`jtraj.sensitivity`)."""
 from __future__ import annotations
 
 import functools
-import os
 from typing import Any, Callable
 
 import equinox as eqx
@@ -64,18 +63,10 @@ def cpu_jit(options: dict[str, Any], **jit_kwargs) -> Callable[[Callable], Calla
 #   far above the work of these 3 x 3 to 20 x 20 operations: one Newton iteration of 8
 #   serial3 lanes spent about a quarter of its time in 38 such calls; see the README's
 #   "Against CasADi + IPOPT" for the measured gain).
+# XLA's default LLVM optimisation level stays: level 0 compiles the interior-point
+# program (serial3, N = 20) in about half the time but runs it 2.5x slower; levels 1 to
+# 3 run it alike and their compile times differ by less than a shared 2-core machine's
+# noise (``benchmarks/bench_opt_level.py``, ``benchmarks/profile_compile.py --staged``).
 SOLVER_XLA_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": ""}
 solver_jit = cpu_jit(SOLVER_XLA_OPTIONS)
 
-
-def single_solve_options() -> dict[str, Any]:
-    """The XLA CPU options of a single solve's programs (:mod:`jtraj._staged`): the
-    solver's, at LLVM optimisation level 1 unless ``XLA_FLAGS`` sets a level. A single
-    solve's time is mostly its first compilation: serial3 at N = 20, level 1 compiles the
-    interior-point program in about three quarters of level 3's time (the default) and
-    runs it as fast (``benchmarks/bench_opt_level.py``); level 0 compiles in less than
-    half the time but runs 2.5x slower. Batches keep the default level (their programs
-    run for longer)."""
-    if "xla_backend_optimization_level" in os.environ.get("XLA_FLAGS", ""):
-        return SOLVER_XLA_OPTIONS
-    return {**SOLVER_XLA_OPTIONS, "xla_backend_optimization_level": 1}

@@ -26,7 +26,6 @@ import dataclasses
 
 import jax
 
-from ._compile import single_solve_options
 from .solver import (Solution, _finish, _ip_result, _ip_run, _ip_solved, _options_jit, _prepare, _run_with_restart,
                      _static, initial_guess)
 from .transcription import Transcription
@@ -38,7 +37,7 @@ def _start(problem, opts, transcription, init, warm, guess):
     return _prepare(problem, opts, tr, init, warm)
 
 
-@_options_jit(single_solve_options())
+@_options_jit()
 def _solve_ip_jit(problem, opts, transcription, init, warm, guess):
     """(Solution, decided, interior-point iterations): the solution is the one to return
     where ``decided`` (see :func:`jtraj.solver._ip_solved`)."""
@@ -48,7 +47,7 @@ def _solve_ip_jit(problem, opts, transcription, init, warm, guess):
     return sol, _ip_solved(state, ip), ip.it
 
 
-@_options_jit(single_solve_options())
+@_options_jit()
 def _solve_al_jit(problem, opts, transcription, init, warm, guess, ip_iterations):
     """The augmented-Lagrangian solve from the start, its iterations counted after
     ``ip_iterations`` (an interior-point run's that left the problem undecided; None:
