@@ -153,6 +153,9 @@ class IPState(NamedTuple):
     infeasible: Array  # ... at the first barrier parameter, far from feasible
     projections: Array  # closing steps taken (see _PROJECT_SHIFT)
     damping: Array  # the damping shift (see _DAMP_FLOOR)
+    #: where done: the scaled dual infeasibility and complementarity (:func:`_errors`'
+    #: larger one) of the iterate the convergence test certified; inf before
+    certified: Array
 
 
 def _flat(tree):
@@ -233,7 +236,7 @@ def init(nlp, z0, mu0=_MU0) -> IPState:
         th_min=1e-4 * jnp.maximum(1.0, th0), th_max=1e4 * jnp.maximum(1.0, th0),
         delta=jnp.asarray(1.0, dt), th_ref=jnp.asarray(jnp.inf, dt), it=jnp.asarray(0), done=jnp.asarray(False),
         failed=jnp.asarray(False), stalled=jnp.asarray(False), infeasible=jnp.asarray(False),
-        projections=jnp.asarray(0), damping=jnp.asarray(0.0, dt))
+        projections=jnp.asarray(0), damping=jnp.asarray(0.0, dt), certified=jnp.asarray(jnp.inf, dt))
 
 
 def _z_to_stages(v, N, n):
@@ -588,7 +591,7 @@ def step(nlp, st: IPState, tol) -> IPState:
         zu=jnp.where(has_hi, guard(st.zu + ad * dzu, du1), 0.0), mu=mu, filt=filt, fi=fi,
         th_min=st.th_min, th_max=st.th_max, delta=delta, th_ref=st.th_ref,
         it=st.it + 1, done=st.done, failed=st.failed, stalled=st.stalled, infeasible=st.infeasible,
-        projections=st.projections + project, damping=damping)
+        projections=st.projections + project, damping=damping, certified=st.certified)
     failed = ~(jnp.all(jnp.isfinite(new.z)) & jnp.all(jnp.isfinite(new.y)) & jnp.all(jnp.isfinite(new.lam)))
     new = new._replace(failed=failed)
     checkpoint = (st.it % _STALL_WINDOW == 0) & (st.it > 0)
@@ -596,7 +599,9 @@ def step(nlp, st: IPState, tol) -> IPState:
     stalled = (stuck | (checkpoint & (st.it >= 2 * _STALL_WINDOW) & (th0 > 0.99 * st.th_ref) & far)) & ~converged
     new = new._replace(th_ref=jnp.where(checkpoint, th0, st.th_ref), stalled=stalled,
                        infeasible=stalled & (st.mu >= _MU0) & (th0 > _INFEASIBLE_THETA))
-    return jax.tree.map(lambda old, nw: jnp.where(stop, old, nw), st._replace(done=st.done | converged), new)
+    certified = jnp.where(converged & ~st.done, jnp.maximum(e_d, e_c), st.certified)
+    return jax.tree.map(lambda old, nw: jnp.where(stop, old, nw),
+                        st._replace(done=st.done | converged, certified=certified), new)
 
 
 def finished(st: IPState, max_iter) -> Array:

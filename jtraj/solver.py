@@ -50,8 +50,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _packing, _setup, _tracecache, implicit, ipm, lq
-from ._compile import SOLVER_XLA_OPTIONS, supported_options
+from . import _packing, _resources, _setup, _tracecache, implicit, ipm, lq
+from ._compile import SOLVER_XLA_OPTIONS, cpu_jit, supported_options
 from ._compile import solver_jit as _jit
 from ._math import log1p
 from .problem import Problem, Weights, orientation_error
@@ -118,8 +118,10 @@ class SolverOptions(eqx.Module):
         max_inner: Newton iterations per AL subproblem before a forced outer update
             (default 60; fewer lose converged pairs, more gain nothing).
         tol_optimality: target on the projected gradient of the augmented Lagrangian in
-            the scaled variables and on the certificate's KKT error
-            (``Solution.kkt_error``) (default 3e-4). Ask for 1e-4 or less where the last
+            the scaled variables, on the interior-point method's dual and complementarity
+            parts (caps ``ip_dual_tol`` and ``ip_compl_tol``) and on the certificate's KKT
+            error: a converged solution's ``Solution.kkt_error`` is at most
+            ``max(tol_optimality, ip_tol)`` (default 3e-4). Ask for 1e-4 or less where the last
             0.01 % of the cost matters; 1e-3 is faster and about 0.01 % costlier.
         inner_tol_ratio: each AL subproblem after the first is solved to
             ``max(tol_optimality, min(1e-2, inner_tol_ratio * violation))``
@@ -370,23 +372,25 @@ def _split_cached(opts: SolverOptions, _width) -> _SplitOptions:
     return _SplitOptions(static=dataclasses.replace(opts, **static), values=values)
 
 
-def _options_jit():
+def _options_jit(xla_options: dict | None = None):
     """Like the solver's jit decorator (:func:`jtraj._compile.solver_jit`), but every
     :class:`SolverOptions` argument crosses the boundary split by :func:`_split_options`
     and is read inside as :class:`_TracedOptions`. On a CPU the traced program is kept
-    across processes where the compilation cache is on (:mod:`jtraj._tracecache`)."""
+    across processes where the compilation cache is on (:mod:`jtraj._tracecache`).
+    ``xla_options``: the XLA CPU options (default ``SOLVER_XLA_OPTIONS``)."""
+    xla_options = SOLVER_XLA_OPTIONS if xla_options is None else xla_options
 
     def decorate(fn):
         def unsplit(*args):
             return fn(*(_TracedOptions(a) if isinstance(a, _SplitOptions) else a for a in args))
 
-        inner = _jit(functools.wraps(fn)(unsplit))
+        inner = (_jit if xla_options is SOLVER_XLA_OPTIONS else cpu_jit(xla_options))(functools.wraps(fn)(unsplit))
 
         @functools.lru_cache(maxsize=1)
         def kept():
             # the solver's programs kept across processes (jtraj._tracecache), on a CPU
             return _tracecache.cached(fn.__qualname__, unsplit, f"{fn.__module__}.{fn.__qualname__}",
-                                      supported_options(SOLVER_XLA_OPTIONS), fallback=inner, lean=True)
+                                      supported_options(xla_options), fallback=inner, lean=True)
 
         @functools.wraps(fn)
         def call(*args):
@@ -1374,12 +1378,18 @@ class Solution(eqx.Module):
         status: int code of :class:`Status`; iterations: Newton iterations;
         outer_iterations: multiplier updates;
         history: (max_outer, 3) per outer iteration: cost, violation, penalty (NaN-padded).
-        kkt_error: first-order optimality error of the original problem at the returned
-            trajectory (projected gradient of the Lagrangian with least-squares
-            multipliers, and complementarity; units of ``SolverOptions.tol_optimality``).
-            A ``FEASIBLE_NOT_OPTIMAL`` result says here how far it is from certified; a
-            converged one was certified either by it or by the AL loop's own stationarity
-            test at the end of a subproblem.
+        kkt_error: first-order optimality error, in the scaled variables z (units of
+            ``SolverOptions.tol_optimality``): the smallest of (a) the projected gradient
+            of the Lagrangian and the complementarity at the returned trajectory, with
+            the solver's own multipliers or, after the AL loop, least-squares ones, and
+            (b) for a certified point, the value of the test that certified it: the AL
+            loop's stationarity test (the AL's projected gradient at the end of its last
+            subproblem, before the final polish) or the interior-point method's
+            (IPOPT's scaled dual infeasibility and complementarity, divided by
+            ``s_d = max(1, mean |multiplier| / 100)``, at its last iterate before its
+            active bounds are snapped on). Every ``CONVERGED`` solution reports at most
+            ``max(tol_optimality, ip_tol)`` (``tol_optimality`` at the defaults); a
+            ``FEASIBLE_NOT_OPTIMAL`` one says how far (a) is from it.
     """
 
     q: Array
@@ -1489,7 +1499,8 @@ def _ip_result(nlp: _NLP, state: _State, ip) -> _State:
     snapped = ipm.snap_to_bounds(nlp, ip)
     keep = _violation(*nlp.constraints(snapped)) <= jnp.maximum(1e-7, _violation(*nlp.constraints(ip.z)))
     return state._replace(z=jnp.where(keep, snapped, ip.z), mult=ipm.multipliers(nlp, ip), done=solved,
-                          stalled=~solved, it=ip.it, stationarity=jnp.zeros_like(state.stationarity))
+                          stalled=~solved, it=ip.it,
+                          stationarity=jnp.where(solved, ip.certified, jnp.inf).astype(state.stationarity.dtype))
 
 
 def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> Solution:
@@ -1503,8 +1514,12 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> So
     needs it, so :func:`_finish_lanes` groups the light problems together."""
     nlp = _with_phase(nlp, s)
     problem, tr = nlp.problem, nlp.tr
+    # a Python True (one interior-point result, :mod:`jtraj._staged`): neither the polish
+    # nor the least-squares KKT error is in the program
+    static_light = light is True
     light = jnp.asarray(light)
-    s = s._replace(z=_final_polish(nlp, s.z, opts, skip=light))
+    if not static_light:
+        s = s._replace(z=_final_polish(nlp, s.z, opts, skip=light))
     _, h = nlp.layout.unpack(s.z)
     W = nlp.W(s.z)
     q, qd, c, _ = jax.vmap(lambda w: tr.split_stage(problem, w))(W)
@@ -1543,8 +1558,11 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> So
     # the loop certifies optimality on the AL's own measure at the end of a subproblem;
     # a point it left uncertified (iteration limit) may still be a KKT point of the
     # original problem: the KKT error with the best of three multiplier estimates decides
-    kkt_ls = _at_most_once(~light, lambda zz: _kkt_error(nlp, zz), s.z, fill=jnp.inf)
-    kkt = jnp.minimum(kkt_ls, _al_kkt_error(nlp, s.z, s.mult, s.mu))
+    kkt = _al_kkt_error(nlp, s.z, s.mult, s.mu)
+    if not static_light:
+        kkt = jnp.minimum(_at_most_once(~light, lambda zz: _kkt_error(nlp, zz), s.z, fill=jnp.inf), kkt)
+    # a certified point reports at most its certifying test's value (Solution.kkt_error)
+    kkt = jnp.minimum(kkt, jnp.where(s.done & ~s.failed, s.stationarity, jnp.inf))
     certified = s.done | (kkt <= opts.tol_optimality)
     unfinished = jnp.where(s.stalled, Status.LIKELY_INFEASIBLE, Status.MAX_ITERATIONS)
     status = jnp.where(
@@ -1625,9 +1643,12 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
         init = _placeholder_init(problem.N, Transcription(transcription).control_dim(problem))
     else:
         init = _check_init(problem, init, transcription)
+    _resources.check(problem.N, problem.robot.n)  # ValueError naming N beyond the memory limit
     if implicit.any_traced((problem, init)):  # inside jit / vmap / a derivative
         return implicit.solve_traced(problem, opts, transcription, init, warm, guess, on_failure)
-    sol = _solve_jit(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
+    from . import _staged  # concrete arrays: the programs a problem needs, in stages
+
+    sol = _staged.solve(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
     _setup.compiled(key)
     return sol
 
@@ -2193,6 +2214,13 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     def make(a, b, c, d, t):
         return _problem(robot, a, b, c, d, t, N, weights, efforts)
 
+    if slots == "auto":
+        slots = _cpu_lanes(N * (n + 1)) if jax.default_backend() == "cpu" else 1024
+    if slots is not None and (not isinstance(slots, int) or isinstance(slots, bool) or slots < 1):
+        raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
+    if not isinstance(segment, int) or segment < 1:
+        raise ValueError(f"segment must be a positive integer, got {segment!r}")
+    _resources.check(N, n, B, lanes=slots or B)  # ValueError naming N or B beyond the memory limit
     # (inside another trace: the programs without their XLA options, see implicit._nested)
     problems = (implicit._nested(_problems_jit) if traced else _problems_jit)(
         robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts)
@@ -2207,12 +2235,6 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
             raise ValueError(f"init must be (u (B, N, {m_u}), h (B, N)) = ({(B, N, m_u)}, {(B, N)}), "
                              f"got ({u.shape}, {h.shape})")
         init = (u, h)
-    if slots == "auto":
-        slots = _cpu_lanes(N * (n + 1)) if jax.default_backend() == "cpu" else 1024
-    if slots is not None and (not isinstance(slots, int) or isinstance(slots, bool) or slots < 1):
-        raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
-    if not isinstance(segment, int) or segment < 1:
-        raise ValueError(f"segment must be a positive integer, got {segment!r}")
     if traced or implicit.any_traced(init):  # derivatives per sample (jtraj.implicit)
         return implicit.solve_batch_traced(problems, opts, transcription, init, warm, slots, segment)
     sol = _solve_problems(problems, opts, transcription, init, warm, slots, segment)

@@ -481,15 +481,26 @@ def _tri_product(tri, X):
     return jnp.sum(tri.reshape(tri.shape + (1,) * (X.ndim - 1)) * X[None], axis=1)
 
 
+#: Beyond this many stages the prefix and suffix sums are ``cumsum``: the triangular
+#: product's (N + 1, N, ...) intermediate grows as N^2, and under ``jacfwd`` (the
+#: polish's and the least-squares multipliers' Jacobians: one tangent per variable) as
+#: N^3 (serial3 at N = 1,000: about 100 GB).
+_TRI_MAX = 64
+
+
 def _prefix_sums(X):
     """sum_{j < k} X_j for k = 0..N, from X (N, ...) over the stages."""
     N = X.shape[0]
+    if N > _TRI_MAX:
+        return jnp.concatenate([jnp.zeros_like(X[:1]), jnp.cumsum(X, axis=0)])
     return _tri_product(np.tri(N + 1, N, -1), X)
 
 
 def _suffix_sums(X):
     """sum_{k > j} X_k for j = 0..N-1, from X (N+1, ...) over the samples."""
     N = X.shape[0] - 1
+    if N > _TRI_MAX:
+        return jnp.cumsum(X[::-1], axis=0)[::-1][1:]
     return _tri_product(np.triu(np.ones((N, N + 1)), 1), X)
 
 

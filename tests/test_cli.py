@@ -53,7 +53,7 @@ def test_solve_writes_consistent_json_and_png(tmp_path, capsys, monkeypatch):
                 "v", "tau", "h", "iterations", "solve_seconds", "compile_seconds", "robot", "N", "weights",
                 "kkt_error"):
         assert key in d, key
-    assert "KKT error (optimality, certified at <= 0.0003 by default)" in text
+    assert "KKT error (optimality; a converged solution's is <= 0.0003 by default)" in text
     assert np.isfinite(d["kkt_error"]) and d["kkt_error"] >= 0
     assert d["robot"] == "serial3" and d["N"] == 10 and d["weights"]["energy"] == 0.5
     assert d["solve_seconds"] > 0 and d["compile_seconds"] >= 0

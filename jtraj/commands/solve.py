@@ -276,7 +276,7 @@ def summary(d: dict) -> str:
              + ", ".join(f"{k} {_f(v, '.4g')}" for k, v in d["cost_terms"].items())
              + f"), energy = {_f(d['energy'], '.4g')}",
              "max violation: " + ", ".join(f"{k} {_f(v, '.1e')}" for k, v in d["max_violation"].items()),
-             f"KKT error (optimality, certified at <= {SolverOptions().tol_optimality:g} by default): "
+             f"KKT error (optimality; a converged solution's is <= {SolverOptions().tol_optimality:g} by default): "
              f"{_f(d['kkt_error'], '.1e')}",
              f"iterations: {d['iterations']} Newton, {d['outer_iterations']} outer; solve {d['solve_seconds']:.3f} s "
              f"(compile {d['compile_seconds']:.1f} s)"]
