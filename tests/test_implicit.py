@@ -113,6 +113,7 @@ def test_jvp_wrt_weights_and_mass(base):
     _close(tangent, fd, rtol=1e-4)
 
 
+@pytest.mark.slow  # a binding T_max gives another active set: its own tangent program (about 2 min)
 def test_grad_wrt_torque_limit_and_binding_T_max(base):
     T_max = 0.998 * float(base.T)
     opts = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-8, max_iter=3000, method="al")

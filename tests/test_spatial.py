@@ -9,7 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jtraj
 import jtraj.robots as robots
+from jtraj.problem import orientation_error
 from jtraj.robots import Robot, from_urdf
 
 BUILTIN = {  # name -> (file under the robots folder, tip frame)
@@ -374,3 +376,23 @@ def test_continuous_joint_has_no_position_row(arm):
         g = np.asarray(tr.stage_constraints(problem, w, sdk)[1]["q"])
         assert np.isfinite(g).all() and np.all(g[0] == -1.0)
         assert g[1, 0] == pytest.approx(1.9 / 2 - 1) and g[2, 0] == pytest.approx(0.29 / 0.15 - 1 - 1)
+
+
+def test_orientation_passage_on_a_urdf_arm():
+    """A URDF arm takes orientation passages: ``rotation(q)`` is the tip frame's rotation
+    (Pinocchio-checked through ``tip_pose``), its passage error is 0 at the configuration
+    that defines the passage, and sin(0.3) after an extra 0.3 rad turn of the last joint
+    (the flange is fixed to the last body: the two orientations differ by that turn)."""
+    robot = jtraj.robots.get("panda")
+    lo, hi = np.asarray(robot.limits.q_min), np.asarray(robot.limits.q_max)
+    q_mid = jnp.asarray((lo + hi) / 2)
+    R_l = robot.rotation(q_mid)
+    np.testing.assert_allclose(R_l, robot.tip_pose(q_mid)[1], atol=0)
+    p = robot.forward_kinematics(q_mid)
+    problem = jtraj.Problem(robot, q_mid - 0.1, q_mid + 0.1, N=10,
+                            via_points=[jtraj.ViaPoint(point=p, tol=1e-3, rotation=R_l, rot_tol=1e-3)])
+    assert problem.via_points[0].rotation.shape == (3, 3)
+    assert float(jnp.linalg.norm(orientation_error(robot.rotation(q_mid), R_l))) < 1e-14
+    turned = q_mid.at[6].add(0.3)
+    err = float(jnp.linalg.norm(orientation_error(robot.rotation(turned), R_l)))
+    assert abs(err - np.sin(0.3)) < 1e-12

@@ -136,6 +136,11 @@ class SpatialSerial(Robot):
         R, p, _ = self.body_poses(q)
         return p[-1] + _mv(R[-1], self.tip_translation), _mm(R[-1], self.tip_rotation)
 
+    def rotation(self, q: Vec) -> Array:
+        """The tip frame's rotation (3, 3) in the world (orientation passages of
+        :class:`jtraj.ViaPoint` use it)."""
+        return self.tip_pose(q)[1]
+
     def forward_kinematics(self, q: Vec) -> Array:
         """The task point: the tip frame's origin (3,) [m]."""
         return self.tip_pose(q)[0]
