@@ -51,13 +51,13 @@ written by hand below (:func:`discrete_adjoint`), and so is the forward pass
 ``dl_k/dw_k`` come from local (per-sample) autodiff of a stage function, and for the
 augmented Lagrangian the stage function is rebuilt here from the constraints of
 :meth:`~jtraj.transcription.Transcription.stage_constraints` with the textbook
-formulas (SCIENCE.md section 3)
+formulas (docs/science.md, the augmented Lagrangian)
 
     equalities c:    lambda . c + mu/2 ||c||^2
     inequalities g:  (||max(0, rho + mu g)||^2 - ||rho||^2) / (2 mu)    (PHR)
 
 so the check also covers the solver's own AL formula. (As in the solver, these terms
-are *not* multiplied by h_k; SCIENCE.md mentions that weighting for the thesis.)
+are *not* multiplied by h_k; the thesis weights them by h_k.)
 
 Finite differences: central differences of the same functions in the *scaled*
 decision vector ``z`` of :class:`~jtraj.transcription.Layout` (``v / qdd_max``,

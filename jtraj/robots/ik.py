@@ -11,7 +11,7 @@ over ``p`` and ``q_init``)::
 
 The weighted pseudo-inverse is the inertia-weighted ("dynamically consistent") one of
 the thesis. Its null-space term moves the joints towards the middle of their range
-without moving the task point. SCIENCE.md prints ``W = diag(q_max - q_min)``, which is
+without moving the task point. The thesis prints ``W = diag(q_max - q_min)``, which is
 dimensionally inconsistent (it would push wide-range joints hardest); we use the
 Liegeois weighting ``W = diag(min_j(half_j^2) / half_i^2)``, ``half = (q_max - q_min)/2``,
 i.e. the gradient of ``sum ((q_i - q_mid,i) / half_i)^2`` scaled so that the largest
