@@ -158,7 +158,7 @@ def main(argv=None) -> dict:
     options["method"] = args.method
     from jtraj import _kkt_native
 
-    print(_kkt_native.status(), flush=True)  # (the workers' own, on this machine)
+    print(_kkt_native.status(3), flush=True)  # (the workers' own, on this machine)
     results, pairs = [], None
     for B in batches:
         chunks = args.chunks or (1 if args.quick else max(2, 2048 // B))

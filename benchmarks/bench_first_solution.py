@@ -117,7 +117,7 @@ def main(argv=None) -> int:
             try:
                 env = dict(base, JTRAJ_CACHE_DIR=cache, JTRAJ_NATIVE_DIR=native)
                 if kernel_built:  # build the kernel in a process of its own first
-                    subprocess.run([sys.executable, "-c", "from jtraj import _kkt_native; _kkt_native.identity()"],
+                    subprocess.run([sys.executable, "-c", "from jtraj import _kkt_native; _kkt_native.available(3)"],
                                    env=env, cwd=ROOT, check=True, capture_output=True)
                     record("jtraj cold, kernel built", _run(_JTRAJ, [str(args.N)], env))
                     continue

@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     from jtraj._staged import _start
     from peers.pairs import benchmark_pairs
 
-    _kkt_native.identity()
+    _kkt_native.available(3)
     robot = jtraj.robots.get("serial3")
     weights = jtraj.Weights(time=1.0, energy=0.1)
     q0, q1 = benchmark_pairs(args.pairs)

@@ -359,7 +359,7 @@ def main(argv=None):
           f"os.cpu_count() = {os.cpu_count()}")
     from jtraj import _kkt_native
 
-    print(f"  {_kkt_native.status()}")
+    print(f"  {_kkt_native.status(3)}")
 
     opts = {"linear_solver": args.linear_solver, **dict(_option(o) for o in args.option)}
     starts = peer_starts(q0, q1, args.N, args.peer_init, opts)

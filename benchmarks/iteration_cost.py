@@ -212,7 +212,7 @@ def _wall(args) -> None:
     from jtraj import _kkt_native
 
     print(f"serial3, N = 20, {args.pairs} lanes, {args.warm} iterations in; us per problem "
-          f"(median / min of {args.rounds} x {args.calls} calls); {_kkt_native.status()}")
+          f"(median / min of {args.rounds} x {args.calls} calls); {_kkt_native.status(3)}")
     for name in calls:
         f = calls[name]
         per = []
@@ -281,7 +281,7 @@ def _instructions(args) -> None:
     from jtraj import _kkt_native
 
     print(f"serial3, N = 20, {args.pairs} lanes, {args.warm} iterations in; instructions per problem "
-          f"and call (callgrind, {args.calls} calls); {_kkt_native.status()}, built for "
+          f"and call (callgrind, {args.calls} calls); {_kkt_native.status(3)}, built for "
           f"-march={env['JTRAJ_NATIVE_MARCH']} under valgrind")
     for name in IP_PIECES if args.method == "ip" else PIECES:
         if name in counts:

@@ -73,7 +73,7 @@ def main():
     from jtraj.transcription import Transcription
     print(f"import {time.perf_counter() - t0:.2f} s")
     t0 = time.perf_counter()
-    ok = _kkt_native.identity()
+    ok = _kkt_native.available(3)
     print(f"native kernel build/load {time.perf_counter() - t0:.2f} s ({ok})")
     t0 = time.perf_counter()
     problem = quick_start_problem(args.N)

@@ -16,24 +16,30 @@ On serial3 at N = 20 an interior-point iteration runs about 1.4x faster with it 
 XLA's Riccati recursion, with the same iterations (``benchmarks/iteration_cost.py
 --method ip`` measures the pieces).
 
-The kernel is compiled on first use with the machine's C++ compiler (``$CXX``, else
-``g++`` or ``c++``: ``-O3 -march=native``, about 12 s, once per machine;
-``JTRAJ_NATIVE_MARCH`` sets another ``-march``) into
-``$JTRAJ_NATIVE_DIR`` (default ``$XDG_CACHE_HOME/jtraj/native`` or ``~/.cache/jtraj/native``;
-used only where no other user can write to it, see :func:`jtraj._setup.untrusted`), under a name that hashes the
-source, the flags, the compiler's and jaxlib's versions and the CPU's model and flags,
-so that a cache shared between machines never hands one a build for another. It is
-used where all of these hold: the backend is the CPU, the arrays are float64, the robot
-has 1 to 7 joints, and the build succeeded; elsewhere (no compiler, an accelerator,
-float32, more joints, or ``JTRAJ_NATIVE=0``) the solver runs :func:`jtraj.lq.kkt_directions` in XLA, with the
-same iterates up to rounding. :func:`status` says which and why. Programs calling the
-kernel stay in JAX's persistent compilation cache (an FFI call is named, not a Python
-callback); the kept traces (:mod:`jtraj._tracecache`) include :func:`identity` in
-their key.
+The kernel is compiled with the machine's C++ compiler (``$CXX``, else ``g++`` or
+``c++``: ``-O3 -march=native``; ``JTRAJ_NATIVE_MARCH`` sets another ``-march``), one
+library per joint count (``-DJTRAJ_KKT_N=n``: a third of the compile time of all seven),
+once per machine, into ``$JTRAJ_NATIVE_DIR`` (default ``$XDG_CACHE_HOME/jtraj/native`` or
+``~/.cache/jtraj/native``; used only where no other user can write to it, see
+:func:`jtraj._setup.untrusted`), under a name that hashes the source, the flags, the
+compiler's and jaxlib's versions and the CPU's model and flags, so that a cache shared
+between machines never hands one a build for another. :func:`prefetch` starts a build
+in a background thread when a solve begins, so that the compiler runs while JAX traces
+the solver; the trace waits for it only where it reaches the KKT solve.
+
+The kernel is used where all of these hold: the backend is the CPU, the arrays are
+float64, the robot has 1 to 7 joints, and the build succeeded; elsewhere (no compiler,
+an accelerator, float32, more joints, or ``JTRAJ_NATIVE=0``) the solver runs
+:func:`jtraj.lq.kkt_directions` in XLA, with the same iterates up to rounding.
+:func:`status` says which and why. Programs calling the kernel stay in JAX's persistent
+compilation cache (an FFI call is named, not a Python callback); the kept traces
+(:mod:`jtraj._tracecache`) include :func:`identity` in their key and name the
+kernels they call, which a process registers before running one.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import ctypes
 import hashlib
 import os
@@ -41,21 +47,27 @@ import platform
 import shutil
 import subprocess
 import tempfile
+import threading
 import warnings
 
 import jax
 import jax.numpy as jnp
 
-#: the FFI target's name
-TARGET = "jtraj_kkt"
+#: the FFI targets' names: TARGET + the joint count (1 to 7)
+TARGET = "jtraj_kkt_n"
+JOINTS = range(1, 8)
 _SOURCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_native", "kkt.cc")
 
 
-def _flags() -> tuple[str, ...]:
-    # JTRAJ_NATIVE_MARCH: another -march (valgrind, for one, knows no AVX-512: x86-64-v3)
-    return ("-O3", f"-march={os.environ.get('JTRAJ_NATIVE_MARCH', 'native')}", "-std=c++17", "-shared", "-fPIC")
+def target(n: int) -> str:
+    """The FFI target of the kernel for ``n`` joints."""
+    return f"{TARGET}{n}"
 
-_state: dict = {}
+
+def _flags(n: int) -> tuple[str, ...]:
+    # JTRAJ_NATIVE_MARCH: another -march (valgrind, for one, knows no AVX-512: x86-64-v3)
+    return ("-O3", f"-march={os.environ.get('JTRAJ_NATIVE_MARCH', 'native')}", "-std=c++17", "-shared", "-fPIC",
+            f"-DJTRAJ_KKT_N={n}")
 
 
 def _compiler() -> str | None:
@@ -81,69 +93,135 @@ def _directory() -> str:
     return base
 
 
-def _build() -> str:
-    """Compile (unless already built) and register the kernel; returns its identity."""
+_state: dict = {"libs": {}, "futures": {}, "failed": {}}
+_lock = threading.Lock()
+
+
+def _family() -> tuple[str | None, str]:
+    """The builds' common identity (a hash of source, flags, compiler, jaxlib and CPU)
+    and why there is none (off, no compiler, an unsafe folder)."""
+    if "family" not in _state:
+        ident, why = None, "off (JTRAJ_NATIVE=0)"
+        if os.environ.get("JTRAJ_NATIVE", "1") != "0":
+            try:
+                ident, why = _hash(), "available"
+            except (RuntimeError, OSError, subprocess.SubprocessError) as err:
+                why = f"unavailable: {err}"
+                if _compiler() is not None:  # a compiler that cannot be used is worth a word; none is documented
+                    warnings.warn(f"jtraj: the native KKT kernel cannot be used ({err}); the solver runs the XLA "
+                                  "version (slower, same results up to rounding)", stacklevel=3)
+        _state["family"] = (ident, why)
+    return _state["family"]
+
+
+def _hash() -> str:
     import jaxlib
 
     cxx = _compiler()
     if cxx is None:
         raise RuntimeError("no C++ compiler found ($CXX, g++ or c++)")
     version = subprocess.run([cxx, "--version"], capture_output=True, text=True, check=True).stdout
-    with open(_SOURCE, "rb") as fh:
-        source = fh.read()
-    h = hashlib.sha256()
-    for part in (source, repr(_flags()).encode(), version.encode(), jaxlib.__version__.encode(), _cpu_text().encode()):
-        h.update(part)
-        h.update(b"\0")
-    ident = h.hexdigest()[:16]
     folder = _directory()
     from ._setup import trusted_dir, untrusted
 
     if not trusted_dir(folder, "native kernel's folder"):  # a library loaded from it runs as this user
         raise RuntimeError(f"{folder} is not safe to load a library from ({untrusted(folder)})")
-    path = os.path.join(folder, f"jtraj_kkt-{ident}.so")
+    with open(_SOURCE, "rb") as fh:
+        source = fh.read()
+    h = hashlib.sha256()
+    for part in (source, repr(_flags(0)).encode(), version.encode(), jaxlib.__version__.encode(),
+                 _cpu_text().encode()):
+        h.update(part)
+        h.update(b"\0")
+    return h.hexdigest()[:16]
+
+
+def _build(n: int) -> None:
+    """Compile (unless already built) and register the kernel for ``n`` joints."""
+    ident, why = _family()
+    if ident is None:
+        raise RuntimeError(why)
+    folder = _directory()
+    path = os.path.join(folder, f"jtraj_kkt-{ident}-n{n}.so")
     if not os.path.exists(path):
         fd, tmp = tempfile.mkstemp(dir=folder, suffix=".so.tmp")
         os.close(fd)
         try:
-            proc = subprocess.run([cxx, *_flags(), "-I", jax.ffi.include_dir(), _SOURCE, "-o", tmp],
+            proc = subprocess.run([_compiler(), *_flags(n), "-I", jax.ffi.include_dir(), _SOURCE, "-o", tmp],
                                   capture_output=True, text=True)
             if proc.returncode != 0:
-                raise RuntimeError(f"{os.path.basename(cxx)} failed on {_SOURCE}:\n{proc.stderr[-2000:]}")
+                raise RuntimeError(f"{os.path.basename(_compiler())} failed on {_SOURCE}:\n{proc.stderr[-2000:]}")
             os.chmod(tmp, 0o755)
             os.replace(tmp, path)  # atomic: concurrent builders (dataset workers) each write whole files
         finally:
             if os.path.exists(tmp):
                 os.remove(tmp)
     lib = ctypes.CDLL(path)
-    jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(lib.JtrajKkt), platform="cpu")
-    _state["lib"] = lib  # kept alive with the process
-    return ident
+    jax.ffi.register_ffi_target(target(n), jax.ffi.pycapsule(lib.JtrajKkt), platform="cpu")
+    _state["libs"][n] = lib  # kept alive with the process
+
+
+def prefetch(n: int) -> None:
+    """Start building the kernel for ``n`` joints in a background thread (if it is not
+    built or being built, and the kernel applies: 1 to 7 joints, a CPU backend)."""
+    n = int(n)
+    if n not in JOINTS or jax.default_backend() != "cpu" or _family()[0] is None:
+        return
+    with _lock:
+        if n in _state["libs"] or n in _state["futures"] or n in _state["failed"]:
+            return
+        fut = concurrent.futures.Future()
+        _state["futures"][n] = fut
+
+    def work():
+        try:
+            _build(n)
+            fut.set_result(True)
+        except BaseException as err:  # reported by available(), in the caller's thread
+            fut.set_exception(err)
+
+    threading.Thread(target=work, name=f"jtraj-kkt-build-{n}", daemon=True).start()
+
+
+def available(n: int) -> bool:
+    """Whether the kernel for ``n`` joints is built and registered: builds it (or waits
+    for :func:`prefetch`'s build) on the first call."""
+    n = int(n)
+    if n in _state["libs"]:
+        return True
+    if n not in JOINTS or n in _state["failed"] or _family()[0] is None:
+        return False
+    prefetch(n)
+    fut = _state["futures"].get(n)
+    try:
+        fut.result()
+        return True
+    except (RuntimeError, OSError, subprocess.SubprocessError, AttributeError) as err:
+        _state["failed"][n] = f"unavailable: {err}"
+        warnings.warn(f"jtraj: the native KKT kernel could not be built ({err}); the solver runs the XLA "
+                      "version (slower, same results up to rounding)", stacklevel=2)
+        return False
 
 
 def identity() -> str | None:
-    """The kernel's identity (a hash of its build) where it is available, else None.
-    Builds and registers it on the first call (``JTRAJ_NATIVE=0``: never)."""
-    if "identity" not in _state:
-        ident, why = None, "off (JTRAJ_NATIVE=0)"
-        if os.environ.get("JTRAJ_NATIVE", "1") != "0":
-            try:
-                ident, why = _build(), "built"
-            except (RuntimeError, OSError, subprocess.SubprocessError, AttributeError) as err:
-                why = f"unavailable: {err}"
-                if _compiler() is not None:  # a compiler that failed is worth a word; none is documented
-                    warnings.warn(f"jtraj: the native KKT kernel could not be built ({err}); the solver "
-                                  "runs the XLA version (slower, same results up to rounding)", stacklevel=2)
-        _state["identity"], _state["why"] = ident, why
-    return _state["identity"]
+    """The kernel builds' identity (a hash of source, flags, compiler, jaxlib and CPU)
+    where the kernel can be used, else None (``JTRAJ_NATIVE=0``, no compiler, an unsafe
+    folder). Builds nothing."""
+    return _family()[0]
 
 
-def status() -> str:
-    """A line saying whether the kernel is in use in this process, and why not."""
-    ident = identity()
+def status(n: int | None = None) -> str:
+    """A line saying whether the kernel (for ``n`` joints) is in use in this process, and why not."""
+    ident, why = _family()
     if ident is None:
-        return f"native KKT kernel: {_state['why']}"
-    return f"native KKT kernel: in use on the CPU in float64 (build {ident}, {_directory()})"
+        return f"native KKT kernel: {why}"
+    if n is not None:
+        if not available(n):
+            return f"native KKT kernel for {n} joints: {_state['failed'].get(n, 'not for this joint count')}"
+        return f"native KKT kernel: in use on the CPU in float64 ({n} joints, build {ident}, {_directory()})"
+    built = sorted(_state["libs"])
+    return (f"native KKT kernel: available on the CPU in float64 (build {ident}, {_directory()}; "
+            f"built in this process for joint counts {built or 'none yet'})")
 
 
 def active(dtype, n: int, r: int) -> bool:
@@ -151,7 +229,7 @@ def active(dtype, n: int, r: int) -> bool:
     ``r`` terminal rows (decided at trace time; the kernel is compiled for 1 to 7 joints
     and the 2n rows of a goal state)."""
     return (jnp.dtype(dtype) == jnp.float64 and 1 <= n <= 7 and r == 2 * n and jax.default_backend() == "cpu"
-            and identity() is not None)
+            and available(n))
 
 
 def kkt_directions(model, shifts, terminal, ladder: bool = False):
@@ -164,11 +242,13 @@ def kkt_directions(model, shifts, terminal, ladder: bool = False):
     definite direction is the same, at about half the work (on the benchmark family
     shift 0 is positive definite in about 60 % of the iterations)."""
     N, nx, m = model.B.shape[-3:]
+    if not available(m - 1):
+        raise RuntimeError(status(m - 1))
     r = terminal.shape[-1]
     L = shifts.shape[-1]
     f64 = jnp.float64
     out = (jax.ShapeDtypeStruct((N * m, 1 + r, L), f64), jax.ShapeDtypeStruct((N + 1, nx, 1 + r, L), f64),
            jax.ShapeDtypeStruct((L,), jnp.bool_))
-    call = jax.ffi.ffi_call(TARGET, out, vmap_method="broadcast_all")
+    call = jax.ffi.ffi_call(target(m - 1), out, vmap_method="broadcast_all")
     return call(model.A, model.B, model.Q, model.S, model.R, model.cx, model.cu, model.PN, shifts, terminal,
                 ladder=bool(ladder))

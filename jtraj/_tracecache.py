@@ -106,7 +106,7 @@ def _foreign_node(tree) -> bool:
     return walk(jax.tree.structure(tree))
 
 
-_NATIVE_CALLS = [jax.export.DisabledSafetyCheck.custom_call(_kkt_native.TARGET)]
+_NATIVE_CALLS = [jax.export.DisabledSafetyCheck.custom_call(_kkt_native.target(n)) for n in _kkt_native.JOINTS]
 
 #: JAX settings that change what a trace produces
 _FLAGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion",
@@ -127,7 +127,7 @@ class _Slot:
 
 #: the first bytes of a kept program's file (then the skeleton's JSON length, 8 bytes
 #: big-endian, the JSON and jax.export's bytes)
-MAGIC = b"jtraj-trace 1\n"
+MAGIC = b"jtraj-trace 2\n"
 
 
 def _class_name(cls) -> str:
@@ -217,7 +217,8 @@ def decode(d):
 
 
 def _read(path: str):
-    """(skeleton, jax.export bytes) of a kept file; ValueError where it is not one."""
+    """(skeleton, jax.export bytes, the native kernels' joint counts it calls) of a kept
+    file; ValueError where it is not one."""
     with open(path, "rb") as fh:
         data = fh.read()
     if not data.startswith(MAGIC) or len(data) < len(MAGIC) + 8:
@@ -227,11 +228,15 @@ def _read(path: str):
     text = data[at + 8:at + 8 + size]
     if len(text) != size:
         raise ValueError("truncated")
-    return decode(json.loads(text)), data[at + 8 + size:]
+    head = json.loads(text)
+    natives = head["natives"]
+    if not (isinstance(natives, list) and all(isinstance(n, int) and n in _kkt_native.JOINTS for n in natives)):
+        raise ValueError("bad native kernel list")
+    return decode(head["skeleton"]), data[at + 8 + size:], natives
 
 
-def _payload(skeleton, blob: bytes) -> bytes:
-    text = json.dumps(encode(skeleton), separators=(",", ":")).encode()
+def _payload(skeleton, blob: bytes, natives: list[int]) -> bytes:
+    text = json.dumps({"skeleton": encode(skeleton), "natives": natives}, separators=(",", ":")).encode()
     return MAGIC + len(text).to_bytes(8, "big") + text + bytes(blob)
 
 
@@ -270,7 +275,9 @@ def program(name: str, fn: Callable, args: tuple, static: str,
         return None
     path = os.path.join(folder, k + ".jaxexport")
     try:
-        skeleton, blob = _read(path)
+        skeleton, blob, natives = _read(path)
+        for n in natives:  # the native kernels it calls, registered before it runs
+            _kkt_native.available(n)
         exported = jax.export.deserialize(bytearray(blob))
     except (OSError, ValueError, KeyError, ImportError, TypeError, AttributeError, RecursionError):
         # missing (or unreadable: written by another version or format): export it now
@@ -286,7 +293,8 @@ def program(name: str, fn: Callable, args: tuple, static: str,
             return None
         skeleton = kept["skeleton"]
         try:
-            payload = _payload(skeleton, blob)
+            natives = sorted({int(n) for n in re.findall(rf"{_kkt_native.TARGET}([1-7])", exported.mlir_module())})
+            payload = _payload(skeleton, blob, natives)
         except (TypeError, ValueError):
             return None  # an output that cannot be kept: trace as usual
         try:

@@ -135,6 +135,7 @@ def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
         models.append(model)
         terms.append(Ex.T)
     m = models[0].R.shape[1]
+    assert _kkt_native.available(m - 1), _kkt_native.status(m - 1)
     for indefinite in (False, True):
         batch = jax.tree.map(lambda *x: jnp.stack(x), *models)
         if indefinite:

@@ -13,7 +13,7 @@ import time
 import jax
 import pytest
 
-from jtraj import _setup
+from jtraj import _setup, _tracecache
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -141,7 +141,7 @@ def test_processes_share_one_cache(tmp_path):
     kept = os.listdir(cache / "jtraj-traces")
     assert len(kept) == 1 and not any(f.endswith(".tmp") for f in kept)
     with open(cache / "jtraj-traces" / kept[0], "rb") as fh:
-        assert fh.read(len(b"jtraj-trace 1\n")) == b"jtraj-trace 1\n"  # JSON + jax.export bytes, no pickle
+        assert fh.read(len(_tracecache.MAGIC)) == _tracecache.MAGIC  # JSON + jax.export bytes, no pickle
     # a third process loads the kept program: no trace
     r = _run(_SHARED, env)
     assert r.returncode == 0, r.stderr

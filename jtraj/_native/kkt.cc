@@ -23,6 +23,11 @@
 
 #include "xla/ffi/api/ffi.h"
 
+// JTRAJ_KKT_N: build for that many joints only (a seventh of the compile time); 0: 1 to 7
+#ifndef JTRAJ_KKT_N
+#define JTRAJ_KKT_N 0
+#endif
+
 namespace ffi = xla::ffi;
 
 namespace {
@@ -294,13 +299,27 @@ ffi::Error KktImpl(ffi::Buffer<ffi::F64> A, ffi::Buffer<ffi::F64> Bm, ffi::Buffe
   };
   auto solve = [&]() -> bool {
     switch (D.n) {
+#if JTRAJ_KKT_N == 0 || JTRAJ_KKT_N == 1
       case 1: W == 4 ? run(block<1, 3, 4>) : W == 8 ? run(block<1, 3, 8>) : run(block<1, 3, 16>); break;
+#endif
+#if JTRAJ_KKT_N == 0 || JTRAJ_KKT_N == 2
       case 2: W == 4 ? run(block<2, 5, 4>) : W == 8 ? run(block<2, 5, 8>) : run(block<2, 5, 16>); break;
+#endif
+#if JTRAJ_KKT_N == 0 || JTRAJ_KKT_N == 3
       case 3: W == 4 ? run(block<3, 7, 4>) : W == 8 ? run(block<3, 7, 8>) : run(block<3, 7, 16>); break;
+#endif
+#if JTRAJ_KKT_N == 0 || JTRAJ_KKT_N == 4
       case 4: W == 4 ? run(block<4, 9, 4>) : W == 8 ? run(block<4, 9, 8>) : run(block<4, 9, 16>); break;
+#endif
+#if JTRAJ_KKT_N == 0 || JTRAJ_KKT_N == 5
       case 5: W == 4 ? run(block<5, 11, 4>) : W == 8 ? run(block<5, 11, 8>) : run(block<5, 11, 16>); break;
+#endif
+#if JTRAJ_KKT_N == 0 || JTRAJ_KKT_N == 6
       case 6: W == 4 ? run(block<6, 13, 4>) : W == 8 ? run(block<6, 13, 8>) : run(block<6, 13, 16>); break;
+#endif
+#if JTRAJ_KKT_N == 0 || JTRAJ_KKT_N == 7
       case 7: W == 4 ? run(block<7, 15, 4>) : W == 8 ? run(block<7, 15, 8>) : run(block<7, 15, 16>); break;
+#endif
       default: return false;
     }
     return true;
