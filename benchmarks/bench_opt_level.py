@@ -37,7 +37,7 @@ def main(argv=None) -> int:
     import jtraj
     from jtraj import _kkt_native, solver
     from jtraj._compile import SOLVER_XLA_OPTIONS, supported_options
-    from jtraj._staged import _start
+    from jtraj.solver.staged import _start
     from peers.pairs import benchmark_pairs
 
     _kkt_native.identity()

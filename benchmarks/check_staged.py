@@ -37,7 +37,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     import jtraj
-    from jtraj import _staged, solver
+    from jtraj import solver
+    from jtraj.solver import staged as _staged
     from peers.pairs import benchmark_pairs
 
     robot = jtraj.robots.get("serial3")

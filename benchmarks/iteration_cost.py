@@ -154,7 +154,8 @@ def _ip_programs(nlps, states, opts, warm, jit, vmap):
     import jax
     import jax.numpy as jnp
 
-    from jtraj import ipm, lq
+    from jtraj import lq
+    from jtraj.solver import ipm
     from jtraj import solver as S
 
     tol = S._ip_tolerances(opts)

@@ -91,7 +91,7 @@ def main():
         measure("full _solve_jit", full, problem, split, init, options=xla)
 
     if args.staged:
-        from jtraj import _staged
+        from jtraj.solver import staged as _staged
         staged = supported_options({**SOLVER_XLA_OPTIONS, "xla_backend_optimization_level": 1})
         yes, no = np.bool_(True), np.bool_(False)
 

@@ -20,7 +20,8 @@ import pytest
 
 import jtraj
 from helpers import N_SMALL as N, Q0, Q1, W_SMALL as W, three_sample_batch, verified_ipopt_cost
-from jtraj import Status, ipm, lq
+from jtraj import Status, lq
+from jtraj.solver import ipm
 from jtraj import solver as S
 from jtraj.solver import SolverOptions
 from jtraj.transcription import Transcription

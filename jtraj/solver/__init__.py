@@ -50,12 +50,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _packing, _resources, _setup, _tracecache, implicit, ipm, lq
-from ._compile import SOLVER_XLA_OPTIONS, cpu_jit, supported_options
-from ._compile import solver_jit as _jit
-from ._math import log1p
-from .problem import Problem, Weights, orientation_error
-from .transcription import Layout, StageData, Transcription, decoupled_hessian, decoupled_hessian_bounds
+from .. import _packing, _resources, _setup, _tracecache, implicit, lq
+from . import ipm
+from .._compile import SOLVER_XLA_OPTIONS, cpu_jit, supported_options
+from .._compile import solver_jit as _jit
+from .._math import log1p
+from ..problem import Problem, Weights, orientation_error
+from ..transcription import Layout, StageData, Transcription, decoupled_hessian, decoupled_hessian_bounds
 
 # ----------------------------------------------------------------------------------------
 # status codes
@@ -1420,7 +1421,7 @@ class Solution(eqx.Module):
 def initial_guess(problem: Problem, opts: SolverOptions, tr: Transcription):
     """The default starting point (u (N, m_u), h (N,)) of ``opts.guess``, converted to
     the transcription's controls (:meth:`Transcription.initial_controls`)."""
-    from .initial_guess import GUESSES
+    from ..initial_guess import GUESSES
 
     v0, h0 = GUESSES[opts.guess](problem)
     return tr.initial_controls(problem, v0, h0), h0
@@ -1646,7 +1647,7 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     _resources.check(problem.N, problem.robot.n)  # ValueError naming N beyond the memory limit
     if implicit.any_traced((problem, init)):  # inside jit / vmap / a derivative
         return implicit.solve_traced(problem, opts, transcription, init, warm, guess, on_failure)
-    from . import _staged  # concrete arrays: the programs a problem needs, in stages
+    from . import staged as _staged  # concrete arrays: the programs a problem needs, in stages
 
     sol = _staged.solve(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
     _setup.compiled(key)
@@ -2175,7 +2176,7 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     derivative outside ``jit``) the solve itself runs on the lane driver above; inside
     ``jit`` or ``vmap`` it is one vmapped program.
     """
-    from .robots import Robot
+    from ..robots import Robot
 
     if not isinstance(robot, Robot):
         raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")

@@ -53,8 +53,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _kkt_native, lq
-from ._math import small_matmul
+from .. import _kkt_native, lq
+from .._math import small_matmul
 
 #: the line search's step lengths (fractions of the largest step the fraction-to-the-boundary
 #: rule allows): the first alone, the others at once where it is rejected (_shorter_trials)
@@ -190,7 +190,7 @@ def _parts(nlp, z):
 
 
 def _zero_mult(nlp, z):
-    from .solver import Multipliers
+    from . import Multipliers
 
     eq, ineq, glob = jax.eval_shape(nlp.constraints, z)
     zeros = lambda t: jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), t)  # noqa: E731
@@ -248,7 +248,7 @@ def multipliers(nlp, st: IPState):
     """The state's multipliers in the AL solver's structure (``jtraj.solver.Multipliers``:
     the goal rows' at the last sample, the stage inequalities', T's), with the same sign
     convention (the Lagrangian ``f + lam . e + y . g``)."""
-    from .solver import Multipliers
+    from . import Multipliers
 
     eq_like, ineq_like, _ = jax.eval_shape(nlp.constraints, st.z)
     lam_full = jnp.zeros(eq_like["goal"].shape, st.z.dtype).at[nlp.layout.N].set(st.lam)

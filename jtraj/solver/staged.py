@@ -26,9 +26,9 @@ import dataclasses
 
 import jax
 
-from .solver import (Solution, _finish, _ip_result, _ip_run, _ip_solved, _options_jit, _prepare, _run_with_restart,
+from . import (Solution, _finish, _ip_result, _ip_run, _ip_solved, _options_jit, _prepare, _run_with_restart,
                      _static, initial_guess)
-from .transcription import Transcription
+from ..transcription import Transcription
 
 
 def _start(problem, opts, transcription, init, warm, guess):
