@@ -55,6 +55,7 @@ from jaxtyping import Array
 
 from .. import _kkt_native, lq
 from .._math import small_matmul
+from .nlp import Multipliers
 
 #: the line search's step lengths (fractions of the largest step the fraction-to-the-boundary
 #: rule allows): the first alone, the others at once where it is rejected (_shorter_trials)
@@ -190,8 +191,6 @@ def _parts(nlp, z):
 
 
 def _zero_mult(nlp, z):
-    from . import Multipliers
-
     eq, ineq, glob = jax.eval_shape(nlp.constraints, z)
     zeros = lambda t: jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), t)  # noqa: E731
     return Multipliers(zeros(eq), zeros(ineq), zeros(glob))
@@ -248,8 +247,6 @@ def multipliers(nlp, st: IPState):
     """The state's multipliers in the AL solver's structure (``jtraj.solver.Multipliers``:
     the goal rows' at the last sample, the stage inequalities', T's), with the same sign
     convention (the Lagrangian ``f + lam . e + y . g``)."""
-    from . import Multipliers
-
     eq_like, ineq_like, _ = jax.eval_shape(nlp.constraints, st.z)
     lam_full = jnp.zeros(eq_like["goal"].shape, st.z.dtype).at[nlp.layout.N].set(st.lam)
     return Multipliers(eq={"goal": lam_full}, ineq=_unflat(st.y, ineq_like), glob=st.yT)

@@ -26,9 +26,11 @@ import dataclasses
 
 import jax
 
-from . import (Solution, _finish, _ip_result, _ip_run, _ip_solved, _options_jit, _prepare, _run_with_restart,
-                     _static, initial_guess)
 from ..transcription import Transcription
+from .al import _run_with_restart
+from .core import _finish, _ip_result, _ip_run, _ip_solved, _prepare, initial_guess
+from .options import _options_jit, _static
+from .results import Solution
 
 
 def _start(problem, opts, transcription, init, warm, guess):
