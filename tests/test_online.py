@@ -2,16 +2,12 @@
 synthetic dataset built here (no dependency on the dataset builder or the solver)."""
 
 import json
-import os
-import sys
 
 import numpy as np
 import pytest
 
 from jtraj import anfis
 from jtraj.anfis import trajectory
-
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 
 
 @pytest.fixture(scope="module")
@@ -232,7 +228,7 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
     y = np.asarray(model.predict(np.concatenate([qs, qg])))
     np.testing.assert_allclose(p.v, y[:N * n].reshape(N, n), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(p.h, np.clip(y[N * n:], float(lim.h_min), float(lim.h_max)), rtol=1e-12)
-    V = pytest.importorskip("peers.verify")
+    V = pytest.importorskip("jtraj_peers.verify")
     q_sim, qd_sim = V.simulate(qs, np.asarray(p.v), np.asarray(p.h))
     np.testing.assert_allclose(p.q, q_sim, atol=1e-12)
     np.testing.assert_allclose(p.qd, qd_sim, atol=1e-12)

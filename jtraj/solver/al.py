@@ -48,16 +48,16 @@ import numpy as np
 from jaxtyping import Array
 
 from .. import lq
-from .certify import _estimate_multipliers, _final_polish, _init_multipliers, _kkt_error, _ls_multipliers, _stationarity
-from .nlp import Multipliers, _NLP, _PBM_FLOOR, _violation
-from .options import SolverOptions, _TracedOptions, _static
+from .certify import estimate_multipliers, final_polish, init_multipliers, kkt_error, ls_multipliers, stationarity
+from .nlp import Multipliers, NLP, PBM_FLOOR, violation
+from .options import SolverOptions, TracedOptions, static_options
 
 
 # ----------------------------------------------------------------------------------------
 # the loop
 
 
-class _State(NamedTuple):
+class ALState(NamedTuple):
     z: Array
     mult: Multipliers
     mu: Array
@@ -75,7 +75,7 @@ class _State(NamedTuple):
     history: Array  # (max_outer, 3): cost, violation, penalty
     it_max: Array  # iteration budget of this run (max_iter; raised by a restart)
     mu_max: Array  # penalty cap of this run (penalty_max; restart_penalty_max after a restart)
-    restarts: Array  # restarts taken so far (see _restart)
+    restarts: Array  # restarts taken so far (see restart_state)
     z_start: Array  # the first run's starting point (a PBM run's PHR fallback starts there)
     val_ref: Array  # the AL's value at the last stall checkpoint of this subproblem
 
@@ -96,7 +96,7 @@ _TRIAL_SHIFT = np.concatenate([np.repeat(np.arange(len(_LADDER) - 1), len(_STEPS
 _TRIAL_STEP = np.concatenate([np.tile(_STEPS, len(_LADDER) - 1), _STEPS[:1]])
 
 
-def _held(z, g, lo, hi, hdiag, eps):
+def held_bounds(z, g, lo, hi, hdiag, eps):
     """The variables the projected Newton step holds at their bounds: Bertsekas'
     eps-active set, narrowed by the diagonal curvature. A variable within ``eps`` of a
     bound is held only if the gradient pushes it there harder than its curvature holds it
@@ -110,7 +110,7 @@ def _held(z, g, lo, hi, hdiag, eps):
             | ((z >= hi - eps) & (g < 0) & (-g >= curv * (hi - z))))
 
 
-def _newton_step(nlp: _NLP, z, mult, mu, damping, kink=None):
+def _newton_step(nlp: NLP, z, mult, mu, damping, kink=None):
     # the barrier materialises the derivatives once, so that XLA cannot fuse their
     # assembly into each of the shifted factorisations below (a guard: on serial3 the
     # timings with and without it were within the machine's noise)
@@ -126,7 +126,7 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping, kink=None):
         hdiag, rows = nlp.hessian_bounds(pieces)
     else:
         hdiag = jnp.diag(H)
-    free = ~_held(z, g, lo, hi, hdiag, eps)
+    free = ~held_bounds(z, g, lo, hi, hdiag, eps)
     # Globalisation without serialising control flow (a parallel trust region): the
     # Hessian is factorised with a ladder of Levenberg shifts at once (the last, from
     # Gershgorin's theorem, is always positive definite); every positive-definite shift
@@ -181,7 +181,7 @@ def _newton_step(nlp: _NLP, z, mult, mu, damping, kink=None):
     return z_new, damping, jnp.max(jnp.abs(pg)), val, any_ok
 
 
-def _with_phase(nlp: _NLP, s: "_State") -> _NLP:
+def with_phase(nlp: NLP, s: "ALState") -> NLP:
     """``nlp`` with its inequality term for the run ``s`` is in: PBM in the first run,
     PHR after a restart (``SolverOptions.inequality_penalty == "pbm"``; else ``nlp``)."""
     if nlp.ineq_penalty != "pbm":
@@ -189,33 +189,33 @@ def _with_phase(nlp: _NLP, s: "_State") -> _NLP:
     return eqx.tree_at(lambda n: n.pbm_on, nlp, s.restarts == 0)
 
 
-def _run(nlp: _NLP, z0, opts: SolverOptions, warm=False):
-    """The AL loop from z0 to the end (see :func:`_init_state` and :func:`_loop`)."""
-    return _run_with_restart(nlp, _init_state(nlp, z0, opts, warm), opts)
+def run_al(nlp: NLP, z0, opts: SolverOptions, warm=False):
+    """The AL loop from z0 to the end (see :func:`init_state` and :func:`al_loop`)."""
+    return run_with_restart(nlp, init_state(nlp, z0, opts, warm), opts)
 
 
-def _init_state(nlp: _NLP, z0, opts: SolverOptions, warm=False) -> _State:
+def init_state(nlp: NLP, z0, opts: SolverOptions, warm=False) -> ALState:
     """The loop's starting state. With ``warm`` (a traced bool), multipliers start from
     their least-squares estimate at z0 and the penalty at its cap / 1e2 instead of zero
     and ``penalty_init``: a warm start near an optimum then stays there. A warm start
     that already meets both tolerances (the KKT error of the original problem and the
     violation) is finished before the first iteration."""
-    cold = _init_multipliers(nlp, z0)
+    cold = init_multipliers(nlp, z0)
 
     def estimate(_):
-        ls = _ls_multipliers(nlp, z0)
-        return _estimate_multipliers(nlp, z0, ls=ls), _kkt_error(nlp, z0, ls=ls)
+        ls = ls_multipliers(nlp, z0)
+        return estimate_multipliers(nlp, z0, ls=ls), kkt_error(nlp, z0, ls=ls)
 
     warm = jnp.asarray(warm)
     # a real branch (warm is one flag for a whole batch): a cold start skips the estimate
     est, kkt0 = jax.lax.cond(warm, estimate, lambda _: (cold, jnp.asarray(jnp.inf, z0.dtype)), None)
-    done0 = warm & (kkt0 <= opts.tol_optimality) & (_violation(*nlp.constraints(z0)) <= opts.tol_feasibility)
+    done0 = warm & (kkt0 <= opts.tol_optimality) & (violation(*nlp.constraints(z0)) <= opts.tol_feasibility)
     if nlp.ineq_penalty == "pbm":
-        est = est._replace(ineq=jax.tree.map(lambda r: jnp.maximum(r, _PBM_FLOOR), est.ineq),
-                           glob=jnp.maximum(est.glob, _PBM_FLOOR))
+        est = est._replace(ineq=jax.tree.map(lambda r: jnp.maximum(r, PBM_FLOOR), est.ineq),
+                           glob=jnp.maximum(est.glob, PBM_FLOOR))
     mult0 = jax.tree.map(lambda a, b: jnp.where(warm, a, b), est, cold)
     mu0 = jnp.where(warm, jnp.maximum(opts.penalty_init, opts.penalty_max * 1e-2), opts.penalty_init).astype(z0.dtype)
-    return _State(
+    return ALState(
         z=z0, mult=mult0, mu=mu0, damping=jnp.asarray(opts.damping_init, dtype=z0.dtype),
         omega=jnp.asarray(1e-2, dtype=z0.dtype), eta=jnp.asarray(1e-2, dtype=z0.dtype),
         viol_prev=jnp.asarray(jnp.inf, dtype=z0.dtype), inner=jnp.asarray(0), outer=jnp.asarray(0),
@@ -226,13 +226,13 @@ def _init_state(nlp: _NLP, z0, opts: SolverOptions, warm=False) -> _State:
         restarts=jnp.asarray(0), z_start=z0, val_ref=jnp.asarray(jnp.inf, dtype=z0.dtype))
 
 
-def _finished(s: _State, opts: SolverOptions):
+def al_finished(s: ALState, opts: SolverOptions):
     return s.done | s.stalled | (s.it >= s.it_max) | (s.outer >= opts.max_outer)
 
 
 def _fallback(opts: SolverOptions) -> bool:
     """Whether an uncertified PBM run falls back to a cold PHR run (``pbm_fallback_iter``)."""
-    return _static(opts).inequality_penalty == "pbm" and _static(opts).pbm_fallback_iter > 0
+    return static_options(opts).inequality_penalty == "pbm" and static_options(opts).pbm_fallback_iter > 0
 
 
 def _first_run_iter(opts: SolverOptions):
@@ -240,19 +240,19 @@ def _first_run_iter(opts: SolverOptions):
 
 
 def _max_restarts(opts: SolverOptions):
-    """1 or 2 restarts (see :func:`_restart`), or none with ``restart_iter = 0`` and no PBM
+    """1 or 2 restarts (see :func:`restart_state`), or none with ``restart_iter = 0`` and no PBM
     fallback; a traced count inside a compiled program."""
     return int(_fallback(opts)) + (opts.restart_iter > 0)
 
 
-def _needs_restart(s: _State, opts: SolverOptions):
+def needs_restart(s: ALState, opts: SolverOptions):
     """A run that ended uncertified (iteration or outer limit), not as likely infeasible
-    nor failed, with a restart left (one; two for a PBM run, see :func:`_restart`)."""
+    nor failed, with a restart left (one; two for a PBM run, see :func:`restart_state`)."""
     return ~s.done & ~s.failed & ~s.stalled & (s.restarts < _max_restarts(opts))
 
 
-def _restart(nlp: _NLP, s: _State, opts: SolverOptions) -> _State:
-    """Restart an uncertified run once (where :func:`_needs_restart`; elsewhere ``s``
+def restart_state(nlp: NLP, s: ALState, opts: SolverOptions) -> ALState:
+    """Restart an uncertified run once (where :func:`needs_restart`; elsewhere ``s``
     unchanged): from its final point after the feasibility polish, with least-squares
     multipliers there, the penalty at ``restart_penalty_max / 100`` and capped at
     ``restart_penalty_max``, for ``restart_iter`` more iterations.
@@ -266,14 +266,14 @@ def _restart(nlp: _NLP, s: _State, opts: SolverOptions) -> _State:
     first run left uncertified, about 60 to 590 iterations after the restart, cost within
     0.04 % of IPOPT's). A point the polish
     leaves certified (KKT error and violation within tolerance) is not restarted:
-    :func:`_finish` certifies it.
+    :func:`finish` certifies it.
 
     A PBM run (``SolverOptions.pbm_fallback_iter``) has two restarts: the first is PHR's
     own cold run from the first run's starting point, the second the warm one above."""
     # a warm start at the polished point: least-squares multipliers, fresh schedules, and
     # finished at once where that point is already certified
-    fresh = _init_state(nlp, _final_polish(nlp, s.z, opts, chord=False), opts, warm=True)
-    need = _needs_restart(s, opts) & ~fresh.done
+    fresh = init_state(nlp, final_polish(nlp, s.z, opts, chord=False), opts, warm=True)
+    need = needs_restart(s, opts) & ~fresh.done
     dt = s.z.dtype
     new = fresh._replace(mu=jnp.asarray(opts.restart_penalty_max * 1e-2, dt),
                          mu_max=jnp.asarray(opts.restart_penalty_max, dt), it=s.it,
@@ -282,7 +282,7 @@ def _restart(nlp: _NLP, s: _State, opts: SolverOptions) -> _State:
         # the first restart of a PBM run is PHR's own cold run from the first run's start
         # (zero multipliers, PHR's default penalty_init, max_iter iterations); the warm one
         # above follows it if that too ends uncertified
-        cold = _init_state(nlp, s.z_start, opts)
+        cold = init_state(nlp, s.z_start, opts)
         cold = cold._replace(mult=jax.tree.map(jnp.zeros_like, cold.mult),
                              mu=jnp.asarray(SolverOptions.penalty_init, dt),
                              it=s.it, it_max=s.it + opts.max_iter, restarts=s.restarts + 1)
@@ -290,31 +290,31 @@ def _restart(nlp: _NLP, s: _State, opts: SolverOptions) -> _State:
     return jax.tree.map(lambda a, b: jnp.where(need, a, b), new, s)
 
 
-def _run_with_restart(nlp: _NLP, state: _State, opts: SolverOptions) -> _State:
-    """The loop to its end, then (if needed, see :func:`_restart`) once more, or twice
+def run_with_restart(nlp: NLP, state: ALState, opts: SolverOptions) -> ALState:
+    """The loop to its end, then (if needed, see :func:`restart_state`) once more, or twice
     for a PBM run. Written as
     a loop over runs so that the Newton loop is compiled once (two copies of it doubled
     the solver's compilation)."""
-    if not isinstance(opts, _TracedOptions) and _max_restarts(opts) == 0:
-        return _loop(nlp, state, opts)
+    if not isinstance(opts, TracedOptions) and _max_restarts(opts) == 0:
+        return al_loop(nlp, state, opts)
 
     def run(carry):
         s, k = carry
         # a real branch for one problem; under vmap both sides run on the first pass
         # (the restart is a no-op where it is not needed)
-        s = jax.lax.cond(k > 0, lambda t: _restart(nlp, t, opts), lambda t: t, s)
-        return _loop(nlp, s, opts), k + 1
+        s = jax.lax.cond(k > 0, lambda t: restart_state(nlp, t, opts), lambda t: t, s)
+        return al_loop(nlp, s, opts), k + 1
 
-    s, _ = jax.lax.while_loop(lambda c: (c[1] == 0) | _needs_restart(c[0], opts), run, (state, jnp.asarray(0)))
+    s, _ = jax.lax.while_loop(lambda c: (c[1] == 0) | needs_restart(c[0], opts), run, (state, jnp.asarray(0)))
     return s
 
 
-def _next_inner_tol(opts: SolverOptions, omega, viol, pbm_on=False):
+def next_inner_tol(opts: SolverOptions, omega, viol, pbm_on=False):
     """The next AL subproblem's stationarity tolerance (see ``SolverOptions.inner_tol_ratio``;
     ``pbm_on``: a traced flag, the PBM phase of a PBM run, which takes ``pbm_inner_tol_ratio``)."""
 
     def tol(name):
-        if getattr(_static(opts), name) > 0:
+        if getattr(static_options(opts), name) > 0:
             return jnp.maximum(jnp.minimum(1e-2, getattr(opts, name) * viol), opts.tol_optimality)
         return jnp.maximum(omega * 0.1, opts.tol_optimality)
 
@@ -323,28 +323,28 @@ def _next_inner_tol(opts: SolverOptions, omega, viol, pbm_on=False):
     return tol("inner_tol_ratio")
 
 
-def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
+def al_loop(nlp: NLP, state: ALState, opts: SolverOptions, limit=None):
     """Iterate from ``state`` until finished or until ``state.it`` reaches ``limit``;
     resumable, so a batch can be run in segments (see :func:`solve_batch`)."""
 
-    nlp = _with_phase(nlp, state)
+    nlp = with_phase(nlp, state)
     pbm_on = nlp.pbm_active
 
-    def cond(s: _State):
-        return ~_finished(s, opts) if limit is None else ~_finished(s, opts) & (s.it < limit)
+    def cond(s: ALState):
+        return ~al_finished(s, opts) if limit is None else ~al_finished(s, opts) & (s.it < limit)
 
-    def body(s: _State):
+    def body(s: ALState):
         # the kink curvature's margin, zero until the subproblem has run kink_after iterations
-        kink = (None if _static(opts).kink_margin == 0
+        kink = (None if static_options(opts).kink_margin == 0
                 else jnp.where((s.inner >= opts.kink_after) & ~pbm_on, opts.kink_margin, 0.0).astype(s.z.dtype))
         z, damping, pg, val, moved = _newton_step(nlp, s.z, s.mult, s.mu, s.damping, kink)
         failed = ~jnp.all(jnp.isfinite(z))
         inner = s.inner + 1
         g, ((eq, ineq, glob), cost) = nlp.al_grad_and_parts(z, s.mult, s.mu)
-        stat = _stationarity(nlp, z, g)
+        stat = stationarity(nlp, z, g)
         subproblem_done = (stat <= s.omega) | (inner >= opts.max_inner) | (~moved & (damping >= 1e9))
         # ---- outer update (computed always, applied where subproblem_done) ----
-        viol = _violation(eq, ineq, glob, s.mult, s.mu)
+        viol = violation(eq, ineq, glob, s.mult, s.mu)
         # the stall exit (off with stall_window = 0, a traced value like the others)
         stall_on = opts.stall_window > 0
         window = jnp.maximum(opts.stall_window, 1)
@@ -371,8 +371,8 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
             eta = jnp.maximum(eta, opts.tol_feasibility)
         mult = jax.tree.map(lambda new, old: jnp.where(take_mult, new, old), updated, s.mult)
         mu = jnp.where(grow, jnp.minimum(s.mu * opts.penalty_growth, s.mu_max), s.mu)
-        omega = _next_inner_tol(opts, s.omega, viol, pbm_on)
-        plain_viol = _violation(eq, ineq, glob)
+        omega = next_inner_tol(opts, s.omega, viol, pbm_on)
+        plain_viol = violation(eq, ineq, glob)
         converged = (plain_viol <= opts.tol_feasibility) & (stat <= opts.tol_optimality)
         hist = s.history.at[jnp.minimum(s.outer, opts.max_outer - 1)].set(jnp.stack([cost, plain_viol, s.mu]))
         # likely infeasible: two outer iterations ago the violation was hardly larger
@@ -390,7 +390,7 @@ def _loop(nlp: _NLP, state: _State, opts: SolverOptions, limit=None):
         def pick(new, old):
             return jax.tree.map(lambda a, b: jnp.where(subproblem_done, a, b), new, old)
 
-        return _State(
+        return ALState(
             z=z, mult=pick(mult, s.mult), mu=pick(mu, s.mu), damping=damping,
             omega=pick(omega, s.omega), eta=pick(eta, s.eta), viol_prev=pick(viol, s.viol_prev),
             inner=jnp.where(subproblem_done, 0, inner), outer=s.outer + subproblem_done.astype(int),

@@ -11,12 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _resources, _setup, implicit
+from .._compile import nested_jit
 from .._compile import solver_jit as _jit
 from ..problem import Problem, Weights
 from ..transcription import Transcription
-from .core import _placeholder_init, _resolve_method, initial_guess
-from .lanes import _cpu_lanes, _solve_problems
-from .options import SolverOptions, _options_jit
+from .core import placeholder_init, resolve_method, initial_guess
+from .lanes import cpu_lanes, solve_problems
+from .options import SolverOptions, options_jit
 from .results import Solution
 
 
@@ -66,13 +67,13 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     if warm not in ("full", "primal"):
         raise ValueError(f"warm must be 'full' or 'primal', got {warm!r}")
     warm = init is not None and warm == "full"
-    opts = _resolve_method(options, transcription, problem.robot)
+    opts = resolve_method(options, transcription, problem.robot)
     # float64 only, the compilation cache on, a first compilation logged (jtraj._setup)
     key = _setup.before_solve(problem.robot, problem.N, batch=False, problem=problem, options=opts,
                               transcription=transcription, efforts=problem.efforts)
     guess = init is None
     if guess:  # placeholders of the controls' shapes (the program computes the guess)
-        init = _placeholder_init(problem.N, Transcription(transcription).control_dim(problem))
+        init = placeholder_init(problem.N, Transcription(transcription).control_dim(problem))
     else:
         init = _check_init(problem, init, transcription)
     _resources.check(problem.N, problem.robot.n)  # ValueError naming N beyond the memory limit
@@ -106,7 +107,7 @@ def _check_init(problem, init, transcription):
     return u, h
 
 
-@_options_jit()
+@options_jit()
 def _guess_batch_jit(problems, opts, transcription):
     tr = Transcription(transcription)
     return eqx.filter_vmap(lambda p: initial_guess(p, opts, tr))(problems)
@@ -151,7 +152,7 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
             at once, whose cost is the slowest problem's iterations on every lane); on an
             accelerator when B > slots. ``slots=None`` solves all B at once. "auto"
             (default) is 1024 on an accelerator and, on a CPU, 16 for serial3 at N = 20,
-            down to 4 for larger problems (:func:`_cpu_lanes`). On a CPU a vmapped
+            down to 4 for larger problems (:func:`cpu_lanes`). On a CPU a vmapped
             iteration costs about its lane count, and more per lane once the lanes'
             working set outgrows the core's cache; on an accelerator lanes are nearly
             free, so larger ``slots`` pay there.
@@ -200,7 +201,7 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     T_max = xp.broadcast_to(xp.asarray(np.inf if T_max is None else T_max, float), (B,))
     Transcription(transcription)
     _check_efforts(efforts, transcription)
-    opts = _resolve_method(options, transcription, robot)
+    opts = resolve_method(options, transcription, robot)
     weights = Weights() if weights is None else weights
     key = _setup.before_solve(robot, N, batch=True, weights=weights, options=opts, transcription=transcription,
                               efforts=efforts)
@@ -209,19 +210,19 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         return _problem(robot, a, b, c, d, t, N, weights, efforts)
 
     if slots == "auto":
-        slots = _cpu_lanes(N * (n + 1)) if jax.default_backend() == "cpu" else 1024
+        slots = cpu_lanes(N * (n + 1)) if jax.default_backend() == "cpu" else 1024
     if slots is not None and (not isinstance(slots, int) or isinstance(slots, bool) or slots < 1):
         raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
     if not isinstance(segment, int) or segment < 1:
         raise ValueError(f"segment must be a positive integer, got {segment!r}")
     _resources.check(N, n, B, lanes=slots or B)  # ValueError naming N or B beyond the memory limit
-    # (inside another trace: the programs without their XLA options, see implicit._nested)
-    problems = (implicit._nested(_problems_jit) if traced else _problems_jit)(
+    # (inside another trace: the programs without their XLA options, see jtraj._compile.nested_jit)
+    problems = (nested_jit(_problems_jit) if traced else _problems_jit)(
         robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts)
     warm = init is not None
     if init is None:
         # non-finite samples get a finite placeholder guess; they are flagged invalid
-        init = (implicit._nested(_guess_batch_jit) if traced else _guess_batch_jit)(problems, opts, transcription)
+        init = (nested_jit(_guess_batch_jit) if traced else _guess_batch_jit)(problems, opts, transcription)
     else:
         m_u = Transcription(transcription).control_dim(make(q_start[0], q_goal[0], qd_start[0], qd_goal[0], T_max[0]))
         u, h = jnp.asarray(init[0], float), jnp.asarray(init[1], float)
@@ -231,6 +232,6 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
         init = (u, h)
     if traced or implicit.any_traced(init):  # derivatives per sample (jtraj.implicit)
         return implicit.solve_batch_traced(problems, opts, transcription, init, warm, slots, segment)
-    sol = _solve_problems(problems, opts, transcription, init, warm, slots, segment)
+    sol = solve_problems(problems, opts, transcription, init, warm, slots, segment)
     _setup.compiled(key)
     return sol

@@ -7,16 +7,16 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from .nlp import Multipliers, _NLP, _violation
+from .nlp import Multipliers, NLP, violation
 from .options import SolverOptions
 
 
-def _stationarity(nlp: _NLP, z, g):
+def stationarity(nlp: NLP, z, g):
     """The largest entry of the projected gradient at z (``g``: the AL's gradient there)."""
     return jnp.max(jnp.abs(z - jnp.clip(z - g, nlp.layout.z_lo, nlp.layout.z_hi)))
 
 
-def _residual(nlp: _NLP, z, act_tol):
+def _residual(nlp: NLP, z, act_tol):
     """Stacked equalities and nearly-active inequalities (g > -act_tol); inactive rows are
     zero. (The polish's holding phase takes the nearly-active rows' max(g, 0): it removes
     violations while keeping satisfied nearly-active rows where they are to first order,
@@ -40,7 +40,7 @@ def _ridge_solve(Jf, b, eps, gram=None):
 _POLISH_DONE = 1e-12
 
 
-def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above=None, skip=None):
+def _polish(nlp: NLP, z, iterations: int = 4, chord: bool = True, release_above=None, skip=None):
     """Feasibility polish: a few Gauss-Newton projections of z onto the manifold of the
     equalities and nearly-active inequalities (minimum-norm corrections, simple bounds
     held). The AL leaves O((lambda* - lambda)/mu) violations; this removes them without
@@ -51,7 +51,7 @@ def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above
     projections also stop once the violation is below ``_POLISH_DONE``: the corrections
     are as small as the AL's violations, so the chord converges about as fast as
     Gauss-Newton at about half the cost. Without it (the restart's starting point, see
-    :func:`_restart`) the Jacobian is recomputed at every projection, because a restart
+    :func:`restart_state`) the Jacobian is recomputed at every projection, because a restart
     runs on from that point for many iterations and is sensitive to it.
 
     A satisfied nearly-active inequality is held where it is to first order. With
@@ -60,7 +60,7 @@ def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above
     inequality is left free unless the correction would take it across its boundary.
     Holding fails where a row is nearly parallel to a violated one
     (``Problem(efforts="intervals")``), whose correction it would cancel (see
-    :func:`_final_polish`). Both phases are one bounded loop with one body, which halves
+    :func:`final_polish`). Both phases are one bounded loop with one body, which halves
     the finish's and the restart's compilation; the normal equations' ``J^T J`` is formed
     once per Jacobian, the fixed variables' rows and columns zeroed in it."""
     lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
@@ -73,7 +73,7 @@ def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above
     releasing = release_above is not None
 
     def viol(zz):
-        return _violation(*nlp.constraints(zz))
+        return violation(*nlp.constraints(zz))
 
     def correction(J, r, fixed, gram=None):
         # normal equations in z (nz x nz, smaller than the row space); the tiny ridge
@@ -137,14 +137,14 @@ def _polish(nlp: _NLP, z, iterations: int = 4, chord: bool = True, release_above
         # the size of the AL's violations). J^T J once per chord, not twice per projection
         # (each a (rows x nz)^T (rows x nz) product: serial3, N = 20, 241 x 80). Inside a
         # loop of at most one pass, so that under vmap it runs only if some lane polishes
-        J_all, J_near, G_near = _at_most_once(need, lambda zz: _chord_jacobian(nlp, zz, window, is_ineq), z)
+        J_all, J_near, G_near = at_most_once(need, lambda zz: _chord_jacobian(nlp, zz, window, is_ineq), z)
     carry = (z, v0, jnp.asarray(0), need, jnp.asarray(False), v0)
     # a bounded loop (under vmap it runs while some lane still improves)
     z, *_ = jax.lax.while_loop(lambda c: c[3] & (c[2] < iterations), body, carry)
     return z
 
 
-def _at_most_once(pred, fn, x, fill=0.0):
+def at_most_once(pred, fn, x, fill=0.0):
     """``fn(x)`` where ``pred``, else ``fill`` in its shape: a loop of at most one pass, so
     that under vmap (where ``lax.cond`` evaluates both sides) it runs only if some lane
     needs it. The body's argument is x plus zero times the pass count: an argument that
@@ -158,7 +158,7 @@ def _at_most_once(pred, fn, x, fill=0.0):
     return jax.lax.while_loop(lambda c: pred & (c[1] < 1), body, (out, jnp.zeros((), x.dtype)))[0]
 
 
-def _chord_jacobian(nlp: _NLP, z, window, is_ineq):
+def _chord_jacobian(nlp: NLP, z, window, is_ineq):
     """Every constraint row's Jacobian at z, the holding phase's rows of it (those nearly
     active within ``window``), and their J^T J (see :func:`_polish`)."""
     J_all = jax.jacfwd(_residual, argnums=1)(nlp, z, jnp.inf)
@@ -166,7 +166,7 @@ def _chord_jacobian(nlp: _NLP, z, window, is_ineq):
     return J_all, J_near, J_near.T @ J_near
 
 
-def _final_polish(nlp: _NLP, z, opts: SolverOptions, chord: bool = True, skip=None):
+def final_polish(nlp: NLP, z, opts: SolverOptions, chord: bool = True, skip=None):
     """:func:`_polish` with its releasing phase for a point the holding one leaves violated
     by more than ``verify_tol``. Where the holding polish succeeds its result is kept
     unchanged. ``chord``: chord or Gauss-Newton projections (see :func:`_polish`).
@@ -186,14 +186,14 @@ def _final_polish(nlp: _NLP, z, opts: SolverOptions, chord: bool = True, skip=No
     return _polish(nlp, z, chord=chord, release_above=opts.verify_tol, skip=skip)
 
 
-def _init_multipliers(nlp: _NLP, z) -> Multipliers:
+def init_multipliers(nlp: NLP, z) -> Multipliers:
     eq, ineq, glob = nlp.constraints(z)
     r0 = nlp.pbm_init if nlp.ineq_penalty == "pbm" else 0.0
     return Multipliers(eq=jax.tree.map(jnp.zeros_like, eq), ineq=jax.tree.map(lambda g: jnp.full_like(g, r0), ineq),
                        glob=jnp.full_like(glob, r0))
 
 
-def _ls_multipliers(nlp: _NLP, z, act_tol: float = 1e-3):
+def ls_multipliers(nlp: NLP, z, act_tol: float = 1e-3):
     """Least-squares multipliers at z: minimise ||grad f + J_A^T lambda|| over the
     equalities and nearly-active inequalities (rows of :func:`_residual`), in the free
     variables; inequality multipliers are clipped to >= 0, inactive ones are 0.
@@ -215,10 +215,10 @@ def _ls_multipliers(nlp: _NLP, z, act_tol: float = 1e-3):
     return lam, J, gf, n_eq
 
 
-def _estimate_multipliers(nlp: _NLP, z, act_tol: float = 1e-3, ls=None) -> Multipliers:
-    """:func:`_ls_multipliers` (or ``ls``, its result) in the multipliers' tree
+def estimate_multipliers(nlp: NLP, z, act_tol: float = 1e-3, ls=None) -> Multipliers:
+    """:func:`ls_multipliers` (or ``ls``, its result) in the multipliers' tree
     structure (for warm starts)."""
-    lam = (_ls_multipliers(nlp, z, act_tol) if ls is None else ls)[0]
+    lam = (ls_multipliers(nlp, z, act_tol) if ls is None else ls)[0]
     # the rows of _residual are the leaves of (eq, ineq, glob) in this order
     shapes = Multipliers(*nlp.constraints(z))
     leaves, pos = [], 0
@@ -228,14 +228,14 @@ def _estimate_multipliers(nlp: _NLP, z, act_tol: float = 1e-3, ls=None) -> Multi
     return jax.tree.unflatten(jax.tree.structure(shapes), leaves)
 
 
-def _kkt_error(nlp: _NLP, z, act_tol: float = 1e-3, ls=None):
+def kkt_error(nlp: NLP, z, act_tol: float = 1e-3, ls=None):
     """First-order optimality error of the original problem at z, independent of the AL
     state: the projected gradient of the Lagrangian with least-squares multipliers
-    (signs enforced; ``ls``: :func:`_ls_multipliers` at z if already computed), and
+    (signs enforced; ``ls``: :func:`ls_multipliers` at z if already computed), and
     complementarity max lambda_i * |g_i| over the nearly-active inequalities; in the
     units of ``tol_optimality``."""
     lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
-    lam, J, gf, n_eq = _ls_multipliers(nlp, z, act_tol) if ls is None else ls
+    lam, J, gf, n_eq = ls_multipliers(nlp, z, act_tol) if ls is None else ls
     r = gf + J.T @ lam
     pg = z - jnp.clip(z - r, lo, hi)
     rows = _residual(nlp, z, act_tol)
@@ -243,8 +243,8 @@ def _kkt_error(nlp: _NLP, z, act_tol: float = 1e-3, ls=None):
     return jnp.maximum(jnp.max(jnp.abs(pg)), jnp.max(comp))
 
 
-def _multiplier_kkt_error(nlp: _NLP, z, mult: Multipliers):
-    """The KKT error of :func:`_kkt_error` with given multipliers (inequality ones >= 0)
+def _multiplier_kkt_error(nlp: NLP, z, mult: Multipliers):
+    """The KKT error of :func:`kkt_error` with given multipliers (inequality ones >= 0)
     instead of least-squares ones: the projected gradient of the Lagrangian and the
     complementarity ``lambda_i |g_i|``. Any such multipliers bound the KKT error from
     above."""
@@ -264,11 +264,11 @@ def _multiplier_kkt_error(nlp: _NLP, z, mult: Multipliers):
     return jnp.maximum(pg, jnp.max(jnp.stack(comp)))
 
 
-def _al_kkt_error(nlp: _NLP, z, mult: Multipliers, mu):
+def al_kkt_error(nlp: NLP, z, mult: Multipliers, mu):
     """The smaller KKT error of two multiplier vectors the AL loop provides at its final
     z: its current multipliers (updated at the end of the last subproblem) and the ones
     the AL implies at z (``rho + mu c`` and ``max(0, rho + mu g)``: those of a run stopped
-    inside a subproblem). Least-squares multipliers (:func:`_kkt_error`) fail where
+    inside a subproblem). Least-squares multipliers (:func:`kkt_error`) fail where
     nearly-active constraints are nearly parallel, as the efforts at an interval's end and
     at the next sample are when the acceleration hardly changes
     (``Problem(efforts="intervals")``): least squares splits the multiplier into large

@@ -15,10 +15,10 @@ from jaxtyping import Array
 from ..problem import Problem, orientation_error
 from ..transcription import Transcription
 from . import ipm
-from .al import _State, _init_state, _run_with_restart, _with_phase
-from .certify import _al_kkt_error, _at_most_once, _final_polish, _kkt_error
-from .nlp import _NLP, _violation
-from .options import SolverOptions, _options_jit, _static
+from .al import ALState, init_state, run_with_restart, with_phase
+from .certify import al_kkt_error, at_most_once, final_polish, kkt_error
+from .nlp import NLP, violation
+from .options import SolverOptions, options_jit, static_options
 from .results import Solution, Status
 
 
@@ -31,7 +31,7 @@ def initial_guess(problem: Problem, opts: SolverOptions, tr: Transcription):
     return tr.initial_controls(problem, v0, h0), h0
 
 
-def _stagewise(opts: SolverOptions, tr: Transcription) -> bool:
+def stagewise_directions(opts: SolverOptions, tr: Transcription) -> bool:
     """Whether the Newton directions come from the stage-wise solve (see
     ``SolverOptions.linear_solver``)."""
     solver = opts.linear_solver
@@ -40,12 +40,13 @@ def _stagewise(opts: SolverOptions, tr: Transcription) -> bool:
     return solver == "riccati" and tr.name == "decoupled"
 
 
-def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False):
+def prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False):
     """(nlp, starting state, valid) for one problem; invalid samples start from a finite
     placeholder and are flagged at the end."""
     layout = tr.layout(problem)
-    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem), stagewise=_stagewise(opts, tr),
-               ineq_penalty=opts.inequality_penalty, pbm_init=opts.pbm_init, pbm_ratio=opts.pbm_ratio)
+    nlp = NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem),
+              stagewise=stagewise_directions(opts, tr),
+              ineq_penalty=opts.inequality_penalty, pbm_init=opts.pbm_init, pbm_ratio=opts.pbm_ratio)
     u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
     # what a single Problem rejects up front (a batch builds its problems unvalidated;
@@ -53,63 +54,63 @@ def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, war
     valid = jnp.all(jnp.isfinite(z0)) & ~problem.infeasible_on_its_face()
     z0 = jnp.where(valid, z0, jnp.clip(jnp.zeros_like(z0), layout.z_lo, layout.z_hi))
     # an invalid sample takes no iteration (its lane is free at once in a batch)
-    state = _init_state(nlp, z0, opts, warm)
+    state = init_state(nlp, z0, opts, warm)
     return nlp, state._replace(done=state.done | ~valid), valid
 
 
-def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False) -> Solution:
-    nlp, state, valid = _prepare(problem, opts, tr, init, warm)
-    if _static(opts).method == "ip":
+def solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False) -> Solution:
+    nlp, state, valid = prepare(problem, opts, tr, init, warm)
+    if static_options(opts).method == "ip":
         # one problem: a real branch (vmapped, both sides would run; solve_batch does not
         # come here with "ip")
-        ip = _ip_run(nlp, state, opts)
-        solved = _ip_solved(state, ip)
-        state = jax.lax.cond(solved, lambda: _ip_result(nlp, state, ip),
-                             lambda: _run_with_restart(nlp, state, opts))
-        sol = _finish(nlp, state, opts, valid, light=solved)
+        ip = ip_run(nlp, state, opts)
+        solved = ip_solved(state, ip)
+        state = jax.lax.cond(solved, lambda: ip_result(nlp, state, ip),
+                             lambda: run_with_restart(nlp, state, opts))
+        sol = finish(nlp, state, opts, valid, light=solved)
         return dataclasses.replace(sol, iterations=sol.iterations + jnp.where(solved, 0, ip.it))
-    return _finish(nlp, _run_with_restart(nlp, state, opts), opts, valid)
+    return finish(nlp, run_with_restart(nlp, state, opts), opts, valid)
 
 
-def _ip_run(nlp: _NLP, state: _State, opts: SolverOptions):
-    """The interior-point method (:mod:`jtraj.ipm`) from the state's start; a state the
+def ip_run(nlp: NLP, state: ALState, opts: SolverOptions):
+    """The interior-point method (:mod:`jtraj.solver.ipm`) from the state's start; a state the
     AL loop would not run (a warm start already optimal) takes no iteration."""
-    return ipm.run(nlp, state.z, jnp.where(state.done, 0, _static(opts).ip_max_iter), _ip_tolerances(opts))
+    return ipm.run(nlp, state.z, jnp.where(state.done, 0, static_options(opts).ip_max_iter), ip_tolerances(opts))
 
 
-def _ip_tolerances(opts) -> ipm.Tolerances:
+def ip_tolerances(opts) -> ipm.Tolerances:
     """When the interior-point method's run ends as solved (see ``SolverOptions.method``):
     the residual of every constraint within half ``verify_tol``, so that the strict
     verification passes without a polish. The parts' test is never looser than the AL
     loop's own targets: with ``tol_feasibility`` / ``tol_optimality`` set below them (a
     user asking for a tight solve) it ends only at the overall ``ip_tol``."""
-    return ipm.Tolerances(_static(opts).ip_tol, jnp.minimum(opts.ip_dual_tol, opts.tol_optimality),
+    return ipm.Tolerances(static_options(opts).ip_tol, jnp.minimum(opts.ip_dual_tol, opts.tol_optimality),
                           jnp.minimum(0.5 * opts.verify_tol, opts.tol_feasibility),
                           jnp.minimum(opts.ip_compl_tol, opts.tol_optimality), opts.ip_project_tol,
                           opts.ip_damping)
 
 
-def _ip_solved(state: _State, ip) -> Array:
+def ip_solved(state: ALState, ip) -> Array:
     """Where the interior-point method decided (solved, or stalled as likely infeasible:
-    see :mod:`jtraj.ipm`); elsewhere the AL loop takes over."""
+    see :mod:`jtraj.solver.ipm`); elsewhere the AL loop takes over."""
     return ~state.done & ((ip.done & ~ip.failed) | ip.infeasible)
 
 
-def _ip_result(nlp: _NLP, state: _State, ip) -> _State:
+def ip_result(nlp: NLP, state: ALState, ip) -> ALState:
     """The AL loop's state for a problem the interior-point method decided: its point,
-    certified or stalled, and its multipliers (``_finish(..., light=True)`` verifies it
+    certified or stalled, and its multipliers (``finish(..., light=True)`` verifies it
     and reports their KKT error)."""
     solved = ip.done & ~ip.failed
     # its active bounds snapped on (ipm.snap_to_bounds), unless that costs feasibility
     snapped = ipm.snap_to_bounds(nlp, ip)
-    keep = _violation(*nlp.constraints(snapped)) <= jnp.maximum(1e-7, _violation(*nlp.constraints(ip.z)))
+    keep = violation(*nlp.constraints(snapped)) <= jnp.maximum(1e-7, violation(*nlp.constraints(ip.z)))
     return state._replace(z=jnp.where(keep, snapped, ip.z), mult=ipm.multipliers(nlp, ip), done=solved,
                           stalled=~solved, it=ip.it,
                           stationarity=jnp.where(solved, ip.certified, jnp.inf).astype(state.stationarity.dtype))
 
 
-def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> Solution:
-    """The solution of a finished run: polished (:func:`_final_polish`), verified and
+def finish(nlp: NLP, s: ALState, opts: SolverOptions, valid, light=False) -> Solution:
+    """The solution of a finished run: polished (:func:`final_polish`), verified and
     certified. ``light``: a point the interior-point method decided (converged to
     ``ip_tol``, feasible to ~1e-7, or stalled far from feasible) is verified as it is,
     without the polish, and its KKT error is that of its own multipliers (``s.mult``), not
@@ -117,14 +118,14 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> So
     8 lanes, one core: the finish 1.48 ms per problem, of which the polish about 0.8 and
     the least-squares KKT error about 0.7). Under vmap either runs only while some lane
     needs it, so :func:`_finish_lanes` groups the light problems together."""
-    nlp = _with_phase(nlp, s)
+    nlp = with_phase(nlp, s)
     problem, tr = nlp.problem, nlp.tr
-    # a Python True (one interior-point result, :mod:`jtraj._staged`): neither the polish
+    # a Python True (one interior-point result, :mod:`jtraj.solver.staged`): neither the polish
     # nor the least-squares KKT error is in the program
     static_light = light is True
     light = jnp.asarray(light)
     if not static_light:
-        s = s._replace(z=_final_polish(nlp, s.z, opts, skip=light))
+        s = s._replace(z=final_polish(nlp, s.z, opts, skip=light))
     _, h = nlp.layout.unpack(s.z)
     W = nlp.W(s.z)
     q, qd, c, _ = jax.vmap(lambda w: tr.split_stage(problem, w))(W)
@@ -163,9 +164,9 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> So
     # the loop certifies optimality on the AL's own measure at the end of a subproblem;
     # a point it left uncertified (iteration limit) may still be a KKT point of the
     # original problem: the KKT error with the best of three multiplier estimates decides
-    kkt = _al_kkt_error(nlp, s.z, s.mult, s.mu)
+    kkt = al_kkt_error(nlp, s.z, s.mult, s.mu)
     if not static_light:
-        kkt = jnp.minimum(_at_most_once(~light, lambda zz: _kkt_error(nlp, zz), s.z, fill=jnp.inf), kkt)
+        kkt = jnp.minimum(at_most_once(~light, lambda zz: kkt_error(nlp, zz), s.z, fill=jnp.inf), kkt)
     # a certified point reports at most its certifying test's value (Solution.kkt_error)
     kkt = jnp.minimum(kkt, jnp.where(s.done & ~s.failed, s.stationarity, jnp.inf))
     certified = s.done | (kkt <= opts.tol_optimality)
@@ -183,22 +184,22 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> So
                     iterations=s.it, outer_iterations=s.outer, history=s.history, kkt_error=kkt)
 
 
-@_options_jit()  # jtraj._compile.solver_jit (the solver's XLA CPU options), options split
-def _solve_jit(problem, opts, transcription, init, warm, guess):
+@options_jit()  # jtraj._compile.solver_jit (the solver's XLA CPU options), options split
+def solve_jit(problem, opts, transcription, init, warm, guess):
     # init is always arrays, replaced by the default guess where the traced bool ``guess``
     # says so (one program for cold and warm starts, and the guess without a program
     # call of its own: 0.36 ms of a ~6 ms warm single solve), and warm a traced bool
     tr = Transcription(transcription)
     init = jax.lax.cond(guess, lambda: initial_guess(problem, opts, tr), lambda: init)
-    return _solve_core(problem, opts, tr, init, warm)
+    return solve_core(problem, opts, tr, init, warm)
 
 
 @functools.lru_cache(maxsize=16)
-def _placeholder_init(N: int, m_u: int):
+def placeholder_init(N: int, m_u: int):
     return np.zeros((N, m_u)), np.zeros(N)
 
 
-def _resolve_method(opts: SolverOptions | None, transcription: str, robot) -> SolverOptions:
+def resolve_method(opts: SolverOptions | None, transcription: str, robot) -> SolverOptions:
     """The options (the defaults for None) with ``method="auto"`` resolved (see
     :class:`SolverOptions`) and an explicit "ip" checked. Cached: building a
     SolverOptions and checking it costs about 0.15 ms, which one warm solve (about 5 ms)

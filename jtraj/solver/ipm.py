@@ -608,7 +608,7 @@ def finished(st: IPState, max_iter) -> Array:
 def loop(nlp, st: IPState, max_iter, tol, limit=None) -> IPState:
     """Iterate from st until finished (at most ``max_iter`` iterations in all) or until
     ``st.it`` reaches ``limit`` (resumable; a batch's lanes step instead in the loop of
-    ``jtraj.solver._run_pool``, which refills them)."""
+    ``jtraj.solver.lanes._run_pool``, which refills them)."""
     def cond(s):
         return ~finished(s, max_iter) if limit is None else ~finished(s, max_iter) & (s.it < limit)
 

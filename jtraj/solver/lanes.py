@@ -17,38 +17,38 @@ from .._compile import SOLVER_XLA_OPTIONS, supported_options
 from .._compile import solver_jit as _jit
 from ..transcription import Transcription
 from . import ipm
-from .al import _finished, _loop, _needs_restart, _restart
-from .core import _finish, _ip_result, _ip_solved, _ip_tolerances, _prepare, _solve_core
-from .options import _TracedOptions, _options_jit, _split_options, _static
+from .al import al_finished, al_loop, needs_restart, restart_state
+from .core import finish, ip_result, ip_solved, ip_tolerances, prepare, solve_core
+from .options import TracedOptions, options_jit, split_options, static_options
 from .results import Solution
 
 
-@_options_jit()
-def _solve_batch_jit(problems, opts, transcription, init, warm):
+@options_jit()
+def solve_batch_jit(problems, opts, transcription, init, warm):
     tr = Transcription(transcription)
-    return eqx.filter_vmap(lambda p, i: _solve_core(p, opts, tr, i, warm))(problems, init)
+    return eqx.filter_vmap(lambda p, i: solve_core(p, opts, tr, i, warm))(problems, init)
 
 
-@_options_jit()
+@options_jit()
 def _prepare_batch_jit(problems, opts, transcription, init, warm):
     tr = Transcription(transcription)
-    return eqx.filter_vmap(lambda p, i: _prepare(p, opts, tr, i, warm))(problems, init)
+    return eqx.filter_vmap(lambda p, i: prepare(p, opts, tr, i, warm))(problems, init)
 
 
 def _segment(nlps, states, opts, steps: int):
     """``steps`` more iterations of each lane's loop (vmapped; a finished lane idles)."""
-    return eqx.filter_vmap(lambda n, s: _loop(n, s, opts, s.it + steps))(nlps, states)
+    return eqx.filter_vmap(lambda n, s: al_loop(n, s, opts, s.it + steps))(nlps, states)
 
 
 def _restart_lanes(nlps, states, need, opts):
-    """``states`` (a set of lanes) with the lanes ``need`` restarted (:func:`_restart`)."""
-    new = eqx.filter_vmap(lambda n, s: _restart(n, s, opts))(nlps, states)
+    """``states`` (a set of lanes) with the lanes ``need`` restarted (:func:`restart_state`)."""
+    new = eqx.filter_vmap(lambda n, s: restart_state(n, s, opts))(nlps, states)
     return jax.tree.map(lambda a, b: jnp.where(need.reshape(need.shape + (1,) * (a.ndim - 1)), a, b), new, states)
 
 
 #: :func:`_segment` on pytrees (``benchmarks/iteration_cost.py``; the batch driver runs it on
 #: packed arrays, see :func:`_lane_programs`)
-_segment_jit = _options_jit()(_segment)
+segment_jit = options_jit()(_segment)
 
 
 @_jit
@@ -56,10 +56,10 @@ def _gather_jit(nlps, states, idx):
     return _take(nlps, idx), _take(states, idx)
 
 
-@_options_jit()
+@options_jit()
 def _finish_batch_jit(nlps, states, opts, valid, light):
-    """:func:`_finish` over a batch, vmapped (see :func:`_finish_lanes` on a CPU)."""
-    return eqx.filter_vmap(lambda n, s, v, l: _finish(n, s, opts, v, l))(nlps, states, valid, light)
+    """:func:`finish` over a batch, vmapped (see :func:`_finish_lanes` on a CPU)."""
+    return eqx.filter_vmap(lambda n, s, v, l: finish(n, s, opts, v, l))(nlps, states, valid, light)
 
 
 def _finish_lanes(nlps, states, opts, valid, slots: int, light):
@@ -72,7 +72,7 @@ def _finish_lanes(nlps, states, opts, valid, slots: int, light):
     took 6.9 s instead of 20.4 s (2.9 s warm): as a ``lax.map`` inside one kernel the
     finish took 7 s to compile for each size. The same 1024 pairs: the same results to
     the last bit, 35.8-37.2 against 35.5-36.3 s. The ``light`` problems (NumPy mask, see
-    :func:`_finish`) go first, in groups of their own, so that their groups skip the work
+    :func:`finish`) go first, in groups of their own, so that their groups skip the work
     they do not need."""
     B = int(valid.shape[0])
     order = np.argsort(~light, kind="stable")  # the light problems first, each kind in order
@@ -111,7 +111,7 @@ def _take(tree, idx):
     return jax.tree.map(lambda x: x[idx] if eqx.is_array(x) else x, tree)
 
 
-def _lane_counts(slots: int) -> list[int]:
+def lane_counts(slots: int) -> list[int]:
     """Lane counts a compacted batch steps down through once nothing is pending: on a CPU
     a vmapped iteration costs about its lane count, so the stragglers at the end of a
     batch run on 1/4 and 1/16 of the lanes, but on no fewer than 2 (each count is one
@@ -123,7 +123,7 @@ def _lane_counts(slots: int) -> list[int]:
     return sorted({slots, max(slots // 4, min(slots, 2)), max(slots // 16, min(slots, 2))}, reverse=True)
 
 
-def _cpu_lanes(nz: int) -> int:
+def cpu_lanes(nz: int) -> int:
     """The default lane count on a CPU for problems of about ``nz`` unknowns: 16 at
     serial3's N = 20 (nz = 80), fewer for larger problems (8 at N = 40), at least 4.
     Beyond that each lane costs more (the working set outgrows the core's cache), and the
@@ -139,7 +139,7 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     running segments of ``steps`` iterations and
     handing finished slots to pending problems brings the cost to about the mean. Once
     nothing is pending, the unfinished problems move to fewer lanes (see
-    :func:`_lane_counts`). Each problem takes the iterations it takes in a one-shot batch
+    :func:`lane_counts`). Each problem takes the iterations it takes in a one-shot batch
     (results equal up to rounding at another batch width), restarts included: a run that
     ends uncertified is restarted on its lane (see :func:`_run_lanes`). With lanes held
     throughout, about a third of the lane-iterations would be idle."""
@@ -149,16 +149,16 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
 
 
 def _finish_all(nlps, states, opts, valid, slots: int, light=None):
-    """:func:`_finish` over a batch; on a CPU ``slots`` problems at a time (see
+    """:func:`finish` over a batch; on a CPU ``slots`` problems at a time (see
     :func:`_finish_lanes`). ``light``: (B,) NumPy mask of the problems the interior-point
-    method decided (see :func:`_finish`), or None."""
+    method decided (see :func:`finish`), or None."""
     light = np.zeros(int(valid.shape[0]), bool) if light is None else np.asarray(light, bool)
     if jax.default_backend() == "cpu":
         return _finish_lanes(nlps, states, opts, valid, slots, light)
     return _finish_batch_jit(nlps, states, opts, valid, jnp.asarray(light))
 
 
-@_options_jit()
+@options_jit()
 def _ip_init_batch_jit(nlps, states, opts):
     """The interior-point states of a batch (a state the AL loop would not run, a warm
     start already optimal, starts finished)."""
@@ -171,8 +171,8 @@ def _ip_init_batch_jit(nlps, states, opts):
 
 @_jit
 def _ip_merge_jit(nlps, states, ips):
-    solved = _ip_solved(states, ips)
-    merged = eqx.filter_vmap(_ip_result)(nlps, states, ips)
+    solved = ip_solved(states, ips)
+    merged = eqx.filter_vmap(ip_result)(nlps, states, ips)
     return jax.tree.map(lambda a, b: jnp.where(solved.reshape(solved.shape + (1,) * (a.ndim - 1)), a, b),
                         merged, states), solved
 
@@ -208,17 +208,17 @@ def _run_pool(nlps, states, todo, opts, slots: int):
     ``segment`` iterations, and a problem finishing within one left its lane idle for the
     rest of it, about half a segment per problem (on serial3 at N = 20 about 20-30 % of
     the lane-iterations; refilled at once, 3 %). Once nothing is pending and at most the
-    next smaller lane count (:func:`_lane_counts`) of problems is left, the loop returns
+    next smaller lane count (:func:`lane_counts`) of problems is left, the loop returns
     and the rest goes on through that many lanes."""
     B = todo.size
     if B == 0:
         return states
-    counts = _lane_counts(slots)
+    counts = lane_counts(slots)
     while len(counts) > 1 and counts[1] >= B:  # few problems: fewer lanes
         counts = counts[1:]
     # (steps 0: the pool runs no segments)
     progs = _lane_programs(_packing.packing(nlps), _packing.packing(states), 0, jax.default_backend())
-    split = _split_options(opts)
+    split = split_options(opts)
     total = int(jax.tree.leaves(states)[0].shape[0])
     # the batch padded to a power of two, at least 64 (the pool takes it whole: one
     # program per lane count and size, not per batch size)
@@ -249,7 +249,7 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
 
     The batch's problems and states travel packed (:mod:`jtraj._packing`): after each
     segment one call writes the lanes back and takes the next ones (:func:`_lane_programs`).
-    A run that ended uncertified in a segment is restarted (:func:`_restart`) on its lane
+    A run that ended uncertified in a segment is restarted (:func:`restart_state`) on its lane
     and goes on there: 256 benchmark pairs of seed 1, one core, PBM (whose fallback is
     such a restart, 13 pairs) 7.7-8.1 s against 8.2-8.9 s with the restarts in a second
     round of lanes after the batch, PHR (3 restarts) unchanged.
@@ -257,7 +257,7 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
     about 50 leaves), the driver's own work was 14 % of a batch's time (serial3, N = 20,
     128 pairs, one core: 0.25 s gathering and 0.22 s scattering of 5.2 s)."""
     B = todo.size
-    counts = _lane_counts(slots)
+    counts = lane_counts(slots)
     while len(counts) > 1 and counts[1] >= B:  # few problems: fewer lanes
         counts = counts[1:]
     # fewer problems than lanes: the other lanes repeat the first problem (the same
@@ -268,7 +268,7 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
     if todo.size == 0:
         return states
     progs = _lane_programs(_packing.packing(nlps), _packing.packing(states), steps, jax.default_backend())
-    split = _split_options(opts)
+    split = split_options(opts)
     all_nlps, all_states = progs.pack(_packing.arrays(nlps), _packing.arrays(states), None)
     lanes = todo[idx]  # NumPy index arrays: the compiled calls take them without jnp's dispatch
     sub_nlps, sub_states = progs.take(all_nlps, all_states, lanes)
@@ -334,18 +334,18 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
         return tuple(a[lanes] for a in nlps), tuple(a[lanes] for a in states)
 
     def segment(nlps, states, split):
-        opts = _TracedOptions(split)
+        opts = TracedOptions(split)
         nlps, before = _packing.unpack(nlps, pn), _packing.unpack(states, ps)
         out = _segment(nlps, before, opts, steps)
-        fin = _finished(out, opts)
-        # the lanes whose run ended in this segment uncertified, to restart (_restart)
-        need = fin & ~_finished(before, opts) & _needs_restart(out, opts)
+        fin = al_finished(out, opts)
+        # the lanes whose run ended in this segment uncertified, to restart (restart_state)
+        need = fin & ~al_finished(before, opts) & needs_restart(out, opts)
         return _packing.pack(_packing.arrays(out), ps), fin, need
 
     def restart(nlps, states, need, split):
-        opts = _TracedOptions(split)
+        opts = TracedOptions(split)
         out = _restart_lanes(_packing.unpack(nlps, pn), _packing.unpack(states, ps), need, opts)
-        return _packing.pack(_packing.arrays(out), ps), _finished(out, opts)
+        return _packing.pack(_packing.arrays(out), ps), al_finished(out, opts)
 
     def exchange(nlps, states, sub, lanes, new_lanes):
         states = put(states, sub, lanes)
@@ -358,8 +358,8 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
         # `stop_at` are unfinished; returns the states with every lane's written back, the
         # lanes' problems and which of them are unfinished. The loop carries the lanes'
         # array leaves (a loop's or a cond's carry turns a static leaf into an array)
-        opts = _TracedOptions(split)
-        max_iter, tol = _static(opts).ip_max_iter, _ip_tolerances(opts)
+        opts = TracedOptions(split)
+        max_iter, tol = static_options(opts).ip_max_iter, ip_tolerances(opts)
         B = states[0].shape[0]
         step = eqx.filter_vmap(lambda n, s: ipm.step(n, s, tol))
 
@@ -426,15 +426,15 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
         states=ps)
 
 
-def _solve_problems(problems, opts, transcription, init, warm: bool, slots, segment: int) -> Solution:
+def solve_problems(problems, opts, transcription, init, warm: bool, slots, segment: int) -> Solution:
     """:func:`solve_batch`'s solve of built problems (a batch of :class:`Problem`) from
     ``init`` (arrays), by the host-driven lane driver (see ``slots`` there)."""
     B = int(jax.tree.leaves(problems.q_start)[0].shape[0])
     warm = bool(warm)
     if opts.method == "ip":
         sol = _solve_batch_ip(problems, opts, transcription, init, jax.device_put(warm), slots or B, segment)
-    elif slots is not None and B > min(_lane_counts(slots)):
+    elif slots is not None and B > min(lane_counts(slots)):
         sol = _solve_compacted(problems, opts, transcription, init, jax.device_put(warm), slots, segment)
     else:
-        sol = _solve_batch_jit(problems, opts, transcription, init, jax.device_put(warm))
+        sol = solve_batch_jit(problems, opts, transcription, init, jax.device_put(warm))
     return sol

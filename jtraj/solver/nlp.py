@@ -29,7 +29,7 @@ class Multipliers(NamedTuple):
     glob: Array
 
 
-class _NLP(eqx.Module):
+class NLP(eqx.Module):
     """The transcribed problem with everything the solver needs, pure functions of z."""
 
     problem: Problem
@@ -48,7 +48,7 @@ class _NLP(eqx.Module):
     pbm_ratio: float = eqx.field(static=True, default=SolverOptions.pbm_ratio)
 
     #: with ``ineq_penalty == "pbm"``: whether the PBM term is on (the first run) or PHR
-    #: (a restart, see :func:`_with_phase`); a traced flag, so one compiled loop serves both
+    #: (a restart, see :func:`with_phase`); a traced flag, so one compiled loop serves both
     pbm_on: Array | bool = True
 
     @property
@@ -57,7 +57,7 @@ class _NLP(eqx.Module):
         return jnp.asarray(self.pbm_on) & (self.ineq_penalty == "pbm")
 
     def ineq_term(self, g, rho, mu):
-        if self.ineq_penalty == "lagrangian":  # the interior-point method's (jtraj.ipm)
+        if self.ineq_penalty == "lagrangian":  # the interior-point method's (jtraj.solver.ipm)
             return jnp.sum(rho * g)
         if self.ineq_penalty == "pbm":
             return jnp.where(self.pbm_on, _pbm(g, rho, mu), _phr(g, rho, mu))
@@ -69,7 +69,7 @@ class _NLP(eqx.Module):
         phr = jnp.clip(rho + mu * g, 0.0, 1e10)
         if self.ineq_penalty == "pbm":
             slope = jnp.clip(_pbm_slope(mu * g), 1.0 / self.pbm_ratio, self.pbm_ratio)
-            return jnp.where(self.pbm_on, jnp.clip(rho * slope, _PBM_FLOOR, 1e10), phr)
+            return jnp.where(self.pbm_on, jnp.clip(rho * slope, PBM_FLOOR, 1e10), phr)
         return phr
 
     def W(self, z):
@@ -95,7 +95,7 @@ class _NLP(eqx.Module):
         for key, g in ineq.items():
             val = val + self.ineq_term(g, mult_k.ineq[key], mu)
             if kink is not None:
-                val = val + _kink_curvature(g, mult_k.ineq[key], mu, kink)
+                val = val + kink_curvature(g, mult_k.ineq[key], mu, kink)
         return val, eq, ineq, terms
 
     def al_and_parts(self, z, mult, mu):
@@ -128,7 +128,7 @@ class _NLP(eqx.Module):
     def stage_derivatives(self, W, mult, mu, kink=None, efforts=False):
         """Per-stage values, gradients and Hessians of the AL terms in w_k: (val (N+1,),
         c (N+1, nw), Hk (N+1, nw, nw)). ``kink`` (None, or a traced margin): Hk includes
-        :func:`_kink_curvature` with that margin. Where the control slot is the
+        :func:`kink_curvature` with that margin. Where the control slot is the
         acceleration (decoupled, spline) by :meth:`_stage_derivatives_split`, elsewhere
         (and with ``generic_hessian``) by one forward-over-reverse pass per stage.
         ``efforts`` (split only): also the efforts tau (N+1, m) and their Jacobians in
@@ -227,7 +227,7 @@ class _NLP(eqx.Module):
     def al_derivatives(self, z, mult, mu, kink=None):
         """Value, gradient and Hessian of the AL in z, from per-stage pieces (exact; with a
         ``kink`` margin plus the curvature of the inequalities just short of their PHR
-        kink, see :func:`_kink_curvature`)."""
+        kink, see :func:`kink_curvature`)."""
         W, W_vjp = jax.vjp(self.W, z)
         val_k, c, Hk = self.stage_derivatives(W, mult, mu, kink)
         # the gradient is reverse-mode autodiff through the recursion (the co-states)
@@ -297,7 +297,7 @@ def _phr(g, rho, mu):
 
 #: the smallest PBM multiplier: a multiplier that decays to 0 would leave its constraint
 #: unpenalised (the term is rho / mu phi(mu g))
-_PBM_FLOOR = 1e-8
+PBM_FLOOR = 1e-8
 
 
 def _pbm_phi(t):
@@ -319,7 +319,7 @@ def _pbm(g, rho, mu):
     return jnp.sum(rho * _pbm_phi(mu * g)) / mu
 
 
-def _kink_curvature(g, rho, mu, margin):
+def kink_curvature(g, rho, mu, margin):
     """A term of value and gradient zero whose Hessian is the penalty's curvature
     ``mu grad g grad g^T`` on the inequalities just short of their PHR kink
     (``-mu margin < rho + mu g <= 0``): added to the Newton model only (see
@@ -338,7 +338,7 @@ def _stage_axes(mult: Multipliers):
     return Multipliers(eq=jax.tree.map(lambda _: 0, mult.eq), ineq=jax.tree.map(lambda _: 0, mult.ineq), glob=None)
 
 
-def _violation(eq, ineq, glob, mult=None, mu=None):
+def violation(eq, ineq, glob, mult=None, mu=None):
     """Max normalised violation; with multipliers, the complementarity-aware measure
     max(|c|, |min(-g, rho/mu)|) used to steer the penalty."""
     parts = [jnp.max(jnp.abs(c)) for c in jax.tree.leaves(eq)]

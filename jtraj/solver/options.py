@@ -29,7 +29,7 @@ class SolverOptions(eqx.Module):
     """Options of the solver; the defaults are tuned on the serial3 benchmark family.
 
     Options that differ only in numbers (tolerances, penalties, iteration limits, the
-    stall and kink settings: ``_TRACED_OPTIONS``) share one compiled solver: those fields
+    stall and kink settings: ``TRACED_OPTIONS``) share one compiled solver: those fields
     are traced. The others (``max_outer``, ``schedule``, ``guess``, ``linear_solver``,
     ``inequality_penalty``, ``pbm_init``, ``pbm_ratio``, ``method``), and whether
     ``pbm_fallback_iter``, ``kink_margin``, ``inner_tol_ratio`` or ``pbm_inner_tol_ratio``
@@ -111,7 +111,7 @@ class SolverOptions(eqx.Module):
             in :meth:`SolverOptions.pbm`). PHR runs ignore it.
         method: the inner method. "auto" (default): "ip" where it applies (decoupled
             transcription, no path equalities, PHR term), "al" elsewhere. "ip": the
-            primal-dual interior-point method of :mod:`jtraj.ipm`, with the AL loop as a
+            primal-dual interior-point method of :mod:`jtraj.solver.ipm`, with the AL loop as a
             fallback for what it leaves unsolved. "al": the augmented-Lagrangian loop
             alone.
         ip_max_iter: interior-point iterations before the AL fallback (default 150).
@@ -226,47 +226,47 @@ class SolverOptions(eqx.Module):
 
 
 #: SolverOptions fields that enter the compiled programs only as numbers: they cross the
-#: jit boundary as traced scalars (:func:`_options_jit`), so that options differing only
+#: jit boundary as traced scalars (:func:`options_jit`), so that options differing only
 #: in them share one compilation (a sweep over tolerances or penalties compiles once).
 #: The other fields shape the programs and stay static. Of the ones here, a value of 0
 #: also switches a part of the loop off (``_SWITCHES``): the static copy keeps 0 or 1.
-_TRACED_OPTIONS = ("max_iter", "max_inner", "tol_feasibility", "tol_optimality", "inner_tol_ratio",
-                   "pbm_inner_tol_ratio", "penalty_init", "penalty_growth", "penalty_max", "feasibility_ratio",
-                   "damping_init", "verify_tol", "detect_infeasible", "restart_iter", "restart_penalty_max",
-                   "kink_margin", "kink_after", "stall_window", "stall_ratio", "stall_min_viol", "stall_after",
-                   "pbm_fallback_iter", "detect_min_viol", "ip_dual_tol", "ip_compl_tol", "ip_project_tol",
-                   "ip_damping")
+TRACED_OPTIONS = ("max_iter", "max_inner", "tol_feasibility", "tol_optimality", "inner_tol_ratio",
+                  "pbm_inner_tol_ratio", "penalty_init", "penalty_growth", "penalty_max", "feasibility_ratio",
+                  "damping_init", "verify_tol", "detect_infeasible", "restart_iter", "restart_penalty_max",
+                  "kink_margin", "kink_after", "stall_window", "stall_ratio", "stall_min_viol", "stall_after",
+                  "pbm_fallback_iter", "detect_min_viol", "ip_dual_tol", "ip_compl_tol", "ip_project_tol",
+                  "ip_damping")
 _SWITCHES = ("inner_tol_ratio", "pbm_inner_tol_ratio", "kink_margin", "pbm_fallback_iter")
 
 
-class _SplitOptions(eqx.Module):
+class SplitOptions(eqx.Module):
     """A :class:`SolverOptions` crossing a jit boundary: ``static`` (the fields of
-    ``_TRACED_OPTIONS`` at their defaults, the switches at 0 or 1) and ``values`` (those
+    ``TRACED_OPTIONS`` at their defaults, the switches at 0 or 1) and ``values`` (those
     fields' own values, 0-d arrays)."""
 
     static: SolverOptions = eqx.field(static=True)
     values: dict
 
 
-class _TracedOptions:
-    """The options inside a compiled program: the fields of ``_TRACED_OPTIONS`` read from
-    the traced ``values``, the others from the static copy (:func:`_static` gives it)."""
+class TracedOptions:
+    """The options inside a compiled program: the fields of ``TRACED_OPTIONS`` read from
+    the traced ``values``, the others from the static copy (:func:`static_options` gives it)."""
 
-    def __init__(self, split: _SplitOptions):
-        self._static, self._values = split.static, split.values
+    def __init__(self, split: SplitOptions):
+        self.static_options, self._values = split.static, split.values
 
     def __getattr__(self, name):
         values = self.__dict__["_values"]
-        return values[name] if name in values else getattr(self.__dict__["_static"], name)
+        return values[name] if name in values else getattr(self.__dict__["static_options"], name)
 
 
-def _static(opts):
+def static_options(opts):
     """The options' static copy (a :class:`SolverOptions`): where the program's structure
     is decided (which parts of the loop exist), never for a traced field's value."""
-    return opts._static if isinstance(opts, _TracedOptions) else opts
+    return opts.static_options if isinstance(opts, TracedOptions) else opts
 
 
-def _split_options(opts: SolverOptions) -> _SplitOptions:
+def split_options(opts: SolverOptions) -> SplitOptions:
     # cached per options and float width (jax_enable_x64 may change between calls); the
     # same options object (the defaults' is one, see _resolved) first by identity: hashing
     # a SolverOptions for the lru_cache costs ~30 us of a ~4 ms warm single solve
@@ -285,29 +285,29 @@ _SPLIT_BY_ID: dict[int, tuple] = {}
 
 
 @functools.lru_cache(maxsize=64)
-def _split_cached(opts: SolverOptions, _width) -> _SplitOptions:
+def _split_cached(opts: SolverOptions, _width) -> SplitOptions:
     defaults = SolverOptions.__dataclass_fields__
     static, values = {}, {}
-    for name in _TRACED_OPTIONS:
+    for name in TRACED_OPTIONS:
         value = getattr(opts, name)
         static[name] = type(value)(value != 0) if name in _SWITCHES else defaults[name].default
         kind = (np.bool_ if isinstance(value, (bool, np.bool_))
                 else np.int64 if isinstance(value, (int, np.integer)) else np.float64)
         values[name] = np.asarray(value, dtype=jax.dtypes.canonicalize_dtype(kind))
-    return _SplitOptions(static=dataclasses.replace(opts, **static), values=values)
+    return SplitOptions(static=dataclasses.replace(opts, **static), values=values)
 
 
-def _options_jit(xla_options: dict | None = None):
+def options_jit(xla_options: dict | None = None):
     """Like the solver's jit decorator (:func:`jtraj._compile.solver_jit`), but every
-    :class:`SolverOptions` argument crosses the boundary split by :func:`_split_options`
-    and is read inside as :class:`_TracedOptions`. On a CPU the traced program is kept
+    :class:`SolverOptions` argument crosses the boundary split by :func:`split_options`
+    and is read inside as :class:`TracedOptions`. On a CPU the traced program is kept
     across processes where the compilation cache is on (:mod:`jtraj._tracecache`).
     ``xla_options``: the XLA CPU options (default ``SOLVER_XLA_OPTIONS``)."""
     xla_options = SOLVER_XLA_OPTIONS if xla_options is None else xla_options
 
     def decorate(fn):
         def unsplit(*args):
-            return fn(*(_TracedOptions(a) if isinstance(a, _SplitOptions) else a for a in args))
+            return fn(*(TracedOptions(a) if isinstance(a, SplitOptions) else a for a in args))
 
         inner = (_jit if xla_options is SOLVER_XLA_OPTIONS else cpu_jit(xla_options))(functools.wraps(fn)(unsplit))
 
@@ -319,7 +319,7 @@ def _options_jit(xla_options: dict | None = None):
 
         @functools.wraps(fn)
         def call(*args):
-            args = tuple(_split_options(a) if isinstance(a, SolverOptions) else a for a in args)
+            args = tuple(split_options(a) if isinstance(a, SolverOptions) else a for a in args)
             if jax.default_backend() == "cpu":
                 return kept()(*args)
             return inner(*args)
