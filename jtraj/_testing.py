@@ -48,6 +48,27 @@ from .solver.ipm import _parts as ipm_parts
 from .solver.ipm import _shorter_trials as ipm_shorter_trials
 from .solver.ipm import _trial as ipm_trial
 from .solver.ipm import _with_rhs as ipm_with_rhs
+from ._kkt_native import _compiler as native_compiler
+from ._setup import _state as setup_state
+from .robots import Robot as _Robot
+from .transcription import _prefix_sums as prefix_sums
+from .transcription import _suffix_sums as suffix_sums
+
+mass_matrix_mechanism = _Robot._mass_matrix_mechanism  # (robot, q): the mass matrix of the mechanism alone
+
+#: internals of the lazily imported subpackages, resolved on first access (PEP 562) so
+#: that importing this module loads neither the ANFIS nor the gradient check
+_LAZY = {"auto_radii": ("jtraj.anfis.trajectory", "_auto_radii"), "gradcheck_rel": ("jtraj.gradcheck", "_rel")}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        module, attr = _LAZY[name]
+        return getattr(importlib.import_module(module), attr)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = ["ALState", "IPM_ALPHAS", "IPM_RHO_E", "IPM_SHIFT_LADDER", "IPM_TRIAL_SHARE", "Multipliers", "NLP",
            "PBM_FLOOR", "Solution", "SolverOptions", "SplitOptions", "Status", "TRACED_OPTIONS", "TRIAL_SHIFT",
@@ -56,8 +77,9 @@ __all__ = ["ALState", "IPM_ALPHAS", "IPM_RHO_E", "IPM_SHIFT_LADDER", "IPM_TRIAL_
            "initial_guess", "ip_init_batch_jit", "ip_result", "ip_run", "ip_solved", "ip_tolerances", "ipm",
            "ipm_flat", "ipm_ladder_directions", "ipm_ladder_directions_xla", "ipm_model", "ipm_parts",
            "ipm_shorter_trials", "ipm_trial", "ipm_with_rhs", "kink_curvature", "kkt_error", "lane_programs",
-           "ls_multipliers", "next_inner_tol", "pbm", "pbm_phi", "pbm_slope", "phr", "placeholder_init", "polish",
-           "prepare", "prepare_batch_jit", "resolve_method", "restart_state", "run_al", "run_with_restart",
-           "segment_jit", "solve_batch_jit", "solve_jit", "solve_problems", "split_options", "staged",
-           "staged_al_jit", "staged_ip_jit", "staged_start", "stagewise_directions", "static_options", "violation",
-           "with_phase"]
+           "ls_multipliers", "mass_matrix_mechanism", "native_compiler", "next_inner_tol", "pbm", "pbm_phi",
+           "pbm_slope", "phr", "placeholder_init", "polish", "prefix_sums", "prepare", "prepare_batch_jit",
+           "resolve_method", "restart_state", "run_al", "run_with_restart", "segment_jit", "setup_state",
+           "solve_batch_jit", "solve_jit", "solve_problems", "split_options", "staged", "staged_al_jit",
+           "staged_ip_jit", "staged_start", "stagewise_directions", "static_options", "suffix_sums", "violation",
+           "with_phase"]  # and the names of _LAZY

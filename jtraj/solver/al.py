@@ -162,7 +162,7 @@ def _newton_step(nlp: NLP, z, mult, mu, damping, kink=None):
     d_held = -g[None, :] / (jnp.abs(hdiag)[None, :] + shifts[:, None])
     d = jnp.where(free[None, :], d_free, d_held)  # (S, nz)
     d = jnp.where(jnp.all(jnp.isfinite(d), axis=1, keepdims=True), d, -g[None, :])
-    candidates = jnp.clip(z[None, :] + steps[:, None] * d[trial_shift], lo, hi)
+    candidates = jnp.clip(z[None, :] + steps[:, None] * d[trial_shift], lo[None, :], hi[None, :])
     values = jax.vmap(nlp.al_value, in_axes=(0, None, None))(candidates, mult, mu)
     decrease = jnp.einsum("i,ki->k", g, candidates - z[None, :])
     ok = (values <= val + 1e-4 * decrease) & jnp.isfinite(values) & good[trial_shift]

@@ -325,7 +325,7 @@ def _with_rhs(nlp, st: IPState, model, Jg, dgT, p: _Pieces, mu):
     dl, du, has_lo, has_hi = _bounds(nlp, st.z)
     bound_g = jnp.where(has_lo, -mu / dl, 0.0) + jnp.where(has_hi, mu / du, 0.0)
     cx = model.cx.at[:, :2 * n].add(corr[:, :2 * n]).at[N, -1].add(corrT)
-    cu = model.cu + corr[:N, 2 * n:] * sy + _z_to_stages(bound_g, N, n)
+    cu = model.cu + corr[:N, 2 * n:] * sy[None, :] + _z_to_stages(bound_g, N, n)
     return model._replace(cx=cx, cu=cu)
 
 
@@ -350,10 +350,10 @@ def _direction(nlp, st: IPState, p: _Pieces, Jg, dgT, Ex, d, dX, mu, any_pd) -> 
     ED = small_matmul(Ex, dX[N])  # (2n, 1 + 2n)
     dlam = -jnp.linalg.solve(jnp.where(any_pd, ED[:, 1:], -jnp.eye(ED.shape[0], dtype=dt)), p.e + ED[:, 0])
     # (the small products as elementwise sums: fewer, fused kernels than XLA's dots)
-    dz = d[:, 0] + jnp.sum(d[:, 1:] * dlam, axis=-1)
-    dXz = dX[..., 0] + jnp.sum(dX[..., 1:] * dlam, axis=-1)  # (N+1, nx)
+    dz = d[:, 0] + jnp.sum(d[:, 1:] * dlam[None, :], axis=-1)
+    dXz = dX[..., 0] + jnp.sum(dX[..., 1:] * dlam[None, None, :], axis=-1)  # (N+1, nx)
     sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
-    du_st = _z_to_stages(dz, N, n) * sy
+    du_st = _z_to_stages(dz, N, n) * sy[None, :]
     dW = jnp.concatenate([dXz[:, :2 * n], jnp.concatenate([du_st, jnp.zeros((1, n + 1), dt)])], axis=1)
     Jdz = jnp.sum(Jg * dW[:, None, :], axis=-1)
     dT = jnp.sum(du_st[:, -1])
