@@ -49,7 +49,7 @@ from jaxtyping import Array
 
 from .. import lq
 from .certify import estimate_multipliers, final_polish, init_multipliers, kkt_error, ls_multipliers, stationarity
-from .nlp import Multipliers, NLP, PBM_FLOOR, violation
+from .nlp import NLP, PBM_FLOOR, Multipliers, violation
 from .options import SolverOptions, TracedOptions, static_options
 
 

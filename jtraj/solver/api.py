@@ -15,7 +15,7 @@ from .._compile import nested_jit
 from .._compile import solver_jit as _jit
 from ..problem import Problem, Weights
 from ..transcription import Transcription
-from .core import placeholder_init, resolve_method, initial_guess
+from .core import initial_guess, placeholder_init, resolve_method
 from .lanes import cpu_lanes, solve_problems
 from .options import SolverOptions, options_jit
 from .results import Solution

@@ -7,7 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from .nlp import Multipliers, NLP, violation
+from .nlp import NLP, Multipliers, violation
 from .options import SolverOptions
 
 

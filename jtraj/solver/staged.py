@@ -28,7 +28,7 @@ import jax
 
 from ..transcription import Transcription
 from .al import run_with_restart
-from .core import finish, ip_result, ip_run, ip_solved, prepare, initial_guess
+from .core import finish, initial_guess, ip_result, ip_run, ip_solved, prepare
 from .options import options_jit, static_options
 from .results import Solution
 
