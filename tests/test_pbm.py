@@ -5,7 +5,7 @@
 * a batch solved with it: the converged trajectory re-simulated by the independent NumPy +
   Pinocchio verifier and its cost against CasADi + IPOPT, an infeasible problem stopped
   as likely infeasible, a non-finite sample flagged, all in one compiled batch;
-* a restart runs with PHR (the phase flag of ``solver.with_phase``), and a PBM run cut
+* a restart runs with PHR (the phase flag of ``jtraj.solver.al.with_phase``), and a PBM run cut
   short falls back to PHR's cold run and reaches the same optimum.
 
 In its own file so that pytest-xdist compiles it beside test_solver.py.
@@ -97,7 +97,7 @@ def test_pbm_batch_converges_to_ipopts_optimum_and_flags_the_rest(batch):
 
 def test_pbm_run_cut_short_falls_back_to_phr_and_reaches_the_same_optimum(batch):
     """A PBM run still uncertified after pbm_fallback_iter iterations restarts as PHR's
-    own cold run from the same start (solver.restart_state): cut to 8 iterations, the pair
+    own cold run from the same start (jtraj.solver.al.restart_state): cut to 8 iterations, the pair
     must still converge, to the PBM run's optimum, in more iterations than 8. (The whole
     batch again: pbm_fallback_iter is traced, so the fixture's compiled solver serves.)"""
     q0, q1, ref = batch

@@ -428,7 +428,7 @@ def test_one_shot_and_two_lane_batches_equal_the_compacted_batch(robot, batch, s
 
 
 def test_kkt_error_tells_an_optimum_from_a_feasible_point(single_al, single, via):
-    """The end-of-run certificate (:func:`jtraj.solver.kkt_error`, least-squares
+    """The end-of-run certificate (:func:`jtraj.solver.certify.kkt_error`, least-squares
     multipliers of the original problem): small at the optimum, large at a trajectory that
     meets the same constraints but optimises under one more (the via point of ``via``,
     whose own certificate is small). The AL loop's Solution reports that measure; the

@@ -266,7 +266,7 @@ def restart_state(nlp: NLP, s: ALState, opts: SolverOptions) -> ALState:
     first run left uncertified, about 60 to 590 iterations after the restart, cost within
     0.04 % of IPOPT's). A point the polish
     leaves certified (KKT error and violation within tolerance) is not restarted:
-    :func:`finish` certifies it.
+    :func:`jtraj.solver.core.finish` certifies it.
 
     A PBM run (``SolverOptions.pbm_fallback_iter``) has two restarts: the first is PHR's
     own cold run from the first run's starting point, the second the warm one above."""
@@ -325,7 +325,7 @@ def next_inner_tol(opts: SolverOptions, omega, viol, pbm_on=False):
 
 def al_loop(nlp: NLP, state: ALState, opts: SolverOptions, limit=None):
     """Iterate from ``state`` until finished or until ``state.it`` reaches ``limit``;
-    resumable, so a batch can be run in segments (see :func:`solve_batch`)."""
+    resumable, so a batch can be run in segments (see :func:`jtraj.solve_batch`)."""
 
     nlp = with_phase(nlp, state)
     pbm_on = nlp.pbm_active

@@ -24,7 +24,7 @@ from .results import Solution
 def solve(problem: Problem, *, options: SolverOptions | None = None, transcription: str = "decoupled",
           init: tuple[Any, Any] | None = None, warm: str = "full", on_failure: str = "nan") -> Solution:
     """Solve one trajectory problem; compiled once per robot type, shape and the options'
-    structure (see :class:`SolverOptions`).
+    structure (see :class:`jtraj.SolverOptions`).
 
     On a CPU one problem runs about 1.6x faster in a process pinned to one core
     (:func:`jtraj.pin_to_one_cpu` before JAX's first computation; the CLI does it).
@@ -36,7 +36,7 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
 
     Args:
         problem: a :class:`jtraj.Problem`.
-        options: :class:`SolverOptions` (defaults documented there).
+        options: :class:`jtraj.SolverOptions` (defaults documented there).
         transcription: "decoupled" (thesis ALD, default), "coupled", or Chettibi's
             "collocation", "shooting", "spline" (see :class:`jtraj.transcription.Transcription`).
         init: optional warm start (u (N, m_u), h (N,)) in the transcription's controls
@@ -152,12 +152,12 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
             at once, whose cost is the slowest problem's iterations on every lane); on an
             accelerator when B > slots. ``slots=None`` solves all B at once. "auto"
             (default) is 1024 on an accelerator and, on a CPU, 16 for serial3 at N = 20,
-            down to 4 for larger problems (:func:`cpu_lanes`). On a CPU a vmapped
+            down to 4 for larger problems (:func:`jtraj.solver.lanes.cpu_lanes`). On a CPU a vmapped
             iteration costs about its lane count, and more per lane once the lanes'
             working set outgrows the core's cache; on an accelerator lanes are nearly
             free, so larger ``slots`` pay there.
 
-    Returns a :class:`Solution` whose fields carry a leading batch axis. Samples with
+    Returns a :class:`jtraj.Solution` whose fields carry a leading batch axis. Samples with
     non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch
     never raises for one bad sample); shapes and the robot are checked up front, and
     float64 as in :func:`solve`.

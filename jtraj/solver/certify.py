@@ -51,7 +51,7 @@ def _polish(nlp: NLP, z, iterations: int = 4, chord: bool = True, release_above=
     projections also stop once the violation is below ``_POLISH_DONE``: the corrections
     are as small as the AL's violations, so the chord converges about as fast as
     Gauss-Newton at about half the cost. Without it (the restart's starting point, see
-    :func:`restart_state`) the Jacobian is recomputed at every projection, because a restart
+    :func:`jtraj.solver.al.restart_state`) the Jacobian is recomputed at every projection, because a restart
     runs on from that point for many iterations and is sensitive to it.
 
     A satisfied nearly-active inequality is held where it is to first order. With

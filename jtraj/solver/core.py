@@ -1,6 +1,6 @@
 """One problem's solve as traced programs: the starting point, the NLP and its
 starting state, the interior-point run with the AL fallback, and the finish
-(polish, verification, :class:`Solution`)."""
+(polish, verification, :class:`jtraj.Solution`)."""
 
 from __future__ import annotations
 
@@ -110,14 +110,14 @@ def ip_result(nlp: NLP, state: ALState, ip) -> ALState:
 
 
 def finish(nlp: NLP, s: ALState, opts: SolverOptions, valid, light=False) -> Solution:
-    """The solution of a finished run: polished (:func:`final_polish`), verified and
+    """The solution of a finished run: polished (:func:`jtraj.solver.certify.final_polish`), verified and
     certified. ``light``: a point the interior-point method decided (converged to
     ``ip_tol``, feasible to ~1e-7, or stalled far from feasible) is verified as it is,
     without the polish, and its KKT error is that of its own multipliers (``s.mult``), not
     of least-squares ones: both cost a Jacobian of every constraint row (serial3, N = 20,
     8 lanes, one core: the finish 1.48 ms per problem, of which the polish about 0.8 and
     the least-squares KKT error about 0.7). Under vmap either runs only while some lane
-    needs it, so :func:`_finish_lanes` groups the light problems together."""
+    needs it, so :func:`jtraj.solver.lanes._finish_lanes` groups the light problems together."""
     nlp = with_phase(nlp, s)
     problem, tr = nlp.problem, nlp.tr
     # a Python True (one interior-point result, :mod:`jtraj.solver.staged`): neither the polish
@@ -201,7 +201,7 @@ def placeholder_init(N: int, m_u: int):
 
 def resolve_method(opts: SolverOptions | None, transcription: str, robot) -> SolverOptions:
     """The options (the defaults for None) with ``method="auto"`` resolved (see
-    :class:`SolverOptions`) and an explicit "ip" checked. Cached: building a
+    :class:`jtraj.SolverOptions`) and an explicit "ip" checked. Cached: building a
     SolverOptions and checking it costs about 0.15 ms, which one warm solve (about 5 ms)
     paid twice."""
     if opts is not None and not isinstance(opts, SolverOptions):

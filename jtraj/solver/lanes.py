@@ -41,7 +41,7 @@ def _segment(nlps, states, opts, steps: int):
 
 
 def _restart_lanes(nlps, states, need, opts):
-    """``states`` (a set of lanes) with the lanes ``need`` restarted (:func:`restart_state`)."""
+    """``states`` (a set of lanes) with the lanes ``need`` restarted (:func:`jtraj.solver.al.restart_state`)."""
     new = eqx.filter_vmap(lambda n, s: restart_state(n, s, opts))(nlps, states)
     return jax.tree.map(lambda a, b: jnp.where(need.reshape(need.shape + (1,) * (a.ndim - 1)), a, b), new, states)
 
@@ -58,7 +58,7 @@ def _gather_jit(nlps, states, idx):
 
 @options_jit()
 def _finish_batch_jit(nlps, states, opts, valid, light):
-    """:func:`finish` over a batch, vmapped (see :func:`_finish_lanes` on a CPU)."""
+    """:func:`jtraj.solver.core.finish` over a batch, vmapped (see :func:`_finish_lanes` on a CPU)."""
     return eqx.filter_vmap(lambda n, s, v, l: finish(n, s, opts, v, l))(nlps, states, valid, light)
 
 
@@ -72,7 +72,7 @@ def _finish_lanes(nlps, states, opts, valid, slots: int, light):
     took 6.9 s instead of 20.4 s (2.9 s warm): as a ``lax.map`` inside one kernel the
     finish took 7 s to compile for each size. The same 1024 pairs: the same results to
     the last bit, 35.8-37.2 against 35.5-36.3 s. The ``light`` problems (NumPy mask, see
-    :func:`finish`) go first, in groups of their own, so that their groups skip the work
+    :func:`jtraj.solver.core.finish`) go first, in groups of their own, so that their groups skip the work
     they do not need."""
     B = int(valid.shape[0])
     order = np.argsort(~light, kind="stable")  # the light problems first, each kind in order
@@ -149,9 +149,9 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
 
 
 def _finish_all(nlps, states, opts, valid, slots: int, light=None):
-    """:func:`finish` over a batch; on a CPU ``slots`` problems at a time (see
+    """:func:`jtraj.solver.core.finish` over a batch; on a CPU ``slots`` problems at a time (see
     :func:`_finish_lanes`). ``light``: (B,) NumPy mask of the problems the interior-point
-    method decided (see :func:`finish`), or None."""
+    method decided (see :func:`jtraj.solver.core.finish`), or None."""
     light = np.zeros(int(valid.shape[0]), bool) if light is None else np.asarray(light, bool)
     if jax.default_backend() == "cpu":
         return _finish_lanes(nlps, states, opts, valid, slots, light)
@@ -249,7 +249,7 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
 
     The batch's problems and states travel packed (:mod:`jtraj._packing`): after each
     segment one call writes the lanes back and takes the next ones (:func:`_lane_programs`).
-    A run that ended uncertified in a segment is restarted (:func:`restart_state`) on its lane
+    A run that ended uncertified in a segment is restarted (:func:`jtraj.solver.al.restart_state`) on its lane
     and goes on there: 256 benchmark pairs of seed 1, one core, PBM (whose fallback is
     such a restart, 13 pairs) 7.7-8.1 s against 8.2-8.9 s with the restarts in a second
     round of lanes after the batch, PHR (3 restarts) unchanged.
@@ -427,7 +427,7 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
 
 
 def solve_problems(problems, opts, transcription, init, warm: bool, slots, segment: int) -> Solution:
-    """:func:`solve_batch`'s solve of built problems (a batch of :class:`Problem`) from
+    """:func:`jtraj.solve_batch`'s solve of built problems (a batch of :class:`Problem`) from
     ``init`` (arrays), by the host-driven lane driver (see ``slots`` there)."""
     B = int(jax.tree.leaves(problems.q_start)[0].shape[0])
     warm = bool(warm)

@@ -48,7 +48,7 @@ class NLP(eqx.Module):
     pbm_ratio: float = eqx.field(static=True, default=SolverOptions.pbm_ratio)
 
     #: with ``ineq_penalty == "pbm"``: whether the PBM term is on (the first run) or PHR
-    #: (a restart, see :func:`with_phase`); a traced flag, so one compiled loop serves both
+    #: (a restart, see :func:`jtraj.solver.al.with_phase`); a traced flag, so one compiled loop serves both
     pbm_on: Array | bool = True
 
     @property

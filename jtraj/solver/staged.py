@@ -2,7 +2,7 @@
 needs them.
 
 :func:`jtraj.solve` on concrete arrays comes here; under an outer ``jit``, ``vmap`` or
-``grad`` it stays one traced program (:func:`jtraj.solver.solve_jit`, whose
+``grad`` it stays one traced program (:func:`jtraj.solver.core.solve_jit`, whose
 ``lax.cond`` between the interior-point result and the augmented-Lagrangian loop
 compiles both sides). Here the decision is taken on the host, on the concrete result:
 
@@ -42,7 +42,7 @@ def _start(problem, opts, transcription, init, warm, guess):
 @options_jit()
 def _solve_ip_jit(problem, opts, transcription, init, warm, guess):
     """(Solution, decided, interior-point iterations): the solution is the one to return
-    where ``decided`` (see :func:`jtraj.solver.ip_solved`)."""
+    where ``decided`` (see :func:`jtraj.solver.core.ip_solved`)."""
     nlp, state, valid = _start(problem, opts, transcription, init, warm, guess)
     ip = ip_run(nlp, state, opts)
     sol = finish(nlp, ip_result(nlp, state, ip), opts, valid, light=True)
