@@ -1,1 +1,1 @@
-"""jtraj benchmarks (makes ``benchmarks.peers`` importable from the repo root)."""
+"""jtraj benchmarks (scripts; their reference peers are the top-level ``jtraj_peers``)."""

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.append(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository root: jtraj_peers
 
 
 def main(argv=None):
@@ -35,7 +35,7 @@ def main(argv=None):
 
     jax.config.update("jax_enable_x64", True)
     import jtraj
-    from peers.pairs import benchmark_pairs
+    from jtraj_peers.pairs import benchmark_pairs
 
     print(f"jax {jax.__version__} on {jax.devices()[0].device_kind} ({jax.default_backend()})", flush=True)
     robot = jtraj.robots.get("serial3")

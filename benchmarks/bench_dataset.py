@@ -19,7 +19,7 @@ then the remaining ``--chunks`` chunks by *resuming* the same dataset (new worke
 processes: their start-up included; by default about 2048 pairs, so that it weighs
 little); the resumed part gives the steady-state pairs/s, end to end including sampling
 and storage. jtraj runs ``--workers`` pinned worker processes (default one per core, as
-``jtraj dataset``). The IPOPT peer (:func:`benchmarks.peers.ipopt_peer.solve_many`, one
+``jtraj dataset``). The IPOPT peer (:func:`jtraj_peers.ipopt_peer.solve_many`, one
 process per core, NLP built once per process) solves the first ``--ipopt-pairs`` pairs
 of the same dataset; its pairs/s is the solve phase (pool start and NLP builds excluded,
 which favours IPOPT).
@@ -76,7 +76,7 @@ def measure_ipopt(q0, q1, processes, N, h_max, formulation="lifted", init="same"
     """IPOPT on the pairs (``init``: see ``bench_solver.peer_starts``; "same" starts it
     where jtraj's ``options`` start)."""
     from bench_solver import peer_starts
-    from peers.ipopt_peer import solve_many
+    from jtraj_peers.ipopt_peer import solve_many
 
     res = solve_many(q0, q1, processes=processes, N=N, h_max=h_max, formulation=formulation,
                      inits=peer_starts(q0, q1, N, init, options, h_max))
@@ -128,7 +128,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--N", type=int, default=20)
     ap.add_argument("--no-ipopt", action="store_true")
     ap.add_argument("--peer-formulation", choices=("lifted", "condensed"), default="lifted",
-                    help="CasADi form of the IPOPT peer (default lifted, the fast one; see peers/ipopt_peer.py)")
+                    help="CasADi form of the IPOPT peer (default lifted, the fast one; see jtraj_peers/ipopt_peer.py)")
     ap.add_argument("--peer-init", choices=("same", "cycloidal"), default="same",
                     help="IPOPT's starting point: jtraj's (default) or the peer's own kinematic cycloid")
     ap.add_argument("--solver", default="jtraj:solve_batch", help=argparse.SUPPRESS)

@@ -2,14 +2,14 @@
 
     python benchmarks/bench_efforts.py [--pairs 64] [--seed 5] [--h-max 0.1] [--per-interval 64]
 
-The canonical serial3 family (N = 20, time = 1, energy = 0.1, float64, ``peers.pairs``),
+The canonical serial3 family (N = 20, time = 1, energy = 0.1, float64, ``jtraj_peers.pairs``),
 solved by ``jtraj.solve_batch`` with ``efforts="samples"`` (default) and ``"intervals"``
 in one process pinned to one core (warm: each is compiled first on two pairs and on the
 batch, then timed, in alternating order). Prints, per setting, the converged count, the
 largest ``|tau(t)| / tau_max`` along the executed motion (``jtraj.resample``, median and
 max over the converged pairs, share above 1), the Newton iterations and the warm time;
 then the cost change on pairs both converge, and the largest effort at the interval ends
-re-computed by Pinocchio's RNEA (``peers.verify``, independent of jtraj) for the
+re-computed by Pinocchio's RNEA (``jtraj_peers.verify``, independent of jtraj) for the
 "intervals" optima. ``--h-max 0.2`` is the datasets' period bound.
 """
 
@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.append(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository root: jtraj_peers
 
 
 def main(argv=None):
@@ -40,8 +40,8 @@ def main(argv=None):
 
     jtraj.pin_to_one_cpu()
     from jtraj.resample import intersample_effort
-    from peers.pairs import benchmark_pairs
-    from peers.verify import rnea
+    from jtraj_peers.pairs import benchmark_pairs
+    from jtraj_peers.verify import rnea
 
     robot = jtraj.robots.get("serial3", **({} if args.h_max is None else {"h_max": args.h_max}))
     w = jtraj.Weights(time=1.0, energy=0.1)

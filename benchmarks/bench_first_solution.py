@@ -6,7 +6,7 @@ The README quick-start problem (serial3, start (0, 30, 30) deg, goal tip at (1.3
 m, weights time = 1, energy = 1, N = 20), each case in a fresh Python process, timed
 inside it from its first import to a returned solution:
 
-* ``ipopt``: ``import casadi`` (and the peer, ``peers/ipopt_peer.py``: the same
+* ``ipopt``: ``import casadi`` (and the peer, ``jtraj_peers/ipopt_peer.py``: the same
   transcription written in CasADi) to IPOPT's first solution, building the NLP included;
 * ``jtraj cold``: ``import jax, jtraj`` to a converged ``jtraj.solve`` Solution, with an
   empty private compilation cache and an empty native-kernel directory (a new machine:
@@ -62,8 +62,8 @@ t0 = time.perf_counter()
 import casadi
 import numpy as np
 sys.path.insert(0, sys.argv[2])
-from peers import ipopt_peer
-from peers.ipopt_peer import solve_pair
+from jtraj_peers import ipopt_peer
+from jtraj_peers.ipopt_peer import solve_pair
 q_start = np.deg2rad([0.0, 30.0, 30.0])
 q_goal = np.asarray(json.loads(sys.argv[3]))
 r = solve_pair(q_start, q_goal, N=int(sys.argv[1]), weights=(1.0, 1.0, 0.0))
@@ -110,7 +110,7 @@ def main(argv=None) -> int:
 
     for rep in range(args.repeats):
         print(f"repeat {rep + 1} of {args.repeats}", flush=True)
-        record("ipopt", _run(_IPOPT, [str(args.N), HERE, goal], base))
+        record("ipopt", _run(_IPOPT, [str(args.N), ROOT, goal], base))
         for kernel_built in (False, True):
             cache = tempfile.mkdtemp(prefix="jtraj-first-cache-")
             native = tempfile.mkdtemp(prefix="jtraj-first-native-")

@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.append(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository root: jtraj_peers
 
 KINDS = ("q_goal", "q_start", "weights", "masses", "tau_max")
 
@@ -61,7 +61,7 @@ def main(argv=None):
     jax.config.update("jax_enable_x64", True)
     import jtraj
     from jtraj.implicit import valid_derivatives
-    from peers.pairs import benchmark_pairs
+    from jtraj_peers.pairs import benchmark_pairs
 
     print(f"jax {jax.__version__} on {jax.devices()[0].device_kind} ({jax.default_backend()}), N = {args.N}",
           flush=True)

@@ -4,7 +4,7 @@
                                           [--formulation lifted|condensed]
 
 Solves ``--pairs`` random pairs (q_start ~ U(-1.2, 1.2)^3, q_goal = q_start +
-U(-0.8, 0.8)^3, seeded) on all cores with :func:`peers.ipopt_peer.solve_many`, checks
+U(-0.8, 0.8)^3, seeded) on all cores with :func:`jtraj_peers.ipopt_peer.solve_many`, checks
 every solution with the independent verifier and prints success rates, solve times,
 iterations, throughput, T and cost.
 """
@@ -18,10 +18,10 @@ import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.append(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository root: jtraj_peers
 
-from peers.ipopt_peer import benchmark_pairs, solve_many  # noqa: E402
-from peers.verify import verify  # noqa: E402
+from jtraj_peers.ipopt_peer import benchmark_pairs, solve_many  # noqa: E402
+from jtraj_peers.verify import verify  # noqa: E402
 
 
 def main(argv=None) -> dict:
@@ -32,7 +32,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--processes", type=int, default=None, help="default os.cpu_count()")
     ap.add_argument("--tol", type=float, default=1e-6, help="verifier tolerance")
     ap.add_argument("--formulation", choices=("lifted", "condensed"), default="lifted",
-                    help="CasADi form of the NLP (see peers/ipopt_peer.py)")
+                    help="CasADi form of the NLP (see jtraj_peers/ipopt_peer.py)")
     args = ap.parse_args(argv)
 
     q0, q1 = benchmark_pairs(args.pairs, args.seed)

@@ -1,5 +1,5 @@
 """XLA's CPU backend optimisation level against compile and run time of the solver's
-interior-point program (:func:`jtraj._staged._solve_ip_jit`, what a default
+interior-point program (:func:`jtraj.solver.staged._solve_ip_jit`, what a default
 ``jtraj.solve`` runs).
 
     python benchmarks/bench_opt_level.py [--levels 0,1,2,3] [--pairs 16] [--N 20]
@@ -22,7 +22,7 @@ import jax
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.append(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository root: jtraj_peers
 
 
 def main(argv=None) -> int:
@@ -35,26 +35,27 @@ def main(argv=None) -> int:
     import equinox as eqx
 
     import jtraj
-    from jtraj import _kkt_native, solver
+    from jtraj import _kkt_native
+    from jtraj import _testing as solver
     from jtraj._compile import SOLVER_XLA_OPTIONS, supported_options
-    from jtraj._staged import _start
-    from peers.pairs import benchmark_pairs
+    from jtraj._testing import staged_start as _start
+    from jtraj_peers.pairs import benchmark_pairs
 
     _kkt_native.available(3)
     robot = jtraj.robots.get("serial3")
     weights = jtraj.Weights(time=1.0, energy=0.1)
     q0, q1 = benchmark_pairs(args.pairs)
     problems = [jtraj.Problem(robot, q0[i], q1[i], N=args.N, weights=weights) for i in range(args.pairs)]
-    opts = solver._resolve_method(None, "decoupled", robot)
-    split = solver._split_options(opts)
-    init = solver._placeholder_init(args.N, 3)
+    opts = solver.resolve_method(None, "decoupled", robot)
+    split = solver.split_options(opts)
+    init = solver.placeholder_init(args.N, 3)
 
     def program(problem, split, init):
-        o = solver._TracedOptions(split)
+        o = solver.TracedOptions(split)
         nlp, state, valid = _start(problem, o, "decoupled", init, np.bool_(False), np.bool_(True))
-        ip = solver._ip_run(nlp, state, o)
-        sol = solver._finish(nlp, solver._ip_result(nlp, state, ip), o, valid, light=True)
-        return sol.status, sol.iterations, sol.cost, solver._ip_solved(state, ip)
+        ip = solver.ip_run(nlp, state, o)
+        sol = solver.finish(nlp, solver.ip_result(nlp, state, ip), o, valid, light=True)
+        return sol.status, sol.iterations, sol.cost, solver.ip_solved(state, ip)
 
     flat = [jax.tree.leaves(eqx.filter((p, split, init), eqx.is_array)) for p in problems]
     t0 = time.perf_counter()

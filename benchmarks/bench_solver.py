@@ -7,7 +7,7 @@
                                       [--scaling] [--plot bench_solver.png] [--json out.json]
 
 Problem family (issue #3): serial3, N = 20, weights time = 1, energy = 0.1, q_start ~
-U(-1.2, 1.2)^3, q_goal = q_start + U(-0.8, 0.8)^3 (``peers.ipopt_peer.benchmark_pairs``).
+U(-1.2, 1.2)^3, q_goal = q_start + U(-0.8, 0.8)^3 (``jtraj_peers.ipopt_peer.benchmark_pairs``).
 Both solvers see the same pairs in the same run. Every trajectory either side calls a
 success is re-simulated from its own (v, h) by the independent NumPy + Pinocchio
 verifier (tolerance 1e-6). Printed: verified success rates, false "converged" counts,
@@ -39,7 +39,7 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.append(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository root: jtraj_peers
 
 
 KEYS = ("v", "h", "cost", "converged", "status", "iterations")
@@ -67,7 +67,7 @@ def _solve_chunk(q0, q1, N, weights, options=None, h_max=None):
 
 def peer_starts(q0, q1, N, which, options=None, h_max=None):
     """IPOPT's starting points for the pairs: None for "cycloidal" (the peer's own,
-    Khoukhi's kinematic cycloid, ``peers.ipopt_peer.cycloidal_init``), or for "same"
+    Khoukhi's kinematic cycloid, ``jtraj_peers.ipopt_peer.cycloidal_init``), or for "same"
     jtraj's starting point under ``options`` (its ``guess``, default the torque-scaled
     cycloid), so that both solvers start from the same point. IPOPT's clock does not
     include them (nor its own guess)."""
@@ -158,7 +158,7 @@ def _single_latencies(q0, q1, N, weights, repeats=3, options=None, formulation="
 
     jax.config.update("jax_enable_x64", True)
     import jtraj
-    from peers.ipopt_peer import solve_pair
+    from jtraj_peers.ipopt_peer import solve_pair
 
     robot = jtraj.robots.get("serial3")
     weights = jtraj.Weights(**weights)
@@ -208,7 +208,7 @@ def _batch_scan(Bs, seed, N, weights, options=None):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from peers.pairs import benchmark_pairs
+    from jtraj_peers.pairs import benchmark_pairs
 
     from jtraj import SolverOptions
 
@@ -241,8 +241,8 @@ def _scaling(args, opts):
     (1e-6); (2) jtraj's time per problem against the batch size B, in one process pinned
     to one core (IPOPT's time per problem on one core is its all-core time times its
     processes, from the row of the same N, if the N scan has one)."""
-    from peers.ipopt_peer import benchmark_pairs, solve_many
-    from peers.verify import verify
+    from jtraj_peers.ipopt_peer import benchmark_pairs, solve_many
+    from jtraj_peers.verify import verify
 
     from jtraj.dataset._local import worker_pool
 
@@ -335,7 +335,7 @@ def main(argv=None):
                     help="IPOPT's starting point: jtraj's (default: both solvers start from the same point) "
                          "or the peer's own kinematic cycloid (see peer_starts)")
     ap.add_argument("--peer-formulation", choices=("lifted", "condensed"), default="lifted",
-                    help="CasADi form of the IPOPT peer (default lifted, the fast one; see peers/ipopt_peer.py)")
+                    help="CasADi form of the IPOPT peer (default lifted, the fast one; see jtraj_peers/ipopt_peer.py)")
     ap.add_argument("--linear-solver", choices=("auto", "riccati", "dense"), default="auto",
                     help="jtraj.SolverOptions.linear_solver (the Newton systems: stage-wise or dense)")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
@@ -351,8 +351,8 @@ def main(argv=None):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from peers.ipopt_peer import benchmark_pairs, solve_many
-    from peers.verify import verify
+    from jtraj_peers.ipopt_peer import benchmark_pairs, solve_many
+    from jtraj_peers.verify import verify
 
     q0, q1 = benchmark_pairs(args.pairs, args.seed)
     print(f"serial3, N = {args.N}, weights time=1 energy=0.1, {args.pairs} pairs (seed {args.seed}), "

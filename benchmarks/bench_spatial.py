@@ -7,13 +7,13 @@
 Problem family: ``jtraj.robots.get("panda")``, N = 40, weights time 1 / energy 0.1,
 q_start uniform in the middle 60 % of each joint range, q_goal = q_start + U(-0.5, 0.5)
 rad per joint, clipped to the range (:func:`panda_pairs`, seeded). The peer solves the
-same decoupled NLP (``peers.ipopt_arm``) with the dynamics of a CasADi RNEA built from
-Pinocchio's model of the same URDF (``peers.casadi_rnea``, checked against
+same decoupled NLP (``jtraj_peers.ipopt_arm``) with the dynamics of a CasADi RNEA built from
+Pinocchio's model of the same URDF (``jtraj_peers.casadi_rnea``, checked against
 ``pinocchio.rnea`` by tests/test_casadi_rnea.py; the installed ``pin`` has no
 ``pinocchio.casadi``) and the limits of jtraj's robot, so that both sides see one
 problem. Both start from jtraj's starting point. Every trajectory either side calls a
 success is re-simulated from its own (v, h) and checked with Pinocchio
-(``peers.verify_arm``, tolerance 1e-6). Printed: verified successes, false
+(``jtraj_peers.verify_arm``, tolerance 1e-6). Printed: verified successes, false
 "converged", cost gaps where both succeed, batch throughput on all cores (IPOPT one
 process per core; jtraj vmapped batches, one process pinned per core), warm single
 solve (both in one pinned process, alternating pair by pair), and with
@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.append(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository root: jtraj_peers
 
 KEYS = ("v", "h", "cost", "converged", "status", "iterations")
 WEIGHTS = dict(time=1.0, energy=0.1)
@@ -75,8 +75,8 @@ def panda_pairs(n: int, seed: int, q_min, q_max) -> tuple[np.ndarray, np.ndarray
 
 def peer_spec(lim: dict, jerk: bool):
     """The peer's arm: the CasADi RNEA of Pinocchio's Panda with jtraj's limits."""
-    from peers import casadi_rnea as CR
-    from peers.ipopt_arm import ArmSpec
+    from jtraj_peers import casadi_rnea as CR
+    from jtraj_peers.ipopt_arm import ArmSpec
 
     model = CR.panda_model()
     urdf = CR.model_limits(model)
@@ -141,7 +141,7 @@ def _single_latencies(q0, q1, N, starts, jerk, repeats=3):
     import jax
 
     import jtraj
-    from peers.ipopt_arm import get_peer
+    from jtraj_peers.ipopt_arm import get_peer
 
     robot = jtraj_panda()
     _, spec = peer_spec(_limits(robot), jerk)
@@ -176,7 +176,7 @@ _FIRST_PEER = """
 import time; t0 = time.perf_counter()
 import sys; sys.path.insert(0, {bench!r})
 import casadi, numpy as np, bench_spatial as B
-from peers import ipopt_arm as A
+from jtraj_peers import ipopt_arm as A
 lim = {lim!r}; lim = {{k: None if v is None else (np.array(v) if isinstance(v, list) else v) for k, v in lim.items()}}
 _, spec = B.peer_spec(lim, {jerk})
 q0, q1 = B.panda_pairs(1, {seed}, lim["q_min"], lim["q_max"])
@@ -222,8 +222,8 @@ def main(argv=None):
 
     robot = jtraj_panda()  # exits with a clear message when unavailable
     from jtraj.dataset._local import available_cpus, worker_pool
-    from peers.ipopt_arm import solve_many
-    from peers.verify_arm import verify
+    from jtraj_peers.ipopt_arm import solve_many
+    from jtraj_peers.verify_arm import verify
 
     workers = args.workers or available_cpus()
     lim = _limits(robot)

@@ -1,5 +1,5 @@
-"""The staged single solve (:mod:`jtraj._staged`, what ``jtraj.solve`` runs on concrete
-arrays) against the single traced program (``jtraj.solver._solve_jit``, what it runs
+"""The staged single solve (:mod:`jtraj.solver.staged`, what ``jtraj.solve`` runs on concrete
+arrays) against the single traced program (``jtraj.solver.core.solve_jit``, what it runs
 under an outer jit): the same statuses, iterations and costs on benchmark pairs,
 including pairs the interior-point method leaves to the augmented-Lagrangian loop.
 
@@ -24,7 +24,7 @@ import jax
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.append(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository root: jtraj_peers
 
 
 def main(argv=None) -> int:
@@ -37,15 +37,15 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     import jtraj
-    from jtraj import _staged, solver
-    from peers.pairs import benchmark_pairs
+    from jtraj import _testing as solver
+    from jtraj_peers.pairs import benchmark_pairs
 
     robot = jtraj.robots.get("serial3")
     weights = jtraj.Weights(time=1.0, energy=0.1)
     q0, q1 = benchmark_pairs(args.scan, seed=args.seed)
-    opts = solver._resolve_method(None, "decoupled", robot)
-    short = solver._resolve_method(jtraj.SolverOptions(ip_max_iter=args.ip_max_iter), "decoupled", robot)
-    init = solver._placeholder_init(args.N, 3)
+    opts = solver.resolve_method(None, "decoupled", robot)
+    short = solver.resolve_method(jtraj.SolverOptions(ip_max_iter=args.ip_max_iter), "decoupled", robot)
+    init = solver.placeholder_init(args.N, 3)
     yes, no = np.bool_(True), np.bool_(False)
 
     def problem(i):
@@ -53,7 +53,7 @@ def main(argv=None) -> int:
 
     undecided = []
     for i in range(args.scan):
-        _, decided, _ = _staged._solve_ip_jit(problem(i), opts, "decoupled", init, no, yes)
+        _, decided, _ = solver.staged_ip_jit(problem(i), opts, "decoupled", init, no, yes)
         if not bool(decided):
             undecided.append(i)
     chosen = undecided[: args.pairs // 2]
@@ -69,9 +69,9 @@ def main(argv=None) -> int:
     for i, o, label in runs:
         p = problem(i)
         if o is short:
-            fallback += not bool(_staged._solve_ip_jit(p, o, "decoupled", init, no, yes)[1])
+            fallback += not bool(solver.staged_ip_jit(p, o, "decoupled", init, no, yes)[1])
         new = jtraj.solve(p, options=o)
-        old = solver._solve_jit(p, o, "decoupled", init, no, yes)
+        old = solver.solve_jit(p, o, "decoupled", init, no, yes)
         rel = abs(float(new.cost) - float(old.cost)) / max(1.0, abs(float(old.cost)))
         worst = max(worst, rel if np.isfinite(rel) else 0.0)
         same = (int(new.iterations) == int(old.iterations) and int(new.status) == int(old.status)

@@ -12,18 +12,18 @@ as its own compiled, vmapped program:
 * ``dirs``: the Riccati directions for the four shifts of the ladder;
 * ``trials``: the AL at the 13 trial points;
 * ``grad``: the gradient and constraints after the step (the loop's test);
-* ``iter``: one whole loop iteration (``solver._segment_jit`` with one step).
+* ``iter``: one whole loop iteration (``solver.segment_jit`` with one step).
 
-With ``--method ip`` the pieces are those of the interior-point method (:mod:`jtraj.ipm`,
+With ``--method ip`` the pieces are those of the interior-point method (:mod:`jtraj.solver.ipm`,
 the default method), from a batch run ``--warm`` interior-point iterations in:
 
-* ``ip_model``: the primal-dual Newton model (``ipm._model``: stage derivatives with the
+* ``ip_model``: the primal-dual Newton model (``S.ipm_model``: stage derivatives with the
   efforts' Jacobians, the inequalities' Jacobians by the chain rule, the stage model);
 * ``ip_stage_derivs``: the per-stage values, gradients and Hessians alone (part of it);
 * ``ip_kkt``: the barrier right-hand side and the Riccati KKT solves for the shift ladder
-  (``ipm._ladder_directions``, all shifts at once under vmap: the native kernel of
+  (``S.ipm_ladder_directions``, all shifts at once under vmap: the native kernel of
   :mod:`jtraj._kkt_native` where it is in use, as in the solver);
-* ``ip_kkt_xla``: the same in XLA (``ipm._ladder_directions_xla``, the fallback);
+* ``ip_kkt_xla``: the same in XLA (``S.ipm_ladder_directions_xla``, the fallback);
 * ``ip_kkt1``: one shift's KKT solve alone in XLA (``jtraj.lq.kkt_directions``);
 * ``ip_trials``: the cost and constraints at the line search's step lengths;
 * ``ip_iter``: one whole interior-point iteration (``ipm.step``).
@@ -84,12 +84,12 @@ def _programs(pairs: int, seed: int, warm: int, pbm: bool = False, options=(), m
 
     import jtraj
     from jtraj import lq
-    from jtraj import solver as S
+    from jtraj import _testing as S
     from jtraj._compile import SOLVER_XLA_OPTIONS, cpu_jit
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from bench_solver import _option  # bench_solver's own --option parser
-    from peers.pairs import benchmark_pairs
+    from jtraj_peers.pairs import benchmark_pairs
 
     robot = jtraj.robots.get("serial3")
     q0, q1 = benchmark_pairs(pairs, seed)
@@ -98,12 +98,12 @@ def _programs(pairs: int, seed: int, warm: int, pbm: bool = False, options=(), m
     weights = jtraj.Weights(time=1.0, energy=0.1)
     problems = eqx.filter_vmap(lambda a, b: jtraj.Problem(robot, a, b, N=20, weights=weights, validate=False))(
         jnp.asarray(q0), jnp.asarray(q1))
-    init = S._guess_batch_jit(problems, opts, "decoupled")
-    nlps, states, _ = S._prepare_batch_jit(problems, opts, "decoupled", init, jnp.asarray(False))
+    init = S.guess_batch_jit(problems, opts, "decoupled")
+    nlps, states, _ = S.prepare_batch_jit(problems, opts, "decoupled", init, jnp.asarray(False))
     jit, vmap = cpu_jit(SOLVER_XLA_OPTIONS), eqx.filter_vmap
     if method == "ip":
         return _ip_programs(nlps, states, opts, warm, jit, vmap)
-    mid = jax.block_until_ready(S._segment_jit(nlps, states, opts, warm))
+    mid = jax.block_until_ready(S.segment_jit(nlps, states, opts, warm))
     kink = jnp.zeros(pairs)  # the kink margin as traced, at zero (its value does not change the cost)
 
     model_f = jit(lambda n, s, k: vmap(lambda n, s, k: n.stage_newton_model(s.z, s.mult, s.mu, k))(n, s, k))
@@ -122,8 +122,8 @@ def _programs(pairs: int, seed: int, warm: int, pbm: bool = False, options=(), m
         return lq.newton_directions(m, jnp.ones(m.g.shape, bool), shifts)
 
     def trials(n, s, d):
-        steps = jnp.asarray(S._TRIAL_STEP)[:, None]
-        cand = jnp.clip(s.z[None] + steps * d[S._TRIAL_SHIFT], n.layout.z_lo, n.layout.z_hi)
+        steps = jnp.asarray(S.TRIAL_STEP)[:, None]
+        cand = jnp.clip(s.z[None] + steps * d[S.TRIAL_SHIFT], n.layout.z_lo, n.layout.z_hi)
         return jax.vmap(n.al_value, in_axes=(0, None, None))(cand, s.mult, s.mu)
 
     stage_f = jit(lambda n, s, k: vmap(stage_derivs)(n, s, k))
@@ -139,7 +139,7 @@ def _programs(pairs: int, seed: int, warm: int, pbm: bool = False, options=(), m
         "dirs": lambda: dirs_f(model),
         "trials": lambda: trials_f(nlps, mid, d),
         "grad": lambda: grad_f(nlps, mid),
-        "iter": lambda: S._segment_jit(nlps, mid, opts, 1),
+        "iter": lambda: S.segment_jit(nlps, mid, opts, 1),
     }
     for f in calls.values():  # compile every piece before anything is measured
         jax.block_until_ready(f())
@@ -154,12 +154,13 @@ def _ip_programs(nlps, states, opts, warm, jit, vmap):
     import jax
     import jax.numpy as jnp
 
-    from jtraj import ipm, lq
-    from jtraj import solver as S
+    from jtraj import lq
+    from jtraj import _testing as S
+    from jtraj.solver import ipm
 
-    tol = S._ip_tolerances(opts)
-    max_iter = S._static(opts).ip_max_iter
-    ips = S._ip_init_batch_jit(nlps, states, opts)
+    tol = S.ip_tolerances(opts)
+    max_iter = S.static_options(opts).ip_max_iter
+    ips = S.ip_init_batch_jit(nlps, states, opts)
     mid = jax.block_until_ready(jit(lambda n, s: vmap(lambda n, s: ipm.loop(n, s, max_iter, tol, warm))(n, s))(nlps, ips))
     if bool(jnp.any(ipm.finished(mid, max_iter))):
         print(f"note: some lanes finished within {warm} iterations (their pieces still run)")
@@ -168,25 +169,25 @@ def _ip_programs(nlps, states, opts, warm, jit, vmap):
         lag = dataclasses.replace(n, ineq_penalty="lagrangian")
         return lag.stage_derivatives(n.W(s.z), ipm.multipliers(n, s), jnp.zeros((), s.z.dtype), efforts=True)
 
-    def kkt(n, s, m, ladder=ipm._ladder_directions):
+    def kkt(n, s, m, ladder=S.ipm_ladder_directions):
         model, Jg, dgT, p, Ex = m
-        model = ipm._with_rhs(n, s, model, Jg, dgT, p, s.mu)
-        return ladder(model, s.delta * jnp.asarray(ipm._SHIFT_LADDER, s.z.dtype), Ex.T)
+        model = S.ipm_with_rhs(n, s, model, Jg, dgT, p, s.mu)
+        return ladder(model, s.delta * jnp.asarray(S.IPM_SHIFT_LADDER, s.z.dtype), Ex.T)
 
     def kkt1(s, m):
         model, _, _, _, Ex = m
         return lq.kkt_directions(model, s.delta[None], Ex.T)
 
     def trials(n, s):
-        g = jax.grad(lambda z: ipm._parts(n, z).f)(s.z)  # a direction of the right scale
+        g = jax.grad(lambda z: S.ipm_parts(n, z).f)(s.z)  # a direction of the right scale
         d = -g / jnp.maximum(1.0, jnp.max(jnp.abs(g)))
-        return jax.vmap(lambda a: ipm._parts(n, s.z + 1e-3 * a * d))(jnp.asarray(ipm._ALPHAS, s.z.dtype))
+        return jax.vmap(lambda a: S.ipm_parts(n, s.z + 1e-3 * a * d))(jnp.asarray(S.IPM_ALPHAS, s.z.dtype))
 
-    model_f = jit(lambda n, s: vmap(ipm._model)(n, s))
+    model_f = jit(lambda n, s: vmap(S.ipm_model)(n, s))
     m = model_f(nlps, mid)
     stage_f = jit(lambda n, s: vmap(stage_derivs)(n, s))
     kkt_f = jit(lambda n, s, m: vmap(kkt)(n, s, m))
-    kkt_xla_f = jit(lambda n, s, m: vmap(lambda *a: kkt(*a, ladder=ipm._ladder_directions_xla))(n, s, m))
+    kkt_xla_f = jit(lambda n, s, m: vmap(lambda *a: kkt(*a, ladder=S.ipm_ladder_directions_xla))(n, s, m))
     kkt1_f = jit(lambda s, m: vmap(kkt1)(s, m))
     trials_f = jit(lambda n, s: vmap(trials)(n, s))
     step_f = jit(lambda n, s: vmap(lambda n, s: ipm.step(n, s, tol))(n, s))

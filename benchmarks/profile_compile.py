@@ -5,9 +5,9 @@ Run in a fresh process with private caches, e.g.::
 
     JTRAJ_NATIVE_DIR=$(mktemp -d) python benchmarks/profile_compile.py --full --staged --pieces
 
-``--full``: the single traced program (``jtraj.solver._solve_jit``, what a solve under
+``--full``: the single traced program (``jtraj.solver.core.solve_jit``, what a solve under
 an outer jit runs); ``--staged``: the two programs of a concrete single solve
-(:mod:`jtraj._staged`), and the interior-point one again at XLA's LLVM optimisation
+(:mod:`jtraj.solver.staged`), and the interior-point one again at XLA's LLVM optimisation
 level 1 (see ``bench_opt_level.py``); ``--pieces``: the parts of the single program
 compiled apart. Each program is traced and lowered by ``jax.jit`` in this process (the
 first trace of a process also pays JAX's one-time set-up), then compiled; HLO ops
@@ -68,7 +68,8 @@ def main():
     import jax.numpy as jnp
     import numpy as np
 
-    from jtraj import _kkt_native, solver
+    from jtraj import _kkt_native
+    from jtraj import _testing as solver
     from jtraj._compile import SOLVER_XLA_OPTIONS, supported_options
     from jtraj.transcription import Transcription
     print(f"import {time.perf_counter() - t0:.2f} s")
@@ -78,29 +79,28 @@ def main():
     t0 = time.perf_counter()
     problem = quick_start_problem(args.N)
     print(f"problem (IK) {time.perf_counter() - t0:.2f} s")
-    opts = solver._resolve_method(None, "decoupled", problem.robot)
-    split = solver._split_options(opts)
+    opts = solver.resolve_method(None, "decoupled", problem.robot)
+    split = solver.split_options(opts)
     xla = supported_options(SOLVER_XLA_OPTIONS)
-    init = solver._placeholder_init(problem.N, 3)
+    init = solver.placeholder_init(problem.N, 3)
     tr = Transcription("decoupled")
 
     if args.full:
         def full(problem, split, init):
-            o = solver._TracedOptions(split)
-            return solver._solve_jit.__wrapped__(problem, o, "decoupled", init, np.bool_(False), np.bool_(True))
+            o = solver.TracedOptions(split)
+            return solver.solve_jit.__wrapped__(problem, o, "decoupled", init, np.bool_(False), np.bool_(True))
         measure("full _solve_jit", full, problem, split, init, options=xla)
 
     if args.staged:
-        from jtraj import _staged
         staged = supported_options({**SOLVER_XLA_OPTIONS, "xla_backend_optimization_level": 1})
         yes, no = np.bool_(True), np.bool_(False)
 
         def ip_program(problem, split, init):
-            return _staged._solve_ip_jit.__wrapped__(problem, solver._TracedOptions(split), "decoupled", init, no, yes)
+            return solver.staged_ip_jit.__wrapped__(problem, solver.TracedOptions(split), "decoupled", init, no, yes)
 
         def al_program(problem, split, init):
-            return _staged._solve_al_jit.__wrapped__(problem, solver._TracedOptions(split), "decoupled", init, no, yes,
-                                                     None)
+            return solver.staged_al_jit.__wrapped__(problem, solver.TracedOptions(split), "decoupled", init, no, yes,
+                                                    None)
         measure("staged: interior point", ip_program, problem, split, init, options=xla)
         measure("staged: AL fallback", al_program, problem, split, init, options=xla)
         if "xla_backend_optimization_level" in staged:
@@ -108,49 +108,49 @@ def main():
 
     if args.pieces:
         def prep(problem, split):
-            o = solver._TracedOptions(split)
+            o = solver.TracedOptions(split)
             init = solver.initial_guess(problem, o, tr)
-            nlp, state, valid = solver._prepare(problem, o, tr, init, False)
+            nlp, state, valid = solver.prepare(problem, o, tr, init, False)
             return nlp, state, valid
 
         c = measure("guess+prepare", prep, problem, split, options=xla)
         nlp, state, valid = c(problem, split)
 
         def ip(nlp, state, split):
-            return solver._ip_run(nlp, state, solver._TracedOptions(split))
+            return solver.ip_run(nlp, state, solver.TracedOptions(split))
         c = measure("ipm.run", ip, nlp, state, split, options=xla)
         ipr = c(nlp, state, split)
 
         def light(nlp, state, ipr, split):
-            o = solver._TracedOptions(split)
-            s = solver._ip_result(nlp, state, ipr)
-            return solver._finish(nlp, s, o, valid, light=True)
+            o = solver.TracedOptions(split)
+            s = solver.ip_result(nlp, state, ipr)
+            return solver.finish(nlp, s, o, valid, light=True)
         measure("ip_result+finish(light)", light, nlp, state, ipr, split, options=xla)
 
         def finish_light_static(nlp, state, ipr, split):
-            o = solver._TracedOptions(split)
-            s = solver._ip_result(nlp, state, ipr)
-            return solver._finish(nlp, s, o, valid, light=True)
+            o = solver.TracedOptions(split)
+            s = solver.ip_result(nlp, state, ipr)
+            return solver.finish(nlp, s, o, valid, light=True)
 
         def al(nlp, state, split):
-            return solver._run_with_restart(nlp, state, solver._TracedOptions(split))
+            return solver.run_with_restart(nlp, state, solver.TracedOptions(split))
         c = measure("AL _run_with_restart", al, nlp, state, split, options=xla)
         s_al = c(nlp, state, split)
 
         def heavy(nlp, s, split):
-            return solver._finish(nlp, s, solver._TracedOptions(split), valid, light=False)
+            return solver.finish(nlp, s, solver.TracedOptions(split), valid, light=False)
         measure("finish(polish+LS kkt)", heavy, nlp, s_al, split, options=xla)
 
         def polish(nlp, s, split):
-            return solver._final_polish(nlp, s.z, solver._TracedOptions(split))
+            return solver.final_polish(nlp, s.z, solver.TracedOptions(split))
         measure("  _final_polish", polish, nlp, s_al, split, options=xla)
 
         def kls(nlp, s):
-            return solver._kkt_error(nlp, s.z)
+            return solver.kkt_error(nlp, s.z)
         measure("  _kkt_error (LS)", kls, nlp, s_al, options=xla)
 
         def kal(nlp, s):
-            return solver._al_kkt_error(nlp, s.z, s.mult, s.mu)
+            return solver.al_kkt_error(nlp, s.z, s.mult, s.mu)
         measure("  _al_kkt_error", kal, nlp, s_al, options=xla)
 
 

@@ -70,3 +70,12 @@ def cpu_jit(options: dict[str, Any], **jit_kwargs) -> Callable[[Callable], Calla
 SOLVER_XLA_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": ""}
 solver_jit = cpu_jit(SOLVER_XLA_OPTIONS)
 
+
+
+@functools.lru_cache(maxsize=None)
+def nested_jit(fn: Callable) -> Callable:
+    """A solver entry point decorated by :func:`cpu_jit` (through
+    ``jtraj.solver.options.options_jit``) as a plain ``eqx.filter_jit`` of the function it
+    wraps, for use inside another trace: XLA compiler options are for top-level programs
+    only."""
+    return eqx.filter_jit(fn.__wrapped__)

@@ -1,6 +1,6 @@
 """The interior-point method's KKT solve as a native CPU kernel (an XLA FFI call).
 
-:func:`jtraj.lq.kkt_directions` for the shift ladder (:func:`jtraj.ipm._ladder_directions`)
+:func:`jtraj.lq.kkt_directions` for the shift ladder (:func:`jtraj.solver.ipm._ladder_directions`)
 is the largest piece of an interior-point iteration: 45 % of its instructions on the
 canonical problem (serial3, N = 20, 8 lanes; ``benchmarks/iteration_cost.py --method
 ip``). XLA compiles its per-stage 4x4 to 7x7 operations into many small loops, each
@@ -238,7 +238,7 @@ def kkt_directions(model, shifts, terminal, ladder: bool = False):
 
     ``ladder``: the first shift for every problem, the others only where it is not
     positive definite (elsewhere their slots are zeros and not positive definite, as in
-    :func:`jtraj.ipm._ladder_directions_xla` for one problem): the least shifted positive
+    :func:`jtraj.solver.ipm._ladder_directions_xla` for one problem): the least shifted positive
     definite direction is the same, at about half the work (on the benchmark family
     shift 0 is positive definite in about 60 % of the iterations)."""
     N, nx, m = model.B.shape[-3:]

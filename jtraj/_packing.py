@@ -2,8 +2,8 @@
 
 The batched solver's driver moves problems and loop states between the whole batch and a
 few vmapped lanes: the AL loop's after every segment of Newton iterations
-(:func:`jtraj.solver._run_lanes`), the interior-point method's inside its compiled loop
-whenever a lane's problem finishes (:func:`jtraj.solver._run_pool`). As pytrees they are about 50 array leaves, and every compiled call pays for
+(:func:`jtraj.solver.lanes._run_lanes`), the interior-point method's inside its compiled loop
+whenever a lane's problem finishes (:func:`jtraj.solver.lanes._run_pool`). As pytrees they are about 50 array leaves, and every compiled call pays for
 each leaf on the way in and out (Python flattening in ``eqx.filter_jit``, then one
 buffer, one gather or scatter kernel each): a gather of 8 lanes cost about 0.9 ms and a
 scatter 0.8 ms, next to a 16 ms segment (serial3, N = 20, 128 pairs, one core). Packed,

@@ -240,9 +240,9 @@ def _marker(key: tuple) -> str | None:
     base = jax.config.jax_compilation_cache_dir
     if not base:
         return None
-    from ._tracecache import _source_hash_once
+    from ._source import source_hash_cached
 
-    text = json.dumps([repr(k) for k in key] + [_source_hash_once(), jax.__version__, jax.default_backend()])
+    text = json.dumps([repr(k) for k in key] + [source_hash_cached(), jax.__version__, jax.default_backend()])
     return os.path.join(base, "jtraj-seen", hashlib.sha256(text.encode()).hexdigest()[:32])
 
 

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-import functools
 import hashlib
 import importlib
 import json
@@ -51,28 +50,12 @@ import jax
 import numpy as np
 
 from . import _kkt_native
+from ._source import source_hash_cached
 
 #: the folder, inside the compilation cache directory, holding the exported programs
 FOLDER = "jtraj-traces"
 
 
-def source_hash() -> str:
-    """sha256 of jtraj's Python sources (16 hex digits; a solver edited between two runs
-    changes it)."""
-    root = os.path.dirname(os.path.abspath(__file__))
-    h = hashlib.sha256()
-    for dirpath, dirnames, files in os.walk(root):
-        dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
-        for f in sorted(files):
-            if f.endswith(".py"):
-                full = os.path.join(dirpath, f)
-                h.update(os.path.relpath(full, root).encode())
-                with open(full, "rb") as fh:
-                    h.update(fh.read())
-    return h.hexdigest()[:16]
-
-
-_source_hash_once = functools.lru_cache(maxsize=1)(source_hash)
 
 
 def directory() -> str | None:
@@ -250,7 +233,7 @@ def key(name: str, static: str, args: tuple, compiler_options: dict | None) -> s
     leaves, tree = jax.tree.flatten(args)
     text = "\n".join([
         name, static, repr(tree), repr(tuple(map(_sig, leaves))),
-        repr(sorted((compiler_options or {}).items())), _source_hash_once(), jax.__version__,
+        repr(sorted((compiler_options or {}).items())), source_hash_cached(), jax.__version__,
         jaxlib.__version__, jax.default_backend(), repr([getattr(jax.config, f) for f in _FLAGS]),
         f"native KKT kernel {_kkt_native.identity()}",
     ])

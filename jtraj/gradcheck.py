@@ -10,7 +10,7 @@ Functions checked, both as functions of the physical unknowns ``(v, h)``
 * the cost ``J(v, h) = sum_k l_k(w_k)``, ``l_k`` the stage cost of
   :meth:`jtraj.transcription.Transcription.stage_cost_terms`;
 * the augmented Lagrangian ``L(v, h; lambda, rho, mu)`` of the solver
-  (:meth:`jtraj.solver._NLP.al_value`, the very function the solver minimises), with
+  (:meth:`jtraj.solver.nlp.NLP.al_value`, the very function the solver minimises), with
   multipliers ``lambda`` (any sign) on the equalities and ``rho >= 0`` on the
   inequalities of :meth:`~jtraj.transcription.Transcription.stage_constraints`, and the
   global bound on ``T = sum h``.
@@ -101,7 +101,7 @@ def default_weights():
 
 
 def _nlp(problem):
-    from .solver import _NLP
+    from .solver.nlp import NLP as _NLP
     from .transcription import Transcription
 
     tr = Transcription("decoupled")
@@ -347,7 +347,8 @@ def random_point(robot, rng: np.random.Generator, *, N: int, weights, mu=None, v
     Returns (problem, v, h, mult, mu, info) with info = {validated, spread s, note}.
     """
     from .problem import Problem
-    from .solver import _init_multipliers, Multipliers
+    from .solver.certify import init_multipliers as _init_multipliers
+    from .solver.nlp import Multipliers
 
     lim = robot.limits
     n = robot.n

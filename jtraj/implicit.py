@@ -104,7 +104,7 @@ def valid_derivatives(solution) -> jax.Array:
 
 
 def _nlp(problem: Problem, tr: Transcription):
-    from .solver import _NLP
+    from .solver.nlp import NLP as _NLP
 
     return _NLP(problem=problem, tr=tr, layout=tr.layout(problem), sd=tr.stage_data(problem))
 
@@ -288,7 +288,7 @@ def _nested(fn):
 
 
 def _primal_single(cfg: _Config, dyn, init):
-    from .solver import _solve_jit
+    from .solver.core import solve_jit as _solve_jit
 
     problem = eqx.combine(dyn, cfg.static)
     run = _nested(_solve_jit) if any_traced((dyn, init)) else _solve_jit
@@ -296,7 +296,7 @@ def _primal_single(cfg: _Config, dyn, init):
 
 
 def _primal_batch(cfg: _Config, dyn, init):
-    from .solver import _solve_batch_jit, _solve_problems
+    from .solver.lanes import solve_batch_jit as _solve_batch_jit, solve_problems as _solve_problems
 
     problems = eqx.combine(dyn, cfg.static)
     leaves = jax.tree.leaves((dyn, init))

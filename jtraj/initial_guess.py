@@ -68,7 +68,7 @@ def torque_scaled_time(problem: Problem, T):
         return T
     G = jax.vmap(robot.inverse_dynamics)(q, jnp.zeros_like(qd), jnp.zeros_like(qdd))
     D = tau - G
-    room = jnp.maximum(tau_max - jnp.sign(D) * G, 1e-3 * tau_max)  # gravity alone over the bound: slowest
+    room = jnp.maximum(tau_max[None, :] - jnp.sign(D) * G, 1e-3 * tau_max[None, :])  # gravity alone over the bound: slowest
     c2 = jnp.max(jnp.abs(D) / room)
     return jnp.where(c2 > 1.0, T0 * jnp.sqrt(c2), T)
 
@@ -87,15 +87,15 @@ def cycloidal(problem: Problem, torque: bool = False):
 def cycloid_acceleration(problem: Problem, T, t):
     """qdd(t) of the cycloid of duration T at times t."""
     dq = problem.q_goal - problem.q_start
-    return dq * (2 * jnp.pi / T**2 * jnp.sin(2 * jnp.pi * t / T))[:, None]
+    return dq[None, :] * (2 * jnp.pi / T**2 * jnp.sin(2 * jnp.pi * t / T))[:, None]
 
 
 def cycloid_path(problem: Problem, T, t):
     """q(t), qd(t) of the cycloid of duration T at times t (for plots)."""
     dq = problem.q_goal - problem.q_start
     s = t / T
-    q = problem.q_start + dq * (s - jnp.sin(2 * jnp.pi * s) / (2 * jnp.pi))[:, None]
-    qd = dq * ((1 - jnp.cos(2 * jnp.pi * s)) / T)[:, None]
+    q = problem.q_start[None, :] + dq[None, :] * (s - jnp.sin(2 * jnp.pi * s) / (2 * jnp.pi))[:, None]
+    qd = dq[None, :] * ((1 - jnp.cos(2 * jnp.pi * s)) / T)[:, None]
     return q, qd
 
 

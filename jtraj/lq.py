@@ -147,11 +147,11 @@ def stage_model(W: Array, c: Array, Hk: Array, u_scale: Array, h_scale: Array,
         return jnp.concatenate([Y, jnp.zeros(Y.shape[:axis] + (1,) + Y.shape[axis + 1:], dt)], axis=axis)
 
     Q = pad(pad(Hk[:N][:, ix[:, None], ix[None, :]], 1), 2) + C[:, :nx, :nx]
-    S = (pad(Hk[:N, 2 * n:, :2 * n], 2) + C[:, nx:, :nx]) * sy[:, None]
-    R = (Hk[:N, 2 * n:, 2 * n:] + C[:, nx:, nx:]) * jnp.outer(sy, sy)
-    g_u = g_u * sy
+    S = (pad(Hk[:N, 2 * n:, :2 * n], 2) + C[:, nx:, :nx]) * sy[None, :, None]
+    R = (Hk[:N, 2 * n:, 2 * n:] + C[:, nx:, nx:]) * jnp.outer(sy, sy)[None]
+    g_u = g_u * sy[None, :]
     return StageModel(
-        A=A, B=B * sy, Q=Q, S=S, R=R, cx=cx, cu=cu * sy,
+        A=A, B=B * sy[None, None, :], Q=Q, S=S, R=R, cx=cx, cu=cu * sy[None, :],
         PN=pad(pad(Hk[N][ix[:, None], ix[None, :]], 0), 1).at[-1, -1].set(d2phi),
         g=jnp.concatenate([g_u[:, :n].ravel(), g_u[:, -1]]))
 
@@ -187,6 +187,12 @@ def newton_directions(model: StageModel, free: Array, shifts: Array) -> tuple[Ar
     return jnp.moveaxis(d, -1, 0), ok
 
 
+def _lead(a, ndim: int):
+    """``a`` with leading axes of length 1 up to ``ndim`` axes: the broadcast NumPy's rank
+    promotion would make, written out."""
+    return jnp.reshape(a, (1,) * (ndim - a.ndim) + a.shape)
+
+
 def _mm(X, Y):
     """Products of small matrices X (a, b, *L) and Y (b, c, *L) lane by lane, as sums of
     elementwise products (fused by XLA)."""
@@ -209,11 +215,11 @@ class _Recursion(NamedTuple):
 
     def right_A(self, X):  # X A, X (r, nx, *L)
         n = self.bq.shape[0]
-        return jnp.concatenate([X[:, :n], X[:, n:2 * n] + self.h * X[:, :n], X[:, 2 * n:]], axis=1)
+        return jnp.concatenate([X[:, :n], X[:, n:2 * n] + _lead(self.h, X.ndim) * X[:, :n], X[:, 2 * n:]], axis=1)
 
     def left_At(self, Y):  # A^T Y, Y (nx, c, *L)
         n = self.bq.shape[0]
-        return jnp.concatenate([Y[:n], Y[n:2 * n] + self.h * Y[:n], Y[2 * n:]], axis=0)
+        return jnp.concatenate([Y[:n], Y[n:2 * n] + _lead(self.h, Y.ndim) * Y[:n], Y[2 * n:]], axis=0)
 
     def right_B(self, X):  # X B, X (r, nx, *L) -> (r, m, *L)
         n = self.bq.shape[0]
@@ -227,9 +233,9 @@ class _Recursion(NamedTuple):
 
     def step(self, dx, du):  # A dx + B du, dx (nx, *L), du (m, *L)
         n = self.bq.shape[0]
-        dq = dx[:n] + self.h * dx[n:2 * n] + self.bq * du[:n]
+        dq = dx[:n] + _lead(self.h, dx.ndim) * dx[n:2 * n] + self.bq * du[:n]
         dqd = dx[n:2 * n] + self.bqd * du[:n]
-        return jnp.concatenate([dq, dqd, dx[2 * n:]], axis=0) + self.bh * du[n]
+        return jnp.concatenate([dq, dqd, dx[2 * n:]], axis=0) + self.bh * _lead(du[n], self.bh.ndim)
 
 
 def _riccati(h, bq, bqd, bh, Q, S, R, cx, cu, PN, ff, shifts):
@@ -250,7 +256,7 @@ def _riccati(h, bq, bqd, bh, Q, S, R, cx, cu, PN, ff, shifts):
         rec, Rk, Sk, Qk, rk, cxk, fk = xs
         rec = _Recursion(*rec)
         PA = rec.right_A(P)
-        Quu = Rk + rec.left_Bt(rec.right_B(P)) + eye * (shifts * fk)[:, None]
+        Quu = Rk + rec.left_Bt(rec.right_B(P)) + eye * (shifts[None, :] * fk)[:, None]
         Qux = Sk + rec.left_Bt(PA)
         Qxx = Qk + rec.left_At(PA)
         qu = rk + rec.left_Bt(p[:, None])[:, 0]

@@ -27,7 +27,10 @@ from . import implicit
 from ._compile import solver_jit
 from .problem import Problem
 from .robots import Limits, parameter_names
-from .solver import _NLP, SolverOptions, Status, _finish, _run
+from .solver import SolverOptions, Status
+from .solver.al import run_al as _run
+from .solver.core import finish as _finish
+from .solver.nlp import NLP as _NLP
 from .transcription import Transcription
 
 __all__ = ["sensitivity", "solve_with_multipliers"]

@@ -108,11 +108,11 @@ def verified_ipopt_cost(sol, i, q_start, q_goal, N):
     """Lane ``i`` of a batch Solution re-simulated from its own (v, h) by the independent
     NumPy + Pinocchio verifier (bounds and goal within 1e-6, its cost equal to the
     Solution's), and IPOPT's cost on the same problem, which must succeed (skips where
-    Pinocchio or CasADi is missing; benchmarks/ must be on sys.path)."""
+    Pinocchio or CasADi is missing; jtraj_peers must be importable)."""
     import pytest
 
-    V = pytest.importorskip("peers.verify")
-    P = pytest.importorskip("peers.ipopt_peer")
+    V = pytest.importorskip("jtraj_peers.verify")
+    P = pytest.importorskip("jtraj_peers.ipopt_peer")
     chk = V.verify(q_start, q_goal, np.asarray(sol.v[i]), np.asarray(sol.h[i]), tol=1e-6)
     assert chk["ok"] and chk["goal_error"] <= 1e-6, (chk["max_rel_violation"], chk["goal_error"])
     assert chk["cost"] == pytest.approx(float(sol.cost[i]), rel=1e-9)

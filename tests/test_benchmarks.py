@@ -3,12 +3,10 @@ solver: the figures themselves come from real runs (docs/benchmarks.md), not fro
 
 import json
 import os
-import sys
 
 import pytest
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(os.path.dirname(HERE), "benchmarks"))
 
 FAKE = "jtraj.dataset.testing:fake_solve_batch"
 

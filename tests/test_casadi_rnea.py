@@ -1,18 +1,14 @@
 """The benchmark peers' CasADi RNEA against Pinocchio's: the 7-DOF Panda of
 example-robot-data and a synthetic tree with every supported joint type."""
 
-import os
-import sys
-
 import numpy as np
 import pytest
 
 ca = pytest.importorskip("casadi")
 pin = pytest.importorskip("pinocchio")
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 
-from peers import casadi_rnea as CR  # noqa: E402
+from jtraj_peers import casadi_rnea as CR  # noqa: E402
 
 
 def rel_err(a, b):

@@ -33,9 +33,9 @@ def test_help_lists_commands(capsys):
 
 
 def test_solve_writes_consistent_json_and_png(tmp_path, capsys, monkeypatch):
-    from jtraj import _setup
+    from jtraj import _testing
 
-    monkeypatch.setitem(_setup._state, "seen", set())  # as in a new process: the first solve is announced
+    monkeypatch.setitem(_testing.setup_state, "seen", set())  # as in a new process: the first solve is announced
     out_json, out_png = tmp_path / "sol.json", tmp_path / "sol.png"
     rc = cli.main(["solve", "--robot", "serial3", "--start-q", START, "--goal-q", GOAL, "--deg", "--N", "10",
                    "--weights", "time=1,energy=0.5", "--json", str(out_json), "--plot", str(out_png), "--rate", "200"])

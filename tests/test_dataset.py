@@ -536,8 +536,7 @@ def test_real_solver_end_to_end(tmp_path):
     assert len(sel) >= 5  # measured: 6 of 8 at N = 10
     assert f"KKT error: median {np.median(sel):.4g}" in dataset.summary(out)
     # every pair flagged converged passes the independent NumPy + Pinocchio re-simulation
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
-    V = pytest.importorskip("peers.verify")
+    V = pytest.importorskip("jtraj_peers.verify")
     for i in np.flatnonzero(data["converged"]):
         r = V.verify(data["q_start"][i], data["q_goal"][i], data["v"][i], data["h"][i], h_max=spec.h_max,
                      weights=(1.0, 0.1, 0.0))

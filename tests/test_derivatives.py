@@ -25,14 +25,14 @@ def test_structured_hessian_matches_differences_of_the_gradient(name, transcript
     (a full jax.hessian would take minutes to compile here)."""
     import jax
 
-    from jtraj.solver import _NLP, _init_multipliers
+    from jtraj._testing import NLP, init_multipliers
     from jtraj.transcription import Transcription
 
     robot = jtraj.robots.get(name)
     p = jtraj.Problem(robot, Q0, Q1, N=8, weights=jtraj.Weights(time=1, energy=0.1, kinetic=0.2))
     tr = Transcription(transcription)
     lay = tr.layout(p)
-    nlp = _NLP(problem=p, tr=tr, layout=lay, sd=tr.stage_data(p))
+    nlp = NLP(problem=p, tr=tr, layout=lay, sd=tr.stage_data(p))
     # a random point around the default guess (unbounded variables, like the spline's
     # knots, get a spread of 1 in their scaled units)
     from jtraj.solver import SolverOptions, initial_guess
@@ -43,7 +43,7 @@ def test_structured_hessian_matches_differences_of_the_gradient(name, transcript
     z0 = lay.pack(*eqx.filter_jit(initial_guess)(p, SolverOptions(), tr))
     spread = jnp.minimum(lay.z_hi - lay.z_lo, 2.0)
     z = jnp.clip(z0 + spread * (jax.random.uniform(jax.random.PRNGKey(0), z0.shape) - 0.5), lay.z_lo, lay.z_hi)
-    mult = jax.tree.map(lambda x: x + 0.3, eqx.filter_jit(_init_multipliers)(nlp, z))
+    mult = jax.tree.map(lambda x: x + 0.3, eqx.filter_jit(init_multipliers)(nlp, z))
     val, g, H = eqx.filter_jit(lambda n, zz, m: n.al_derivatives(zz, m, 7.0))(nlp, z, mult)
     grad_jit = eqx.filter_jit(lambda n, zz, m: jax.grad(n.al_value)(zz, m, 7.0))
 
@@ -62,7 +62,7 @@ def test_structured_hessian_matches_differences_of_the_gradient(name, transcript
     np.testing.assert_allclose(H, H.T, atol=1e-12 * float(np.max(np.abs(H))))
     if transcription == "decoupled":
         # the closed-form assembly of the decoupled recursion against jacfwd through it
-        generic = _NLP(problem=p, tr=tr, layout=lay, sd=nlp.sd, generic_hessian=True)
+        generic = NLP(problem=p, tr=tr, layout=lay, sd=nlp.sd, generic_hessian=True)
         _, g2, H2 = eqx.filter_jit(lambda n, zz, m: n.al_derivatives(zz, m, 7.0))(generic, z, mult)
         np.testing.assert_allclose(g, g2, rtol=0, atol=1e-12 * float(np.max(np.abs(g2))))
         np.testing.assert_allclose(H, H2, rtol=0, atol=1e-12 * float(np.max(np.abs(H2))))
@@ -90,18 +90,18 @@ def test_split_stage_derivatives_match_one_pass(name, transcription):
     import equinox as eqx
 
     from jtraj.gradcheck import default_weights, random_point
-    from jtraj.solver import _NLP, _init_multipliers
+    from jtraj._testing import NLP, init_multipliers
     from jtraj.transcription import Transcription
 
     rng = np.random.default_rng(3)
     tr = Transcription(transcription)
     problem, v, h, _, mu, _ = random_point(jtraj.robots.get(name), rng, N=4, weights=default_weights())
     lay = tr.layout(problem)
-    split = _NLP(problem=problem, tr=tr, layout=lay, sd=tr.stage_data(problem))
-    plain = _NLP(problem=problem, tr=tr, layout=lay, sd=split.sd, generic_hessian=True)
+    split = NLP(problem=problem, tr=tr, layout=lay, sd=tr.stage_data(problem))
+    plain = NLP(problem=problem, tr=tr, layout=lay, sd=split.sd, generic_hessian=True)
     z = lay.pack(tr.initial_controls(problem, v, h), h)
     mult = jax.tree.map(lambda x: x + jnp.asarray(rng.uniform(0, 2, x.shape)),
-                        eqx.filter_jit(_init_multipliers)(split, z))
+                        eqx.filter_jit(init_multipliers)(split, z))
     derivs = eqx.filter_jit(lambda n, zz, m: n.stage_derivatives(n.W(zz), m, mu, jnp.asarray(0.5)))
     for got, want, what in zip(derivs(split, z, mult), derivs(plain, z, mult), ("value", "gradient", "Hessian")):
         assert np.all(np.isfinite(np.asarray(got))), what

@@ -1,4 +1,4 @@
-"""The interior-point inner method (``SolverOptions(method="ip")``, :mod:`jtraj.ipm`).
+"""The interior-point inner method (``SolverOptions(method="ip")``, :mod:`jtraj.solver.ipm`).
 
 * its Newton step (stage-wise Riccati with the goal rows' Schur complement) against the
   KKT system assembled densely from jax.hessian of the plain Lagrangian in z;
@@ -9,9 +9,6 @@
 * bad options are refused before tracing.
 """
 
-import os
-import sys
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -20,12 +17,12 @@ import pytest
 
 import jtraj
 from helpers import N_SMALL as N, Q0, Q1, W_SMALL as W, three_sample_batch, verified_ipopt_cost
-from jtraj import Status, ipm, lq
-from jtraj import solver as S
+from jtraj import Status, lq
+from jtraj.solver import ipm
+from jtraj import _testing as S
 from jtraj.solver import SolverOptions
 from jtraj.transcription import Transcription
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 
 IP = SolverOptions(method="ip")
 
@@ -39,7 +36,7 @@ def _nlp(q0=Q0, q1=Q1):
 @eqx.filter_jit
 def _prepared(problem):
     tr = Transcription("decoupled")
-    nlp, state, _ = S._prepare(problem, SolverOptions(), tr, S.initial_guess(problem, SolverOptions(), tr))
+    nlp, state, _ = S.prepare(problem, SolverOptions(), tr, S.initial_guess(problem, SolverOptions(), tr))
     return nlp, state.z
 
 
@@ -48,14 +45,14 @@ _ip_init = eqx.filter_jit(ipm.init)
 
 @eqx.filter_jit
 def _ip_model(nlp, st):
-    """(model with its right-hand side, Ex, p) of ``ipm._model`` at state ``st``."""
-    model, Jg, dgT, p, Ex = ipm._model(nlp, st)
-    return ipm._with_rhs(nlp, st, model, Jg, dgT, p, st.mu), Ex, p
+    """(model with its right-hand side, Ex, p) of ``S.ipm_model`` at state ``st``."""
+    model, Jg, dgT, p, Ex = S.ipm_model(nlp, st)
+    return S.ipm_with_rhs(nlp, st, model, Jg, dgT, p, st.mu), Ex, p
 
 
 def test_shift_ladder_for_one_problem_takes_the_batch_choice():
     """In XLA (no native kernel), one problem factorises the unshifted matrix first and
-    the shifted ones only where that fails (``ipm._ladder_directions_xla``, a cond); a
+    the shifted ones only where that fails (``S.ipm_ladder_directions_xla``, a cond); a
     batch factorises all at once. The
     least shifted positive definite direction is the same number for number, whether
     shift 0 is positive definite or not."""
@@ -64,12 +61,12 @@ def test_shift_ladder_for_one_problem_takes_the_batch_choice():
     m = model.R.shape[1]
     # as it is (shift 0 positive definite) and with R made indefinite (it is not)
     cases = [model, model._replace(R=model.R - 30.0 * jnp.eye(m))]
-    shifts = 40.0 * jnp.asarray(ipm._SHIFT_LADDER)
+    shifts = 40.0 * jnp.asarray(S.IPM_SHIFT_LADDER)
     taken = []
     for mdl in cases:
         full = lq.kkt_directions(mdl, shifts, Ex.T)
-        one = jax.jit(ipm._ladder_directions_xla)(mdl, shifts, Ex.T)
-        batch = jax.vmap(ipm._ladder_directions_xla, in_axes=(None, 0, None))(mdl, shifts[None], Ex.T)
+        one = jax.jit(S.ipm_ladder_directions_xla)(mdl, shifts, Ex.T)
+        batch = jax.vmap(S.ipm_ladder_directions_xla, in_axes=(None, 0, None))(mdl, shifts[None], Ex.T)
         k = int(jnp.argmax(full[2]))
         assert bool(full[2][k]) and int(jnp.argmax(one[2])) == k
         for a, b, c in zip(full[:2], one[:2], batch[:2]):
@@ -80,7 +77,7 @@ def test_shift_ladder_for_one_problem_takes_the_batch_choice():
 
 
 def test_shorter_step_lengths_are_evaluated_exactly_where_needed():
-    """``ipm._shorter_trials``: (theta, phi) at each step length where the lane needs them,
+    """``S.ipm_shorter_trials``: (theta, phi) at each step length where the lane needs them,
     inf elsewhere, the numbers of evaluating every lane (to rounding), whether no lane, at most a
     quarter of the lanes (gathered and evaluated alone) or more need them; one problem
     (a cond) agrees."""
@@ -96,11 +93,11 @@ def test_shorter_step_lengths_are_evaluated_exactly_where_needed():
         points.append((st.z, st.s, st.sT, *d, st.mu))
     stack = lambda xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
     nlp_b, point_b = stack(nlps), stack(points)
-    alphas = jnp.asarray(ipm._ALPHAS[1:])
-    every = jax.jit(jax.vmap(lambda nl, pt: jax.vmap(lambda a: ipm._trial(nl, pt, a))(alphas)))(nlp_b, point_b)
+    alphas = jnp.asarray(S.IPM_ALPHAS[1:])
+    every = jax.jit(jax.vmap(lambda nl, pt: jax.vmap(lambda a: S.ipm_trial(nl, pt, a))(alphas)))(nlp_b, point_b)
     assert np.all(np.isfinite(np.asarray(every[0])))
-    lazy = jax.jit(jax.vmap(ipm._shorter_trials, in_axes=(0, 0, None, 0)))
-    assert int(lanes * ipm._TRIAL_SHARE) == 2
+    lazy = jax.jit(jax.vmap(S.ipm_shorter_trials, in_axes=(0, 0, None, 0)))
+    assert int(lanes * S.IPM_TRIAL_SHARE) == 2
     for need in ([], [5], [1, 6], [0, 2, 3, 7], list(range(lanes))):
         mask = np.isin(np.arange(lanes), need)
         got = lazy(nlp_b, point_b, alphas, jnp.asarray(mask))
@@ -108,9 +105,9 @@ def test_shorter_step_lengths_are_evaluated_exactly_where_needed():
             g = np.asarray(g)
             np.testing.assert_array_equal(np.isinf(g), ~mask[:, None] | np.isinf(np.asarray(e)))
             np.testing.assert_allclose(g[mask], np.asarray(e)[mask], rtol=1e-13)
-    one = jax.jit(ipm._shorter_trials)(nlps[3], points[3], alphas, jnp.asarray(True))
+    one = jax.jit(S.ipm_shorter_trials)(nlps[3], points[3], alphas, jnp.asarray(True))
     np.testing.assert_allclose(np.asarray(one[0]), np.asarray(every[0][3]), rtol=1e-12)
-    skipped = jax.jit(ipm._shorter_trials)(nlps[3], points[3], alphas, jnp.asarray(False))
+    skipped = jax.jit(S.ipm_shorter_trials)(nlps[3], points[3], alphas, jnp.asarray(False))
     assert np.all(np.isinf(np.asarray(skipped[0]))) and np.all(np.isinf(np.asarray(skipped[1])))
 
 
@@ -125,7 +122,7 @@ def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
     compiler; a compiler that fails to build it fails the test."""
     from jtraj import _kkt_native
 
-    if _kkt_native._compiler() is None:
+    if S.native_compiler() is None:
         pytest.skip(_kkt_native.status())
     assert _kkt_native.identity() is not None, _kkt_native.status()
     models, terms = [], []
@@ -141,7 +138,7 @@ def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
         if indefinite:
             batch = batch._replace(R=batch.R - 30.0 * jnp.eye(m))
         term = jnp.stack(terms)
-        shifts = jnp.asarray([[40.0], [10.0], [1.0]]) * jnp.asarray(ipm._SHIFT_LADDER)
+        shifts = jnp.asarray([[40.0], [10.0], [1.0]]) * jnp.asarray(S.IPM_SHIFT_LADDER)
         ref = jax.jit(jax.vmap(lq.kkt_directions))(batch, shifts, term)
         nat = jax.jit(jax.vmap(_kkt_native.kkt_directions))(batch, shifts, term)
         one = jax.jit(_kkt_native.kkt_directions)(jax.tree.map(lambda x: x[1], batch), shifts[1], term[1])
@@ -202,17 +199,17 @@ def test_newton_step_equals_the_dense_kkt_solve():
             return nlp.constraints(z)[0]["goal"][N]
 
         def g(z):
-            return ipm._flat(nlp.constraints(z)[1]).ravel()
+            return S.ipm_flat(nlp.constraints(z)[1]).ravel()
 
         z = st.z
         H = jax.hessian(lambda zz: f(zz) + st.lam @ e(zz) + st.y.ravel() @ g(zz))(z)
         J, E = jax.jacfwd(g)(z), jax.jacfwd(e)(z)
         lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
         s, sig = st.s.ravel(), (st.y / st.s).ravel()
-        Wd = (H + J.T @ (sig[:, None] * J) + jnp.diag(st.zl / (z - lo) + st.zu / (hi - z)) + ipm._RHO_E * E.T @ E
+        Wd = (H + J.T @ (sig[:, None] * J) + jnp.diag(st.zl / (z - lo) + st.zu / (hi - z)) + S.IPM_RHO_E * E.T @ E
               + delta * jnp.eye(z.size))
         r = -(jax.grad(f)(z) - st.mu / (z - lo) + st.mu / (hi - z) + J.T @ (st.mu / s + sig * (g(z) + s))) \
-            - ipm._RHO_E * E.T @ e(z)
+            - S.IPM_RHO_E * E.T @ e(z)
         K = jnp.block([[Wd, E.T], [E, jnp.zeros((E.shape[0], E.shape[0]))]])
         return jnp.linalg.solve(K, jnp.concatenate([r, -e(z)]))
 
@@ -282,7 +279,7 @@ def test_closing_step_ends_the_wandering_near_the_optimum():
     iterations (at most half for the second), feasible to half ``verify_tol`` without a
     polish, re-simulated by the independent verifier, the cost within 1e-3 of IPOPT's and
     of the run without the step (the damping shift off in both)."""
-    from peers.pairs import benchmark_pairs
+    from jtraj_peers.pairs import benchmark_pairs
 
     q0, q1 = benchmark_pairs(32, seed=3)
     pick = [0, 21]
@@ -312,8 +309,8 @@ def test_damping_ends_the_short_steps_along_a_flat_cost():
     110 iterations). With the default damping: converged, at most half the iterations,
     each trajectory re-simulated by the independent verifier and its cost within 1e-3 of
     IPOPT's (and of the undamped run's)."""
-    V = pytest.importorskip("peers.verify")
-    P = pytest.importorskip("peers.ipopt_peer")
+    V = pytest.importorskip("jtraj_peers.verify")
+    P = pytest.importorskip("jtraj_peers.ipopt_peer")
     from jtraj.dataset import sampling
 
     robot = jtraj.robots.get("serial3", h_max=0.2)

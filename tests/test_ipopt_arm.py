@@ -2,20 +2,16 @@
 CasADi RNEA): its solutions re-verified with Pinocchio, its cost the verifier's, and the
 optimum against a re-solve from another start."""
 
-import os
-import sys
-
 import numpy as np
 import pytest
 
 pytest.importorskip("casadi")
 pin = pytest.importorskip("pinocchio")
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 
-from peers import casadi_rnea as CR  # noqa: E402
-from peers import ipopt_arm as A  # noqa: E402
-from peers import verify_arm as VA  # noqa: E402
+from jtraj_peers import casadi_rnea as CR  # noqa: E402
+from jtraj_peers import ipopt_arm as A  # noqa: E402
+from jtraj_peers import verify_arm as VA  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import pytest
 
 import jtraj
 from jtraj import lq
-from jtraj.solver import _NLP, SolverOptions, _init_multipliers, initial_guess
+from jtraj._testing import NLP, SolverOptions, init_multipliers, initial_guess
 from jtraj.transcription import Transcription, _decoupled_pieces, decoupled_hessian, decoupled_hessian_bounds
 
 Q0 = jnp.array([0.0, 0.5, 0.5])
@@ -23,11 +23,11 @@ def point():
     p = jtraj.Problem(robot, Q0, Q1, N=16, weights=jtraj.Weights(time=1, energy=0.1, kinetic=0.2), T_max=1.35)
     tr = Transcription("decoupled")
     lay = tr.layout(p)
-    nlp = _NLP(problem=p, tr=tr, layout=lay, sd=tr.stage_data(p))
+    nlp = NLP(problem=p, tr=tr, layout=lay, sd=tr.stage_data(p))
     # (the guess and the multipliers each in one compiled program, not op by op)
     z0 = lay.pack(*eqx.filter_jit(initial_guess)(p, SolverOptions(), tr))
     z = jnp.clip(z0 + 0.5 * (jax.random.uniform(jax.random.PRNGKey(1), z0.shape) - 0.5), lay.z_lo, lay.z_hi)
-    mult = jax.tree.map(lambda x: x + 0.3, eqx.filter_jit(_init_multipliers)(nlp, z))
+    mult = jax.tree.map(lambda x: x + 0.3, eqx.filter_jit(init_multipliers)(nlp, z))
     free = jnp.asarray(np.random.default_rng(0).random(z.shape[0]) > 0.25)
     _, g, H = eqx.filter_jit(lambda n, zz, m: n.al_derivatives(zz, m, 7.0))(nlp, z, mult)
     val, model, pieces = eqx.filter_jit(lambda n, zz, m: n.stage_newton_model(zz, m, 7.0))(nlp, z, mult)
@@ -164,11 +164,11 @@ def test_riccati_and_dense_solvers_agree_on_solutions(N):
 def test_linear_solver_option():
     """"auto" is the stage-wise solve on a CPU (dense on an accelerator); other
     transcriptions are always dense; unknown names are refused."""
-    from jtraj.solver import _stagewise
+    from jtraj._testing import stagewise_directions
 
     for transcription, ls, expected in [("decoupled", "auto", jax.default_backend() == "cpu"),
                                         ("decoupled", "riccati", True), ("decoupled", "dense", False),
                                         ("coupled", "riccati", False)]:
-        assert _stagewise(SolverOptions(linear_solver=ls), Transcription(transcription)) == expected
+        assert stagewise_directions(SolverOptions(linear_solver=ls), Transcription(transcription)) == expected
     with pytest.raises(ValueError, match="linear_solver"):
         SolverOptions(linear_solver="qr")

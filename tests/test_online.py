@@ -2,16 +2,13 @@
 synthetic dataset built here (no dependency on the dataset builder or the solver)."""
 
 import json
-import os
-import sys
 
 import numpy as np
 import pytest
 
 from jtraj import anfis
 from jtraj.anfis import trajectory
-
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+from jtraj import _testing
 
 
 @pytest.fixture(scope="module")
@@ -191,19 +188,19 @@ def test_auto_radius_skips_radii_with_more_rules_than_the_data_carry(monkeypatch
     counts = {r: subclust(np.c_[X, Y], r).centers.shape[0] for r in trajectory.RADIUS_CANDIDATES}
     assert counts[0.4] > 25 >= counts[1.4]
     sel = {}
-    kept = trajectory._auto_radii(X, Y, traj, {}, sel)
+    kept = _testing.auto_radii(X, Y, traj, {}, sel)
     assert kept == [r for r in trajectory.RADIUS_CANDIDATES if counts[r] <= 25]
     assert set(sel) == {str(r) for r in trajectory.RADIUS_CANDIDATES if counts[r] > 25}
     assert all(v["skipped"] == "more than 25 rules" for v in sel.values())
     # when no radius is within the cap, the largest (fewest rules) is kept
     monkeypatch.setattr(trajectory, "RADIUS_CANDIDATES", (0.4, 0.6))
     monkeypatch.setattr(trajectory, "MAX_AUTO_RULES", counts[0.6] - 1)
-    assert trajectory._auto_radii(X, Y, traj, {}, {}) == [0.6]
+    assert _testing.auto_radii(X, Y, traj, {}, {}) == [0.6]
     monkeypatch.setattr(trajectory, "RADIUS_CANDIDATES", (0.4, 0.6, 0.9, 1.4))
     # the absolute cap
     monkeypatch.setattr(trajectory, "TRAJECTORIES_PER_RULE", 1)
     monkeypatch.setattr(trajectory, "MAX_AUTO_RULES", counts[0.9])
-    assert 0.4 not in trajectory._auto_radii(X, Y, traj, {}, {})
+    assert 0.4 not in _testing.auto_radii(X, Y, traj, {}, {})
 
 
 def test_train_command_rejects_a_bad_radius():
@@ -232,7 +229,7 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
     y = np.asarray(model.predict(np.concatenate([qs, qg])))
     np.testing.assert_allclose(p.v, y[:N * n].reshape(N, n), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(p.h, np.clip(y[N * n:], float(lim.h_min), float(lim.h_max)), rtol=1e-12)
-    V = pytest.importorskip("peers.verify")
+    V = pytest.importorskip("jtraj_peers.verify")
     q_sim, qd_sim = V.simulate(qs, np.asarray(p.v), np.asarray(p.h))
     np.testing.assert_allclose(p.q, q_sim, atol=1e-12)
     np.testing.assert_allclose(p.qd, qd_sim, atol=1e-12)

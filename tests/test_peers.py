@@ -1,18 +1,14 @@
 """Quick tests of the benchmark peers: the CasADi/IPOPT solver and the Pinocchio verifier."""
 
-import os
-import sys
-
 import numpy as np
 import pytest
 
 pytest.importorskip("casadi")
 pytest.importorskip("pinocchio")
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 
-from peers import ipopt_peer as P  # noqa: E402
-from peers import verify as V  # noqa: E402
+from jtraj_peers import ipopt_peer as P  # noqa: E402
+from jtraj_peers import verify as V  # noqa: E402
 
 
 @pytest.fixture(scope="module")

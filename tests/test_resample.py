@@ -137,12 +137,8 @@ def test_efforts_intervals_bounds_the_executed_motion():
     # the thesis' sample constraints leave the efforts at the interval ends above tau_max;
     # Problem(efforts="intervals") bounds them, checked by Pinocchio's RNEA (independent
     # of jtraj's dynamics) at every interval's end and by the dense effort ratio between
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    V = pytest.importorskip("peers.verify")
-    from peers.pairs import benchmark_pairs
+    V = pytest.importorskip("jtraj_peers.verify")
+    from jtraj_peers.pairs import benchmark_pairs
 
     robot = jtraj.robots.get("serial3")
     q0, q1 = (x[2] for x in benchmark_pairs(8, 5))  # a pair whose sample-bounded optimum exceeds by 3.7 %
@@ -165,7 +161,7 @@ def test_efforts_intervals_bounds_the_executed_motion():
     assert float(sols["intervals"].cost) >= float(sols["samples"].cost) * (1 - 1e-6)
     # pair 44 of `jtraj dataset --pairs 96 --seed 5` (h_max 0.2 s): the holding feasibility
     # polish left its certified optimum 6.6e-6 outside the effort box (nearly parallel
-    # rows); the releasing one (solver._final_polish) makes it verify
+    # rows); the releasing one (jtraj.solver.certify.final_polish) makes it verify
     long_steps = jtraj.robots.get("serial3", h_max=0.2)
     a, b = [-0.17935802040533577, -0.2729153904459174, 0.43714046091579206], \
         [0.2820074688736016, -0.5362270260943265, 0.34308692781562267]

@@ -10,6 +10,7 @@ import pytest
 import jtraj
 from jtraj import _resources
 from jtraj import transcription as T
+from jtraj import _testing
 
 
 @pytest.mark.parametrize("N", [5, T._TRI_MAX, T._TRI_MAX + 1, 150])
@@ -17,17 +18,17 @@ def test_prefix_and_suffix_sums_match_numpy(N):
     rng = np.random.default_rng(N)
     X = rng.standard_normal((N, 3, 2))
     ref = np.concatenate([np.zeros((1, 3, 2)), np.cumsum(X, axis=0)])
-    np.testing.assert_allclose(np.asarray(T._prefix_sums(X)), ref, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(_testing.prefix_sums(X)), ref, rtol=1e-13, atol=1e-13)
     Y = rng.standard_normal((N + 1, 4))
     ref = np.array([Y[j + 1:].sum(axis=0) for j in range(N)])
-    np.testing.assert_allclose(np.asarray(T._suffix_sums(Y)), ref, rtol=1e-13, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(_testing.suffix_sums(Y)), ref, rtol=1e-13, atol=1e-12)
 
 
 def test_prefix_sums_stay_linear_under_jacfwd():
     # the Jacobian of the prefix sums beyond the switch: its program holds no
     # (nz, N + 1, N) intermediate (XLA's temporary buffers stay within a few Jacobians)
     N = 400
-    f = jax.jit(jax.jacfwd(lambda x: T._prefix_sums(x[:, None] * np.ones((1, 3)))))
+    f = jax.jit(jax.jacfwd(lambda x: _testing.prefix_sums(x[:, None] * np.ones((1, 3)))))
     mem = f.lower(np.zeros(N)).compile().memory_analysis()
     if mem is None:
         pytest.skip("no memory analysis on this backend")

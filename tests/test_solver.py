@@ -1,16 +1,13 @@
 """The ALD solver against independent references.
 
 * every trajectory reported converged is re-simulated from its own (v, h) by the
-  NumPy + Pinocchio verifier of ``benchmarks/peers/verify.py`` (no jtraj code);
+  NumPy + Pinocchio verifier of ``jtraj_peers/verify.py`` (no jtraj code);
 * its cost is compared with CasADi + IPOPT on the same transcription (<= 0.5 %);
 * bad input is rejected before tracing, per-sample status codes in batches.
 
 All solves share N = 10 and the default options so that the suite compiles the solver
 once for single problems and once for batches.
 """
-
-import os
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -19,10 +16,9 @@ import pytest
 
 import jtraj
 from jtraj import Status
-from jtraj import solver as S
+from jtraj import _testing as S
 from jtraj.solver import SolverOptions
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 
 N = 10
 W = jtraj.Weights(time=1.0, energy=0.1)
@@ -68,7 +64,7 @@ def batch(robot):
 
 
 def test_single_solve_converges_and_verifies_independently(single):
-    V = pytest.importorskip("peers.verify")
+    V = pytest.importorskip("jtraj_peers.verify")
     problem, sol = single
     assert sol.converged, sol.status_message
     assert sol.status_message.startswith("converged")
@@ -98,7 +94,7 @@ def test_mirrored_pair_has_the_mirrored_optimum(robot, single):
 
 
 def test_cost_matches_ipopt(single):
-    P = pytest.importorskip("peers.ipopt_peer")
+    P = pytest.importorskip("jtraj_peers.ipopt_peer")
     _, sol = single
     ref = P.solve_pair(Q0, Q1, N=N)
     assert ref["success"]
@@ -136,7 +132,7 @@ def test_warm_start_from_solution_is_immediate(single, single_al):
 
 
 def test_batch_statuses_and_no_false_convergence(robot, batch):
-    V = pytest.importorskip("peers.verify")
+    V = pytest.importorskip("jtraj_peers.verify")
     q0, q1, sol = batch
     assert sol.q.shape == (5, N + 1, 3) and sol.status.shape == (5,)
     status = np.asarray(sol.status)
@@ -271,7 +267,7 @@ def via(robot, single):
 
 
 def test_via_point_is_passed_within_its_own_tolerance(single, via):
-    V = pytest.importorskip("peers.verify")
+    V = pytest.importorskip("jtraj_peers.verify")
     free = single[1]
     problem, sol, target = via
     tol, k = VIA_TOL, N // 2
@@ -354,14 +350,14 @@ def test_weights_are_values_and_their_terms_are_static(robot):
 def test_inner_tolerance_schedules():
     """The subproblem tolerance follows the violation (default) or shrinks tenfold per
     outer iteration (inner_tol_ratio=0), never below tol_optimality nor above 1e-2."""
-    from jtraj.solver import _next_inner_tol
+    from jtraj._testing import next_inner_tol
 
     follow, geometric = SolverOptions(), SolverOptions(inner_tol_ratio=0.0)
     assert follow.inner_tol_ratio == 0.01 and follow.tol_optimality == 3e-4
     for viol, want in [(5.0, 1e-2), (5e-2, 5e-4), (3e-3, 3e-4)]:
-        assert float(_next_inner_tol(follow, 1e-3, viol)) == pytest.approx(want, rel=1e-12)
-    assert float(_next_inner_tol(geometric, 1e-2, 5e-2)) == pytest.approx(1e-3, rel=1e-12)
-    assert float(_next_inner_tol(geometric, 2e-3, 5e-2)) == pytest.approx(3e-4, rel=1e-12)
+        assert float(next_inner_tol(follow, 1e-3, viol)) == pytest.approx(want, rel=1e-12)
+    assert float(next_inner_tol(geometric, 1e-2, 5e-2)) == pytest.approx(1e-3, rel=1e-12)
+    assert float(next_inner_tol(geometric, 2e-3, 5e-2)) == pytest.approx(3e-4, rel=1e-12)
     with pytest.raises(ValueError, match="inner_tol_ratio"):
         SolverOptions(inner_tol_ratio=-1.0)
     for kw in (dict(tol_optimality=0.0), dict(tol_feasibility=float("nan")), dict(verify_tol=-1e-6),
@@ -374,18 +370,18 @@ def test_held_variables_need_the_gradient_to_beat_their_curvature():
     """Projected Newton holds a variable at a bound only if it is within eps of it, the
     gradient pushes outwards, and the diagonal Newton step -g / hdiag reaches the bound
     (always where the curvature is not positive)."""
-    from jtraj.solver import _held
+    from jtraj._testing import held_bounds
 
     lo, hi, eps = jnp.zeros(7), jnp.ones(7), 1e-3
     z = jnp.array([0.0, 6e-4, 6e-4, 6e-4, 6e-4, 0.5, 1 - 6e-4])
     g = jnp.array([1e-6, 7e-4, 7e-4, 7e-4, -7e-4, 1.0, -7e-4])
     hdiag = jnp.array([1e3, 1e3, 1.0, -5.0, 1.0, 0.0, 1e3])
-    held = np.asarray(_held(z, g, lo, hi, hdiag, eps))
+    held = np.asarray(held_bounds(z, g, lo, hi, hdiag, eps))
     # on the bound and pushed out: held however stiff; near it, stiff: free (its Newton
     # step 7e-7 stops short of the 6e-4 gap); near it, soft or non-convex: held; pulled
     # inwards: free; far from a bound: free; the same at the upper bound
     assert held.tolist() == [True, False, True, True, False, False, False]
-    assert bool(_held(z, g, lo, hi, jnp.ones(7), eps)[6])
+    assert bool(held_bounds(z, g, lo, hi, jnp.ones(7), eps)[6])
 
 
 @pytest.mark.slow
@@ -432,20 +428,20 @@ def test_one_shot_and_two_lane_batches_equal_the_compacted_batch(robot, batch, s
 
 
 def test_kkt_error_tells_an_optimum_from_a_feasible_point(single_al, single, via):
-    """The end-of-run certificate (:func:`jtraj.solver._kkt_error`, least-squares
+    """The end-of-run certificate (:func:`jtraj.solver.certify.kkt_error`, least-squares
     multipliers of the original problem): small at the optimum, large at a trajectory that
     meets the same constraints but optimises under one more (the via point of ``via``,
     whose own certificate is small). The AL loop's Solution reports that measure; the
     interior-point method's (``single``) the KKT error with its own multipliers."""
     import equinox as eqx
 
-    from jtraj.solver import _NLP, SolverOptions, _kkt_error
+    from jtraj._testing import NLP, SolverOptions, kkt_error
     from jtraj.transcription import Transcription
 
     problem, sol = single_al
     tr = Transcription("decoupled")
-    nlp = _NLP(problem=problem, tr=tr, layout=tr.layout(problem), sd=tr.stage_data(problem))
-    kkt = eqx.filter_jit(_kkt_error)
+    nlp = NLP(problem=problem, tr=tr, layout=tr.layout(problem), sd=tr.stage_data(problem))
+    kkt = eqx.filter_jit(kkt_error)
 
     def z_of(s):
         return nlp.layout.pack(tr.controls_of(s), s.h)
@@ -475,14 +471,14 @@ def test_least_squares_multipliers_match_numpy_lstsq(single_al):
     multipliers clipped at 0)."""
     import equinox as eqx
 
-    from jtraj.solver import _NLP, _ls_multipliers
+    from jtraj._testing import NLP, ls_multipliers
     from jtraj.transcription import Transcription
 
     problem, sol = single_al
     tr = Transcription("decoupled")
-    nlp = _NLP(problem=problem, tr=tr, layout=tr.layout(problem), sd=tr.stage_data(problem))
+    nlp = NLP(problem=problem, tr=tr, layout=tr.layout(problem), sd=tr.stage_data(problem))
     z = nlp.layout.pack(tr.controls_of(sol), sol.h)
-    lam, J, gf, n_eq = (np.asarray(x) for x in eqx.filter_jit(_ls_multipliers)(nlp, z))
+    lam, J, gf, n_eq = (np.asarray(x) for x in eqx.filter_jit(ls_multipliers)(nlp, z))
     lo, hi, zz = (np.asarray(x) for x in (nlp.layout.z_lo, nlp.layout.z_hi, z))
     free = ~((zz <= lo + 1e-12) | (zz >= hi - 1e-12))
     Jf = np.where(free[None, :], J, 0.0)
@@ -496,7 +492,7 @@ def test_least_squares_multipliers_match_numpy_lstsq(single_al):
 
 
 def test_restart_resumes_a_run_cut_short(single):
-    """A run that ends uncertified is restarted once (solver._restart): with the first
+    """A run that ends uncertified is restarted once (solver.restart_state): with the first
     run cut to 12 iterations, the restart must still reach the default solve's optimum."""
     problem, sol = single
     again = jtraj.solve(problem, options=RESTART)
@@ -508,7 +504,7 @@ def test_restart_resumes_a_run_cut_short(single):
 
 
 def test_options_differing_in_numbers_share_one_compilation(single_al):
-    """Numeric options are traced (solver._TRACED_OPTIONS): solves with other limits,
+    """Numeric options are traced (solver.TRACED_OPTIONS): solves with other limits,
     tolerances and penalties reuse the compiled solver of ``single_al``, and act."""
     problem, sol = single_al
     compiles = []
@@ -537,7 +533,7 @@ def test_options_differing_in_numbers_share_one_compilation(single_al):
     assert bool(tight.converged) and int(tight.iterations) > int(sol.iterations)  # a tighter tolerance
     assert float(tight.cost) == pytest.approx(float(sol.cost), rel=1e-4)
     # structure (a switch at 0) does compile another program
-    assert S._split_options(SolverOptions(kink_margin=0.0)).static != S._split_options(SolverOptions()).static
+    assert S.split_options(SolverOptions(kink_margin=0.0)).static != S.split_options(SolverOptions()).static
 
 
 def test_compacted_batch_restarts_like_single_solves(robot, batch):
@@ -556,9 +552,9 @@ def test_compacted_batch_restarts_like_single_solves(robot, batch):
 
 
 def test_kink_curvature_adds_the_penalty_curvature_of_nearly_active_rows_only():
-    """solver._kink_curvature: zero value and gradient, Hessian ``mu a_i a_i^T`` summed
+    """solver.kink_curvature: zero value and gradient, Hessian ``mu a_i a_i^T`` summed
     over the rows with ``-mu margin < rho_i + mu g_i <= 0`` (closed form for linear g)."""
-    from jtraj.solver import _kink_curvature
+    from jtraj._testing import kink_curvature
 
     rng = np.random.default_rng(0)
     A = rng.normal(size=(5, 4))
@@ -570,7 +566,7 @@ def test_kink_curvature_adds_the_penalty_curvature_of_nearly_active_rows_only():
     b = g0 - A @ w0
 
     def term(w):
-        return _kink_curvature(A @ w + b, rho, mu, margin)
+        return kink_curvature(A @ w + b, rho, mu, margin)
 
     assert float(term(w0)) == 0.0
     np.testing.assert_array_equal(np.asarray(jax.grad(term)(w0)), 0.0)
@@ -578,7 +574,7 @@ def test_kink_curvature_adds_the_penalty_curvature_of_nearly_active_rows_only():
     expected = mu * A[near].T @ A[near]
     np.testing.assert_allclose(np.asarray(jax.hessian(term)(w0)), expected, rtol=1e-12, atol=1e-12)
     # margin 0: no row (the exact PHR Hessian alone)
-    np.testing.assert_array_equal(np.asarray(jax.hessian(lambda w: _kink_curvature(A @ w + b, rho, mu, 0.0))(w0)), 0.0)
+    np.testing.assert_array_equal(np.asarray(jax.hessian(lambda w: kink_curvature(A @ w + b, rho, mu, 0.0))(w0)), 0.0)
     with pytest.raises(ValueError, match="kink_margin"):
         SolverOptions(kink_margin=-1.0)
     with pytest.raises(ValueError, match="kink_after"):
@@ -591,8 +587,8 @@ def test_stalled_subproblem_pair_reaches_ipopts_cost():
     (``kink_margin=0``) its subproblems stall on a torque bound crossed at its PHR kink and
     it is certified more than 0.3 % above IPOPT's cost; with the defaults it must be
     within 0.2 % of it."""
-    P = pytest.importorskip("peers.ipopt_peer")
-    V = pytest.importorskip("peers.verify")
+    P = pytest.importorskip("jtraj_peers.ipopt_peer")
+    V = pytest.importorskip("jtraj_peers.verify")
     q0, q1 = P.benchmark_pairs(256, 23)
     ref = P.solve_pair(q0[15], q1[15], N=20)
     assert ref["success"]
@@ -618,14 +614,14 @@ def test_chord_polish_reaches_the_gauss_newton_polish(single):
     problem, sol = single
     assert sol.converged, sol.status_message
     opts = SolverOptions()
-    nlp, _, _ = S._prepare(problem, opts, Transcription("decoupled"), (sol.v, sol.h))
+    nlp, _, _ = S.prepare(problem, opts, Transcription("decoupled"), (sol.v, sol.h))
     lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
     z_opt = nlp.layout.pack(sol.v, sol.h)
     noise = 1e-5 * np.random.default_rng(0).standard_normal(z_opt.shape)
     z = jnp.clip(z_opt + noise, lo, hi)
-    violation = eqx.filter_jit(lambda n, zz: S._violation(*n.constraints(zz)))
+    violation = eqx.filter_jit(lambda n, zz: S.violation(*n.constraints(zz)))
     assert float(violation(nlp, z)) > 1e-6  # the polish has work to do
-    polish = eqx.filter_jit(lambda n, zz, chord: S._polish(n, zz, chord=chord))
+    polish = eqx.filter_jit(lambda n, zz, chord: S.polish(n, zz, chord=chord))
     z_chord, z_gn = polish(nlp, z, True), polish(nlp, z, False)
     for zz in (z_chord, z_gn):
         assert float(violation(nlp, zz)) <= 1e-12
@@ -642,8 +638,8 @@ def test_polish_releases_rows_when_holding_them_leaves_a_violation():
     from jtraj.transcription import Transcription
     import equinox as eqx
 
-    P = pytest.importorskip("peers.ipopt_peer")
-    V = pytest.importorskip("peers.verify")
+    P = pytest.importorskip("jtraj_peers.ipopt_peer")
+    V = pytest.importorskip("jtraj_peers.verify")
     q0, q1 = P.benchmark_pairs(256, 21)
     opts = SolverOptions(kink_margin=1e-4, kink_after=0)
     problem = jtraj.Problem(jtraj.robots.get("serial3"), q0[16], q1[16], N=20, weights=W)
@@ -653,7 +649,7 @@ def test_polish_releases_rows_when_holding_them_leaves_a_violation():
     # the precondition: the holding polish alone leaves the loop's point unverified
     tr = Transcription("decoupled")
     init = eqx.filter_jit(lambda p: S.initial_guess(p, opts, tr))(problem)
-    nlp, state, _ = eqx.filter_jit(lambda p, i: S._prepare(p, opts, tr, i))(problem, init)
-    state = eqx.filter_jit(lambda n, s: S._run_with_restart(n, s, opts))(nlp, state)
-    held = eqx.filter_jit(lambda n, z: S._violation(*n.constraints(S._polish(n, z))))(nlp, state.z)
+    nlp, state, _ = eqx.filter_jit(lambda p, i: S.prepare(p, opts, tr, i))(problem, init)
+    state = eqx.filter_jit(lambda n, s: S.run_with_restart(n, s, opts))(nlp, state)
+    held = eqx.filter_jit(lambda n, z: S.violation(*n.constraints(S.polish(n, z))))(nlp, state.z)
     assert float(held) > opts.verify_tol

@@ -13,6 +13,7 @@ import jtraj
 import jtraj.robots as robots
 from jtraj.problem import orientation_error
 from jtraj.robots import Robot, from_urdf
+from jtraj import _testing
 
 BUILTIN = {  # name -> (file under the robots folder, tip frame)
     "panda": ("panda_description/urdf/panda.urdf", "panda_link8"),
@@ -174,10 +175,10 @@ def test_small_arm_paths_agree(arm):
 
     @jax.jit
     def both(q, qd, qdd):
-        lagrange = (Robot._mass_matrix_mechanism(arm, q) @ qdd + Robot.coriolis(arm, q, qd)
+        lagrange = (_testing.mass_matrix_mechanism(arm, q) @ qdd + Robot.coriolis(arm, q, qd)
                     + Robot.gravity(arm, q))
         tau = arm.inverse_dynamics(q, qd, qdd)
-        return (arm.rigid_body_forces(q, qd, qdd), lagrange, arm.mass_matrix(q), Robot._mass_matrix_mechanism(arm, q),
+        return (arm.rigid_body_forces(q, qd, qdd), lagrange, arm.mass_matrix(q), _testing.mass_matrix_mechanism(arm, q),
                 arm.forward_dynamics(q, qd, tau), arm.jacobian(q), jax.jacfwd(arm.forward_kinematics)(q),
                 arm.coriolis(q, qd), Robot.coriolis(arm, q, qd))
 

@@ -136,7 +136,7 @@ def test_off_without_a_compilation_cache_or_when_asked(tmp_path, monkeypatch):
 
 def test_solve_batch_is_the_same_with_and_without_kept_programs(monkeypatch):
     """Datasets must not depend on whether a worker traced or loaded its programs."""
-    from jtraj import solver
+    from jtraj import _testing
 
     robot = jtraj.robots.get("serial3")
     q0 = np.array([[0.2, -0.3, 0.4], [-0.5, 0.6, 0.1]])
@@ -145,11 +145,11 @@ def test_solve_batch_is_the_same_with_and_without_kept_programs(monkeypatch):
     assert _tracecache.directory() is not None  # the tests run with a compilation cache
     kept = jtraj.solve_batch(robot, q0, q1, N=20, weights=w)
     monkeypatch.setenv("JTRAJ_TRACE_CACHE", "0")
-    solver._lane_programs.cache_clear()
+    _testing.lane_programs.cache_clear()
     try:
         traced = jtraj.solve_batch(robot, q0, q1, N=20, weights=w)
     finally:
-        solver._lane_programs.cache_clear()
+        _testing.lane_programs.cache_clear()
     assert np.all(np.asarray(kept.converged))
     for name in ("v", "h", "cost", "iterations", "status"):
         np.testing.assert_array_equal(np.asarray(getattr(kept, name)), np.asarray(getattr(traced, name)), err_msg=name)

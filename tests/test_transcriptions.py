@@ -8,9 +8,6 @@ returned fields (q, qd, v, tau, h): the model equations of its transcription hol
 decoupled one to within their discretisation differences.
 """
 
-import os
-import sys
-
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
@@ -19,7 +16,6 @@ from scipy.interpolate import CubicSpline
 import jtraj
 from jtraj.transcription import TRANSCRIPTIONS, Transcription, clamped_spline
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 
 N = 10
 W = jtraj.Weights(time=1.0, energy=0.1)
@@ -65,7 +61,7 @@ def decoupled(problem):
 
 
 def _pin():
-    V = pytest.importorskip("peers.verify")
+    V = pytest.importorskip("jtraj_peers.verify")
     import pinocchio as pin
 
     model = V.serial3_model()

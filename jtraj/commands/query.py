@@ -63,7 +63,7 @@ def run(args) -> int:
     import json
 
     from jtraj.commands import check_input_file, check_output_file
-    from jtraj.commands.solve import _finite_json, check_joint_values
+    from jtraj.commands.solve import finite_json, check_joint_values
     from jtraj.online import Planner
 
     check_input_file(args.model, "--model")
@@ -109,5 +109,5 @@ def run(args) -> int:
               f"{out['cycloidal_seconds']:.2f} s, compilation included when not cached)")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump(_finite_json(out), f, indent=2, allow_nan=False)
+            json.dump(finite_json(out), f, indent=2, allow_nan=False)
     return 1 if args.refine and not out["refined_converged"] else 0

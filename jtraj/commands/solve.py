@@ -225,15 +225,15 @@ def _finite(x):
     return x if math.isfinite(x) else None
 
 
-def _finite_json(x):
+def finite_json(x):
     """``x`` (dicts, lists, numbers) with every non-finite float replaced by None (JSON
     has no NaN or inf: ``json.dump(..., allow_nan=False)`` then cannot fail)."""
     import math
 
     if isinstance(x, dict):
-        return {k: _finite_json(v) for k, v in x.items()}
+        return {k: finite_json(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_finite_json(v) for v in x]
+        return [finite_json(v) for v in x]
     if isinstance(x, float) and not math.isfinite(x):
         return None
     return x
@@ -323,7 +323,7 @@ def run(args) -> int:
                                                     for k in ("t", "q", "qd", "qdd", "tau")})
     print(summary(d))
     if args.json:
-        d = _finite_json(d)
+        d = finite_json(d)
         with open(args.json, "w") as fh:
             json.dump(d, fh, indent=1, allow_nan=False)
         print(f"wrote {args.json}")

@@ -69,10 +69,10 @@ class Dataset(Mapping):
             file = os.path.join(self.path, store.CHUNKS, store.chunk_name(c))
             try:  # the header's checksum here; each field's when it is read (store.read_chunk)
                 with h5py.File(file, "r") as f:
-                    store._check_header(f, file)
+                    store.check_header(f, file)
                     self._chunk_keys[c] = set(f.keys())
             except (OSError, RuntimeError) as err:
-                raise store._corrupt(file, f"HDF5 cannot read it: {err}") from None
+                raise store.corrupt_chunk(file, f"HDF5 cannot read it: {err}") from None
             self._keys += [k for k in sorted(self._chunk_keys[c]) if k not in self._keys]
         self._cache: dict = {}
 

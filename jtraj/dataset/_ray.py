@@ -31,15 +31,17 @@ def _probe(address: str, timeout: float = 5.0) -> None:
 
 
 class RayBackend:
-    def __init__(self, started_here: bool):
+    """``run(spec, chunks, finish)``: each chunk ``c`` is ``task(spec, c)`` in a Ray task
+    (one CPU, retried), returning ``(c, arrays)``; ``task`` is given by the caller
+    (:func:`jtraj.dataset.build.worker_task`)."""
+
+    def __init__(self, started_here: bool, task):
         import ray
 
         self.ray = ray
         self.started_here = started_here
         self.cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
-        from .build import worker_task
-
-        self.remote = ray.remote(num_cpus=1, max_retries=3)(worker_task)
+        self.remote = ray.remote(num_cpus=1, max_retries=3)(task)
 
     def run(self, spec, chunks, finish):
         ray = self.ray
@@ -59,8 +61,9 @@ class RayBackend:
             self.ray.shutdown()
 
 
-def connect(address: str) -> RayBackend:
-    """Connect to (or start) Ray; a clear ``ValueError`` when that is impossible."""
+def connect(address: str, task) -> RayBackend:
+    """Connect to (or start) Ray, for chunks solved by ``task`` (see :class:`RayBackend`); a
+    clear ``ValueError`` when that is impossible."""
     try:
         import ray
     except ImportError:
@@ -69,14 +72,14 @@ def connect(address: str) -> RayBackend:
     kwargs = dict(ignore_reinit_error=True, log_to_driver=False, include_dashboard=False)
     env = {"env_vars": {"JAX_ENABLE_X64": "1"}}
     if ray.is_initialized():
-        return RayBackend(started_here=False)
+        return RayBackend(started_here=False, task=task)
     if address.startswith("local"):
         _, _, k = address.partition(":")
         if k and not k.isdigit():
             raise ValueError(f"--ray local:K needs an integer K, got {address!r}")
         num = int(k) if k else (os.cpu_count() or 1)
         ray.init(num_cpus=num, runtime_env=env, **kwargs)
-        return RayBackend(started_here=True)
+        return RayBackend(started_here=True, task=task)
     if address != "auto":
         _probe(address)
     try:
@@ -86,4 +89,4 @@ def connect(address: str) -> RayBackend:
             ray.init(address=address, runtime_env=env, **kwargs)
     except (ConnectionError, RuntimeError, ValueError) as err:
         raise ValueError(f"cannot connect to the Ray cluster at {address!r}: {err}") from None
-    return RayBackend(started_here=True)
+    return RayBackend(started_here=True, task=task)

@@ -293,7 +293,7 @@ def _one_cpu():
 
 def _source_hash() -> str:
     """sha256 of jtraj's Python sources (a solver edited between two runs changes it)."""
-    from .._tracecache import source_hash
+    from .._source import source_hash
 
     return source_hash()
 
@@ -412,7 +412,7 @@ def metadata(spec: Spec) -> dict:
 def _check_ray(address):
     from . import _ray
 
-    return _ray.connect(address)
+    return _ray.connect(address, worker_task)
 
 
 def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None = None, progress: bool = True,
@@ -495,7 +495,7 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
             # by default even one chunk goes to a (pinned) worker process unless this
             # process solves as one would: its rounding would differ (see _local)
             if k > 1 or (workers is None and not _local.solves_here()):
-                backend = _local.ProcessBackend(k)
+                backend = _local.ProcessBackend(k, worker_task)
         if todo:
             if backend is None:
                 for c in todo:

@@ -13,7 +13,7 @@ Distributions (``space``):
     ``q_start ~ U(lo, hi)^n`` with ``lo = max(-start_range, q_min)``,
     ``hi = min(start_range, q_max)`` per joint (``start_range`` = 1.2 rad by default;
     robots without a joint box: ``U(-1.2, 1.2)^n``, the benchmark family of
-    ``benchmarks/peers/ipopt_peer.benchmark_pairs``), then
+    ``jtraj_peers.pairs.benchmark_pairs``), then
     ``q_goal = q_start + U(-step_range, step_range)^n`` (``step_range`` = 0.8 rad).
     A candidate pair is rejected and redrawn (from the same block generator) when
     ``|q_goal - q_start|_2 < min_separation`` (default 0.05 rad), when the goal leaves

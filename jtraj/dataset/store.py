@@ -310,18 +310,18 @@ class CorruptChunk(ValueError):
     """A chunk file whose contents do not match its checksums (or that HDF5 cannot read)."""
 
 
-def _corrupt(file: str, why: str) -> CorruptChunk:
+def corrupt_chunk(file: str, why: str) -> CorruptChunk:
     return CorruptChunk(f"{file}: corrupt chunk ({why}); 'jtraj dataset verify' lists the corrupt chunks, and "
                         f"re-running the build command solves them again")
 
 
-def _check_header(f, file: str) -> bool:
+def check_header(f, file: str) -> bool:
     """``CorruptChunk`` where the header digest does not match; False for a chunk written
     without checksums (older format), True otherwise."""
     if "digest" not in f.attrs:
         return False
     if _attr(f.attrs["digest"]) != header_digest(f):
-        raise _corrupt(file, "its header attributes or list of fields do not match their checksum")
+        raise corrupt_chunk(file, "its header attributes or list of fields do not match their checksum")
     return True
 
 
@@ -329,9 +329,9 @@ def _read_field(f, k: str, file: str, checked: bool):
     try:
         v = f[k][()]
     except OSError as err:  # HDF5's Fletcher-32 check ("filter returned failure during read")
-        raise _corrupt(file, f"field {k!r} fails its Fletcher-32 checksum: {err}") from None
+        raise corrupt_chunk(file, f"field {k!r} fails its Fletcher-32 checksum: {err}") from None
     if checked and array_digest(v) != _attr(f[k].attrs.get("sha256")):
-        raise _corrupt(file, f"field {k!r} does not match its SHA-256")
+        raise corrupt_chunk(file, f"field {k!r} does not match its SHA-256")
     return v
 
 
@@ -344,9 +344,9 @@ def verify_chunk(file: str, ident: str | None = None) -> str | None:
 
     try:
         with h5py.File(file, "r") as f:
-            checked = _check_header(f, file)
+            checked = check_header(f, file)
             if not bool(f.attrs.get("complete")):
-                raise _corrupt(file, "not marked complete")
+                raise corrupt_chunk(file, "not marked complete")
             if ident is not None and f.attrs.get("identity_hash") != ident:
                 raise ValueError(f"{file}: chunk belongs to another dataset")
             for k in f.keys():
@@ -354,7 +354,7 @@ def verify_chunk(file: str, ident: str | None = None) -> str | None:
     except CorruptChunk:
         raise
     except (OSError, KeyError, RuntimeError) as err:  # HDF5 cannot read its structure
-        raise _corrupt(file, f"HDF5 cannot read it: {err}") from None
+        raise corrupt_chunk(file, f"HDF5 cannot read it: {err}") from None
     return None if checked else "older format"
 
 
@@ -383,7 +383,7 @@ def read_chunk(path: str, c: int, keys=None, ident: str | None = None) -> dict:
     file = os.path.join(path, CHUNKS, chunk_name(c))
     try:
         with h5py.File(file, "r") as f:
-            checked = _check_header(f, file)
+            checked = check_header(f, file)
             if ident is not None and f.attrs.get("identity_hash") != ident:
                 raise ValueError(f"{file}: chunk belongs to another dataset")
             names = list(f.keys()) if keys is None else keys
@@ -393,7 +393,7 @@ def read_chunk(path: str, c: int, keys=None, ident: str | None = None) -> dict:
     except (OSError, RuntimeError) as err:
         if not os.path.exists(file):
             raise
-        raise _corrupt(file, f"HDF5 cannot read it: {err}") from None
+        raise corrupt_chunk(file, f"HDF5 cannot read it: {err}") from None
 
 
 def iter_chunk_files(path: str) -> Iterator[int]:

@@ -2,12 +2,12 @@
 needs them.
 
 :func:`jtraj.solve` on concrete arrays comes here; under an outer ``jit``, ``vmap`` or
-``grad`` it stays one traced program (:func:`jtraj.solver._solve_jit`, whose
+``grad`` it stays one traced program (:func:`jtraj.solver.core.solve_jit`, whose
 ``lax.cond`` between the interior-point result and the augmented-Lagrangian loop
 compiles both sides). Here the decision is taken on the host, on the concrete result:
 
 * :func:`_solve_ip_jit`: the default guess, the interior-point method
-  (:mod:`jtraj.ipm`) and the light finish of a point it decided (verified as it is, its
+  (:mod:`jtraj.solver.ipm`) and the light finish of a point it decided (verified as it is, its
   KKT error that of its own multipliers): the program every default solve runs;
 * :func:`_solve_al_jit`: the augmented-Lagrangian loop with its restarts, the final
   polish and the least-squares KKT error, from the same start: for a problem the
@@ -26,34 +26,36 @@ import dataclasses
 
 import jax
 
-from .solver import (Solution, _finish, _ip_result, _ip_run, _ip_solved, _options_jit, _prepare, _run_with_restart,
-                     _static, initial_guess)
-from .transcription import Transcription
+from ..transcription import Transcription
+from .al import run_with_restart
+from .core import finish, initial_guess, ip_result, ip_run, ip_solved, prepare
+from .options import options_jit, static_options
+from .results import Solution
 
 
 def _start(problem, opts, transcription, init, warm, guess):
     tr = Transcription(transcription)
     init = jax.lax.cond(guess, lambda: initial_guess(problem, opts, tr), lambda: init)
-    return _prepare(problem, opts, tr, init, warm)
+    return prepare(problem, opts, tr, init, warm)
 
 
-@_options_jit()
+@options_jit()
 def _solve_ip_jit(problem, opts, transcription, init, warm, guess):
     """(Solution, decided, interior-point iterations): the solution is the one to return
-    where ``decided`` (see :func:`jtraj.solver._ip_solved`)."""
+    where ``decided`` (see :func:`jtraj.solver.core.ip_solved`)."""
     nlp, state, valid = _start(problem, opts, transcription, init, warm, guess)
-    ip = _ip_run(nlp, state, opts)
-    sol = _finish(nlp, _ip_result(nlp, state, ip), opts, valid, light=True)
-    return sol, _ip_solved(state, ip), ip.it
+    ip = ip_run(nlp, state, opts)
+    sol = finish(nlp, ip_result(nlp, state, ip), opts, valid, light=True)
+    return sol, ip_solved(state, ip), ip.it
 
 
-@_options_jit()
+@options_jit()
 def _solve_al_jit(problem, opts, transcription, init, warm, guess, ip_iterations):
     """The augmented-Lagrangian solve from the start, its iterations counted after
     ``ip_iterations`` (an interior-point run's that left the problem undecided; None:
     ``method="al"``)."""
     nlp, state, valid = _start(problem, opts, transcription, init, warm, guess)
-    sol = _finish(nlp, _run_with_restart(nlp, state, opts), opts, valid)
+    sol = finish(nlp, run_with_restart(nlp, state, opts), opts, valid)
     if ip_iterations is None:
         return sol
     return dataclasses.replace(sol, iterations=sol.iterations + ip_iterations)
@@ -62,7 +64,7 @@ def _solve_al_jit(problem, opts, transcription, init, warm, guess, ip_iterations
 def solve(problem, opts, transcription: str, init, warm, guess) -> Solution:
     """:func:`jtraj.solve` past its checks, for concrete arguments."""
     ip_iterations = None
-    if _static(opts).method == "ip":
+    if static_options(opts).method == "ip":
         sol, decided, ip_iterations = _solve_ip_jit(problem, opts, transcription, init, warm, guess)
         if bool(decided):
             return sol

@@ -53,8 +53,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _kkt_native, lq
-from ._math import small_matmul
+from .. import _kkt_native, lq
+from .._math import small_matmul
+from .nlp import Multipliers
 
 #: the line search's step lengths (fractions of the largest step the fraction-to-the-boundary
 #: rule allows): the first alone, the others at once where it is rejected (_shorter_trials)
@@ -190,8 +191,6 @@ def _parts(nlp, z):
 
 
 def _zero_mult(nlp, z):
-    from .solver import Multipliers
-
     eq, ineq, glob = jax.eval_shape(nlp.constraints, z)
     zeros = lambda t: jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), t)  # noqa: E731
     return Multipliers(zeros(eq), zeros(ineq), zeros(glob))
@@ -248,8 +247,6 @@ def multipliers(nlp, st: IPState):
     """The state's multipliers in the AL solver's structure (``jtraj.solver.Multipliers``:
     the goal rows' at the last sample, the stage inequalities', T's), with the same sign
     convention (the Lagrangian ``f + lam . e + y . g``)."""
-    from .solver import Multipliers
-
     eq_like, ineq_like, _ = jax.eval_shape(nlp.constraints, st.z)
     lam_full = jnp.zeros(eq_like["goal"].shape, st.z.dtype).at[nlp.layout.N].set(st.lam)
     return Multipliers(eq={"goal": lam_full}, ineq=_unflat(st.y, ineq_like), glob=st.yT)
@@ -328,7 +325,7 @@ def _with_rhs(nlp, st: IPState, model, Jg, dgT, p: _Pieces, mu):
     dl, du, has_lo, has_hi = _bounds(nlp, st.z)
     bound_g = jnp.where(has_lo, -mu / dl, 0.0) + jnp.where(has_hi, mu / du, 0.0)
     cx = model.cx.at[:, :2 * n].add(corr[:, :2 * n]).at[N, -1].add(corrT)
-    cu = model.cu + corr[:N, 2 * n:] * sy + _z_to_stages(bound_g, N, n)
+    cu = model.cu + corr[:N, 2 * n:] * sy[None, :] + _z_to_stages(bound_g, N, n)
     return model._replace(cx=cx, cu=cu)
 
 
@@ -353,10 +350,10 @@ def _direction(nlp, st: IPState, p: _Pieces, Jg, dgT, Ex, d, dX, mu, any_pd) -> 
     ED = small_matmul(Ex, dX[N])  # (2n, 1 + 2n)
     dlam = -jnp.linalg.solve(jnp.where(any_pd, ED[:, 1:], -jnp.eye(ED.shape[0], dtype=dt)), p.e + ED[:, 0])
     # (the small products as elementwise sums: fewer, fused kernels than XLA's dots)
-    dz = d[:, 0] + jnp.sum(d[:, 1:] * dlam, axis=-1)
-    dXz = dX[..., 0] + jnp.sum(dX[..., 1:] * dlam, axis=-1)  # (N+1, nx)
+    dz = d[:, 0] + jnp.sum(d[:, 1:] * dlam[None, :], axis=-1)
+    dXz = dX[..., 0] + jnp.sum(dX[..., 1:] * dlam[None, None, :], axis=-1)  # (N+1, nx)
     sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
-    du_st = _z_to_stages(dz, N, n) * sy
+    du_st = _z_to_stages(dz, N, n) * sy[None, :]
     dW = jnp.concatenate([dXz[:, :2 * n], jnp.concatenate([du_st, jnp.zeros((1, n + 1), dt)])], axis=1)
     Jdz = jnp.sum(Jg * dW[:, None, :], axis=-1)
     dT = jnp.sum(du_st[:, -1])
@@ -611,7 +608,7 @@ def finished(st: IPState, max_iter) -> Array:
 def loop(nlp, st: IPState, max_iter, tol, limit=None) -> IPState:
     """Iterate from st until finished (at most ``max_iter`` iterations in all) or until
     ``st.it`` reaches ``limit`` (resumable; a batch's lanes step instead in the loop of
-    ``jtraj.solver._run_pool``, which refills them)."""
+    ``jtraj.solver.lanes._run_pool``, which refills them)."""
     def cond(s):
         return ~finished(s, max_iter) if limit is None else ~finished(s, max_iter) & (s.it < limit)
 

@@ -1,4 +1,6 @@
-"""Reference peers for jtraj's benchmarks (independent of jtraj).
+"""Reference peers for jtraj's tests and benchmarks (independent of jtraj: nothing here
+imports it). At the repository root, outside the wheel: pytest puts the root on
+``sys.path`` (``pythonpath`` in pyproject.toml), the benchmark scripts append it.
 
 * :mod:`.ipopt_peer` -- the canonical serial3 ALD problem in CasADi + IPOPT:
   :func:`solve_pair`, :func:`solve_many`, :func:`cycloidal_init`.

@@ -1,0 +1,237 @@
+"""The entry points :func:`solve` (one problem) and :func:`solve_batch` (a batch),
+with their input checks."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import _resources, _setup, implicit
+from .._compile import nested_jit
+from .._compile import solver_jit as _jit
+from ..problem import Problem, Weights
+from ..transcription import Transcription
+from .core import initial_guess, placeholder_init, resolve_method
+from .lanes import cpu_lanes, solve_problems
+from .options import SolverOptions, options_jit
+from .results import Solution
+
+
+def solve(problem: Problem, *, options: SolverOptions | None = None, transcription: str = "decoupled",
+          init: tuple[Any, Any] | None = None, warm: str = "full", on_failure: str = "nan") -> Solution:
+    """Solve one trajectory problem; compiled once per robot type, shape and the options'
+    structure (see :class:`jtraj.SolverOptions`).
+
+    On a CPU one problem runs about 1.6x faster in a process pinned to one core
+    (:func:`jtraj.pin_to_one_cpu` before JAX's first computation; the CLI does it).
+
+    Solves in float64 only: raises ``ValueError`` where ``jax_enable_x64`` is off or the
+    problem holds float32 arrays (built while it was off). A solve that compiles the
+    solver (first use in a process) logs a line saying so (logger "jtraj", INFO); JAX's
+    persistent compilation cache, on since ``import jtraj``, keeps it (:mod:`jtraj._setup`).
+
+    Args:
+        problem: a :class:`jtraj.Problem`.
+        options: :class:`jtraj.SolverOptions` (defaults documented there).
+        transcription: "decoupled" (thesis ALD, default), "coupled", or Chettibi's
+            "collocation", "shooting", "spline" (see :class:`jtraj.transcription.Transcription`).
+        init: optional warm start (u (N, m_u), h (N,)) in the transcription's controls
+            (accelerations for "decoupled"; ``Transcription(name).controls_of(solution)``
+            turns any Solution of that transcription into them).
+        warm: with ``init``, "full" (default) also estimates multipliers at ``init``
+            (a point that already meets the tolerances returns at once) and, in the AL
+            loop, starts the penalty at ``penalty_max / 100``: right for a point near an
+            optimum (a previous solution, a perturbed problem); "primal" keeps the cold
+            start's multipliers and penalty: right for a rough guess (a learned plan).
+            The interior-point method (``options.method``) starts its barrier at ``init``
+            either way.
+        on_failure: what derivatives of a solve that did not converge are (see
+            :mod:`jtraj.implicit`): "nan" (default) or "raise" (a run-time error when
+            the solve is differentiated, inside ``jit`` too).
+
+    ``jax.grad``, ``jax.jvp``, ``jax.jacobian``, ``jax.vmap`` and ``jax.jit`` work
+    through it: with traced array leaves in ``problem`` the derivatives of the
+    solution's q, qd, v, tau, h, T, cost, cost_terms and energy come from implicit
+    differentiation of the KKT conditions at the optimum (:mod:`jtraj.implicit`).
+    """
+    Transcription(transcription)  # validates the name
+    if on_failure not in ("nan", "raise"):
+        raise ValueError(f"on_failure must be 'nan' or 'raise', got {on_failure!r}")
+    if not isinstance(problem, Problem):
+        raise ValueError(f"problem must be a jtraj.Problem, got {type(problem).__name__}")
+    _check_efforts(problem.efforts, transcription)
+    if warm not in ("full", "primal"):
+        raise ValueError(f"warm must be 'full' or 'primal', got {warm!r}")
+    warm = init is not None and warm == "full"
+    opts = resolve_method(options, transcription, problem.robot)
+    # float64 only, the compilation cache on, a first compilation logged (jtraj._setup)
+    key = _setup.before_solve(problem.robot, problem.N, batch=False, problem=problem, options=opts,
+                              transcription=transcription, efforts=problem.efforts)
+    guess = init is None
+    if guess:  # placeholders of the controls' shapes (the program computes the guess)
+        init = placeholder_init(problem.N, Transcription(transcription).control_dim(problem))
+    else:
+        init = _check_init(problem, init, transcription)
+    _resources.check(problem.N, problem.robot.n)  # ValueError naming N beyond the memory limit
+    if implicit.any_traced((problem, init)):  # inside jit / vmap / a derivative
+        return implicit.solve_traced(problem, opts, transcription, init, warm, guess, on_failure)
+    from . import staged as _staged  # concrete arrays: the programs a problem needs, in stages
+
+    sol = _staged.solve(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
+    _setup.compiled(key)
+    return sol
+
+
+def _check_efforts(efforts, transcription):
+    if efforts != "samples" and transcription != "decoupled":
+        raise ValueError(f"efforts={efforts!r} bounds the efforts of the decoupled transcription's "
+                         f"constant-acceleration intervals; transcription {transcription!r} supports 'samples' only")
+
+
+def _check_init(problem, init, transcription):
+    u, h = init
+    u, h = jnp.asarray(u, float), jnp.asarray(h, float)
+    m_u = Transcription(transcription).control_dim(problem)
+    if u.shape != (problem.N, m_u):
+        raise ValueError(f"init[0] must have shape ({problem.N}, {m_u}), got {u.shape}")
+    if h.shape != (problem.N,):
+        raise ValueError(f"init[1] must have shape ({problem.N},), got {h.shape}")
+    if implicit.any_traced((u, h)):  # values checked only where concrete
+        return u, h
+    if not (jnp.all(jnp.isfinite(u)) and jnp.all(jnp.isfinite(h))):
+        raise ValueError("init must be finite")
+    return u, h
+
+
+@options_jit()
+def _guess_batch_jit(problems, opts, transcription):
+    tr = Transcription(transcription)
+    return eqx.filter_vmap(lambda p: initial_guess(p, opts, tr))(problems)
+
+
+def _problem(robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts) -> Problem:
+    return Problem(robot, q_start, q_goal, N=N, weights=weights, qd_start=qd_start, qd_goal=qd_goal, T_max=T_max,
+                   efforts=efforts, validate=False)
+
+
+@_jit
+def _problems_jit(robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts):
+    """:class:`Problem` per sample of a batch, as one program (built eagerly under vmap,
+    each of its operations was a program of its own: a dozen compiled at a process's
+    first batch)."""
+    return eqx.filter_vmap(_problem, in_axes=(None, 0, 0, 0, 0, 0, None, None, None))(
+        robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts)
+
+
+def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None = None,
+                qd_start=None, qd_goal=None, T_max=None, options: SolverOptions | None = None,
+                transcription: str = "decoupled", init: tuple[Any, Any] | None = None,
+                slots: int | None | str = "auto", segment: int = 10, efforts: str = "samples") -> Solution:
+    """Solve B problems sharing one robot, N and weights in one vmapped, compiled call.
+
+    Args:
+        robot: a :class:`jtraj.robots.Robot` (shared by the batch).
+        q_start, q_goal: (B, n) start and goal configurations.
+        qd_start, qd_goal: optional (B, n) boundary velocities (default rest).
+        T_max: optional scalar or (B,) bound on the total time.
+        init: optional warm start (u (B, N, m_u), h (B, N)).
+        efforts: "samples" or "intervals" (see :class:`jtraj.Problem`).
+        slots, segment: the batch is solved by ``slots`` vmapped lanes, each lane
+            taking the next pending problem when its own finishes (the interior-point
+            method at once, inside its compiled loop; the AL loop, which the default
+            method falls back on, after segments of ``segment`` iterations), and on a
+            CPU the last unfinished problems move to slots / 4 and slots / 16 lanes
+            (same results up to rounding, cost ~ mean instead of max iterations;
+            compiled once per lane count). This applies when B exceeds the
+            smallest lane count: on a CPU a batch smaller than ``slots`` steps down too
+            (64 benchmark pairs in batches of 32, one core: 4.05 s against 9.62 s solved
+            at once, whose cost is the slowest problem's iterations on every lane); on an
+            accelerator when B > slots. ``slots=None`` solves all B at once. "auto"
+            (default) is 1024 on an accelerator and, on a CPU, 16 for serial3 at N = 20,
+            down to 4 for larger problems (:func:`jtraj.solver.lanes.cpu_lanes`). On a CPU a vmapped
+            iteration costs about its lane count, and more per lane once the lanes'
+            working set outgrows the core's cache; on an accelerator lanes are nearly
+            free, so larger ``slots`` pay there.
+
+    Returns a :class:`jtraj.Solution` whose fields carry a leading batch axis. Samples with
+    non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch
+    never raises for one bad sample); shapes and the robot are checked up front, and
+    float64 as in :func:`solve`.
+
+    Derivatives (``jax.grad``, ``jax.jvp``, ``jax.jacobian``, under ``jit`` and ``vmap``
+    too) with respect to traced inputs (q_start, q_goal, boundary velocities, T_max,
+    the weights' and the robot's arrays) come per sample from :mod:`jtraj.implicit`;
+    a sample that did not converge gets zero derivatives
+    (:func:`jtraj.valid_derivatives` gives the mask). With concrete primal values (a
+    derivative outside ``jit``) the solve itself runs on the lane driver above; inside
+    ``jit`` or ``vmap`` it is one vmapped program.
+    """
+    from ..robots import Robot
+
+    if not isinstance(robot, Robot):
+        raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
+    n = robot.n
+    traced = implicit.any_traced((robot, q_start, q_goal, qd_start, qd_goal, T_max, weights, init))
+    # the inputs on the host (NumPy): their checks and broadcasts dispatch no programs;
+    # traced inputs (jit, vmap, derivatives) stay arrays
+    xp = jnp if traced else np
+    q_start = xp.asarray(q_start, float)
+    q_goal = xp.asarray(q_goal, float)
+    if q_start.ndim != 2 or q_start.shape[1] != n:
+        raise ValueError(f"q_start must have shape (B, {n}), got {q_start.shape}")
+    if q_goal.shape != q_start.shape:
+        raise ValueError(f"q_goal must have shape {q_start.shape} like q_start, got {q_goal.shape}")
+    B = q_start.shape[0]
+    if B < 1:
+        raise ValueError("q_start must hold at least one problem (B >= 1)")
+
+    def per_sample(x, name):
+        if x is None:
+            return xp.zeros((B, n))
+        x = xp.asarray(x, float)
+        if x.shape not in ((), (n,), (B, n)):
+            raise ValueError(f"{name} must be a scalar, ({n},) or ({B}, {n}), got shape {x.shape}")
+        return xp.broadcast_to(x, (B, n))
+
+    qd_start, qd_goal = per_sample(qd_start, "qd_start"), per_sample(qd_goal, "qd_goal")
+    T_max = xp.broadcast_to(xp.asarray(np.inf if T_max is None else T_max, float), (B,))
+    Transcription(transcription)
+    _check_efforts(efforts, transcription)
+    opts = resolve_method(options, transcription, robot)
+    weights = Weights() if weights is None else weights
+    key = _setup.before_solve(robot, N, batch=True, weights=weights, options=opts, transcription=transcription,
+                              efforts=efforts)
+
+    def make(a, b, c, d, t):
+        return _problem(robot, a, b, c, d, t, N, weights, efforts)
+
+    if slots == "auto":
+        slots = cpu_lanes(N * (n + 1)) if jax.default_backend() == "cpu" else 1024
+    if slots is not None and (not isinstance(slots, int) or isinstance(slots, bool) or slots < 1):
+        raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
+    if not isinstance(segment, int) or segment < 1:
+        raise ValueError(f"segment must be a positive integer, got {segment!r}")
+    _resources.check(N, n, B, lanes=slots or B)  # ValueError naming N or B beyond the memory limit
+    # (inside another trace: the programs without their XLA options, see jtraj._compile.nested_jit)
+    problems = (nested_jit(_problems_jit) if traced else _problems_jit)(
+        robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts)
+    warm = init is not None
+    if init is None:
+        # non-finite samples get a finite placeholder guess; they are flagged invalid
+        init = (nested_jit(_guess_batch_jit) if traced else _guess_batch_jit)(problems, opts, transcription)
+    else:
+        m_u = Transcription(transcription).control_dim(make(q_start[0], q_goal[0], qd_start[0], qd_goal[0], T_max[0]))
+        u, h = jnp.asarray(init[0], float), jnp.asarray(init[1], float)
+        if u.shape != (B, N, m_u) or h.shape != (B, N):
+            raise ValueError(f"init must be (u (B, N, {m_u}), h (B, N)) = ({(B, N, m_u)}, {(B, N)}), "
+                             f"got ({u.shape}, {h.shape})")
+        init = (u, h)
+    if traced or implicit.any_traced(init):  # derivatives per sample (jtraj.implicit)
+        return implicit.solve_batch_traced(problems, opts, transcription, init, warm, slots, segment)
+    sol = solve_problems(problems, opts, transcription, init, warm, slots, segment)
+    _setup.compiled(key)
+    return sol
