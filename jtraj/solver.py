@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _packing, _resources, _setup, _tracecache, implicit, ipm, lq
+from . import _packing, _resources, _setup, _tracecache, curvature, implicit, ipm, lq
 from ._compile import SOLVER_XLA_OPTIONS, cpu_jit, supported_options
 from ._compile import solver_jit as _jit
 from ._math import log1p
@@ -202,6 +202,12 @@ class SolverOptions(eqx.Module):
         ip_damping: floor of the interior-point method's damping shift, kept on the
             Hessian's diagonal after a step its line search cut to a quarter or less
             (default 1e-2; 0 switches it off).
+        ip_curvature: the interior-point method's Newton model of the dynamics terms
+            (:mod:`jtraj.curvature`). "exact": the Lagrangian's Hessian; "gauss_newton":
+            without the effort multipliers' second derivatives of the inverse dynamics
+            (same gradients and optimality test, so the same optima, at a much cheaper
+            and smaller program). "auto" (default): "gauss_newton" for spatial arms,
+            "exact" elsewhere.
         kink_margin, kink_after: from the ``kink_after``-th Newton iteration of an AL
             subproblem on (default 20), its Newton model adds the penalty curvature of the
             inequalities within ``kink_margin`` (default 1e-3) short of their PHR kink,
@@ -246,6 +252,7 @@ class SolverOptions(eqx.Module):
     ip_compl_tol: float = eqx.field(static=True, default=1e-5)
     ip_project_tol: float = eqx.field(static=True, default=1e-4)
     ip_damping: float = eqx.field(static=True, default=1e-2)
+    ip_curvature: str = eqx.field(static=True, default="auto")
 
     @classmethod
     def pbm(cls, **overrides) -> "SolverOptions":
@@ -258,6 +265,8 @@ class SolverOptions(eqx.Module):
             raise ValueError(f"schedule must be 'default' or 'thesis', got {self.schedule!r}")
         if self.method not in ("auto", "al", "ip"):
             raise ValueError(f"method must be 'auto', 'al' or 'ip', got {self.method!r}")
+        if self.ip_curvature not in curvature.CURVATURES:
+            raise ValueError(f"ip_curvature must be one of {curvature.CURVATURES}, got {self.ip_curvature!r}")
         if self.inequality_penalty not in ("phr", "pbm"):
             raise ValueError(f"inequality_penalty must be 'phr' or 'pbm', got {self.inequality_penalty!r}")
         if not self.pbm_ratio > 1:
@@ -431,6 +440,9 @@ class _NLP(eqx.Module):
     ineq_penalty: str = eqx.field(static=True, default=SolverOptions.inequality_penalty)
     pbm_init: float = eqx.field(static=True, default=SolverOptions.pbm_init)
     pbm_ratio: float = eqx.field(static=True, default=SolverOptions.pbm_ratio)
+    #: the interior-point method's curvature of the dynamics, "exact" or "gauss_newton"
+    #: (see :mod:`jtraj.curvature`; the AL loop's Hessians are always exact)
+    ip_curvature: str = eqx.field(static=True, default="exact")
 
     #: with ``ineq_penalty == "pbm"``: whether the PBM term is on (the first run) or PHR
     #: (a restart, see :func:`_with_phase`); a traced flag, so one compiled loop serves both
@@ -546,6 +558,8 @@ class _NLP(eqx.Module):
         :class:`jtraj.robots.Robot`), so its acceleration block is zero and its cross
         block is the transpose of rows already computed (serial3, 8 lanes: the stage
         derivatives 83 -> 66 us per problem and iteration against one pass over all of w)."""
+        if self.ineq_penalty == "lagrangian" and self.ip_curvature == "gauss_newton":  # jtraj.ipm's model
+            return curvature.stage_derivatives_gauss_newton(self, w, sdk, mk, mu, kink, efforts)
         n, nw = self.problem.robot.n, w.shape[0]
         nx, na = 2 * n, nw - 2 * n - 1  # state (q, qd), acceleration slot
         x, a = w[:nx], w[nx:nx + na]
@@ -1440,7 +1454,8 @@ def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, war
     placeholder and are flagged at the end."""
     layout = tr.layout(problem)
     nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem), stagewise=_stagewise(opts, tr),
-               ineq_penalty=opts.inequality_penalty, pbm_init=opts.pbm_init, pbm_ratio=opts.pbm_ratio)
+               ineq_penalty=opts.inequality_penalty, pbm_init=opts.pbm_init, pbm_ratio=opts.pbm_ratio,
+               ip_curvature=curvature.resolve(_static(opts).ip_curvature, problem.robot))
     u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
     # what a single Problem rejects up front (a batch builds its problems unvalidated;
