@@ -2,7 +2,8 @@
 curvature of the dynamics (``SolverOptions.ip_curvature``, :mod:`jtraj.curvature`).
 
     python benchmarks/profile_spatial.py [--robot panda] [--N 40] [--curvature exact|gauss_newton]
-                                         [--pieces] [--no-program] [--opt-level L] [--repeats 3]
+                                         [--pieces] [--iteration] [--no-program] [--tight]
+                                         [--opt-level L] [--repeats 3] [--cache DIR] [--json F]
 
 One problem of ``bench_spatial``'s family (pair 0 of seed 0 for the panda; for other arms
 the same rule on their joint ranges). ``--pieces``: the per-sample functions over the
@@ -33,6 +34,9 @@ def main(argv=None):
     ap.add_argument("--curvature", default="auto", choices=("auto", "exact", "gauss_newton"))
     ap.add_argument("--pieces", action="store_true")
     ap.add_argument("--no-program", action="store_true")
+    ap.add_argument("--iteration", action="store_true", help="the pieces of one interior-point iteration")
+    ap.add_argument("--tight", action="store_true", help="also solve to tol_optimality 1e-8 (same program)")
+    ap.add_argument("--cache", default=None, help="JAX's persistent compilation cache folder")
     ap.add_argument("--opt-level", type=int, default=None)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", default=None)
@@ -43,6 +47,9 @@ def main(argv=None):
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    if args.cache:
+        jax.config.update("jax_compilation_cache_dir", args.cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
     import jax.numpy as jnp
     import numpy as np
 
@@ -118,6 +125,39 @@ def main(argv=None):
         warm("effort Jacobian", measure("effort Jacobian", effort_jac, lag, W), lag, W, repeats=20)
         warm("stage Hessian", measure("stage Hessian", hessian, lag, W, mult), lag, W, mult, repeats=20)
 
+    if args.iteration:
+        from jtraj import ipm
+
+        def start(problem, split):
+            o = solver._TracedOptions(split)
+            nlp, state, _ = solver._prepare(problem, o, tr, solver.initial_guess(problem, o, tr), False)
+            return nlp, ipm.init(nlp, state.z)
+
+        nlp, st = jax.jit(start)(problem, split)
+
+        def model(nlp, st):
+            m, Jg, dgT, p, Ex = ipm._model(nlp, st)
+            return ipm._with_rhs(nlp, st, m, Jg, dgT, p, st.mu), Ex
+
+        m, Ex = warm("ip model", measure("ip model", model, nlp, st), nlp, st, repeats=10)
+        shifts = jnp.asarray([0.0, 0.25, 2.0, 16.0])
+
+        def kkt(m, Ex):
+            return ipm._ladder_directions(m, shifts, Ex.T)
+
+        d, _, _ = warm("ip KKT ladder", measure("ip KKT ladder", kkt, m, Ex), m, Ex, repeats=10)
+        dz = d[:, 0, 0]
+
+        def trial(nlp, st, dz):
+            return ipm._trial(nlp, (st.z, st.s, st.sT, dz, jnp.zeros_like(st.s), jnp.zeros_like(st.sT), st.mu), 0.5)
+
+        warm("ip trial point", measure("ip trial point", trial, nlp, st, dz), nlp, st, dz, repeats=10)
+
+        def slope(nlp, st, dz):
+            return jax.jvp(lambda zz: ipm._parts(nlp, zz).f, (st.z,), (dz,))
+
+        warm("ip cost slope (jvp)", measure("ip cost slope (jvp)", slope, nlp, st, dz), nlp, st, dz, repeats=10)
+
     if not args.no_program:
         from jtraj import _staged
 
@@ -133,6 +173,14 @@ def main(argv=None):
                            "status": int(sol.status), "cost": float(sol.cost), "T": float(np.sum(sol.h))}
         print(f"  solve: decided {bool(decided)}, converged {bool(sol.converged)}, interior-point iterations "
               f"{int(it)}, cost {float(sol.cost):.8f}, T {float(np.sum(sol.h)):.6f} s", flush=True)
+        if args.tight:
+            tight = solver._split_options(solver._resolve_method(jtraj.SolverOptions(
+                ip_curvature=args.curvature, tol_optimality=1e-8, ip_compl_tol=1e-8), "decoupled", robot))
+            sol_t, decided_t, it_t = compiled(problem, tight, init)
+            report["tight"] = {"decided": bool(decided_t), "ip_iterations": int(it_t), "converged": bool(sol_t.converged),
+                               "cost": float(sol_t.cost), "T": float(np.sum(sol_t.h))}
+            print(f"  tight (tol_optimality 1e-8): decided {bool(decided_t)}, iterations {int(it_t)}, cost "
+                  f"{float(sol_t.cost):.8f}, T {float(np.sum(sol_t.h)):.6f} s", flush=True)
         if not bool(decided):
             t0 = time.perf_counter()
             full = jtraj.solve(problem, options=jtraj.SolverOptions(ip_curvature=args.curvature))
