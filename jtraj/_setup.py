@@ -322,10 +322,6 @@ def before_solve(robot, N: int, *, batch: bool, problem=None, weights=None, opti
             _robots.clear()
         _robots[id(robot)] = entry
     kind, name, n = entry[1]
-    if jax.config.jax_enable_x64:  # the native KKT kernel's build runs while the solver is traced
-        from . import _kkt_native
-
-        _kkt_native.prefetch(n)
     key = (kind, name, n, N, batch, transcription, getattr(options, "method", None), efforts)
     announce(key, lambda: (f"{name} (n = {n}), N = {N}" + (", batches" if batch else "")
                            + ("" if transcription == "decoupled" else f", {transcription}")))

@@ -27,6 +27,8 @@ from .solver.lanes import _lane_programs as lane_programs
 from .solver.lanes import segment_jit, solve_batch_jit, solve_problems
 from .solver.nlp import NLP, PBM_FLOOR, Multipliers, kink_curvature, violation
 from .solver.nlp import _pbm as pbm
+from .solver.nlp import _stage_axes as stage_axes
+from .solver.nlp import _stage_mult as stage_mult
 from .solver.nlp import _pbm_phi as pbm_phi
 from .solver.nlp import _pbm_slope as pbm_slope
 from .solver.nlp import _phr as phr
@@ -81,5 +83,5 @@ __all__ = ["ALState", "IPM_ALPHAS", "IPM_RHO_E", "IPM_SHIFT_LADDER", "IPM_TRIAL_
            "pbm_slope", "phr", "placeholder_init", "polish", "prefix_sums", "prepare", "prepare_batch_jit",
            "resolve_method", "restart_state", "run_al", "run_with_restart", "segment_jit", "setup_state",
            "solve_batch_jit", "solve_jit", "solve_problems", "split_options", "staged", "staged_al_jit",
-           "staged_ip_jit", "staged_start", "stagewise_directions", "static_options", "suffix_sums", "violation",
+           "stage_axes", "stage_mult", "staged_ip_jit", "staged_start", "stagewise_directions", "static_options", "suffix_sums", "violation",
            "with_phase"]  # and the names of _LAZY

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _resources, _setup, implicit
+from .. import _kkt_native, _resources, _setup, implicit
 from .._compile import nested_jit
 from .._compile import solver_jit as _jit
 from ..problem import Problem, Weights
@@ -71,6 +71,7 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     # float64 only, the compilation cache on, a first compilation logged (jtraj._setup)
     key = _setup.before_solve(problem.robot, problem.N, batch=False, problem=problem, options=opts,
                               transcription=transcription, efforts=problem.efforts)
+    _kkt_native.prefetch(problem.robot.n)  # the native kernel's build runs while the solver is traced
     guess = init is None
     if guess:  # placeholders of the controls' shapes (the program computes the guess)
         init = placeholder_init(problem.N, Transcription(transcription).control_dim(problem))
@@ -205,6 +206,7 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     weights = Weights() if weights is None else weights
     key = _setup.before_solve(robot, N, batch=True, weights=weights, options=opts, transcription=transcription,
                               efforts=efforts)
+    _kkt_native.prefetch(robot.n)  # the native kernel's build runs while the solver is traced
 
     def make(a, b, c, d, t):
         return _problem(robot, a, b, c, d, t, N, weights, efforts)

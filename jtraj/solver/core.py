@@ -14,7 +14,7 @@ from jaxtyping import Array
 
 from ..problem import Problem, orientation_error
 from ..transcription import Transcription
-from . import ipm
+from . import curvature, ipm
 from .al import ALState, init_state, run_with_restart, with_phase
 from .certify import al_kkt_error, at_most_once, final_polish, kkt_error
 from .nlp import NLP, violation
@@ -46,7 +46,8 @@ def prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm
     layout = tr.layout(problem)
     nlp = NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem),
               stagewise=stagewise_directions(opts, tr),
-              ineq_penalty=opts.inequality_penalty, pbm_init=opts.pbm_init, pbm_ratio=opts.pbm_ratio)
+              ineq_penalty=opts.inequality_penalty, pbm_init=opts.pbm_init, pbm_ratio=opts.pbm_ratio,
+              ip_curvature=curvature.resolve(static_options(opts).ip_curvature, problem.robot))
     u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
     # what a single Problem rejects up front (a batch builds its problems unvalidated;

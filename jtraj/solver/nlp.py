@@ -16,6 +16,7 @@ from .. import lq
 from .._math import log1p
 from ..problem import Problem
 from ..transcription import Layout, StageData, Transcription, decoupled_hessian, decoupled_hessian_bounds
+from . import curvature
 from .options import SolverOptions
 
 
@@ -46,6 +47,9 @@ class NLP(eqx.Module):
     ineq_penalty: str = eqx.field(static=True, default=SolverOptions.inequality_penalty)
     pbm_init: float = eqx.field(static=True, default=SolverOptions.pbm_init)
     pbm_ratio: float = eqx.field(static=True, default=SolverOptions.pbm_ratio)
+    #: the interior-point method's curvature of the dynamics, "exact" or "gauss_newton"
+    #: (see :mod:`jtraj.solver.curvature`; the AL loop's Hessians are always exact)
+    ip_curvature: str = eqx.field(static=True, default="exact")
 
     #: with ``ineq_penalty == "pbm"``: whether the PBM term is on (the first run) or PHR
     #: (a restart, see :func:`jtraj.solver.al.with_phase`); a traced flag, so one compiled loop serves both
@@ -161,6 +165,8 @@ class NLP(eqx.Module):
         :class:`jtraj.robots.Robot`), so its acceleration block is zero and its cross
         block is the transpose of rows already computed (serial3, 8 lanes: the stage
         derivatives 83 -> 66 us per problem and iteration against one pass over all of w)."""
+        if self.ineq_penalty == "lagrangian" and self.ip_curvature == "gauss_newton":  # the interior-point model
+            return curvature.stage_derivatives_gauss_newton(self, w, sdk, mk, mu, kink, efforts)
         n, nw = self.problem.robot.n, w.shape[0]
         nx, na = 2 * n, nw - 2 * n - 1  # state (q, qd), acceleration slot
         x, a = w[:nx], w[nx:nx + na]
@@ -169,7 +175,7 @@ class NLP(eqx.Module):
             return self.tr.accel_and_tau(self.problem, s[:n], s[n:], acc)[1]
 
         tau = tau_of(x, a)
-        Hy, val, gy = self._phi_hessian(w, tau, sdk, mk, mu, kink)
+        Hy, val, gy = self.phi_hessian(w, tau, sdk, mk, mu, kink)
         lam = gy[nw:]
 
         def weighted(s):  # (gradient of lam . tau in (q, qd, a), tau) at state s
@@ -187,7 +193,7 @@ class NLP(eqx.Module):
             return val, gy[:nw] + J.T @ lam, H, tau, J
         return val, gy[:nw] + J.T @ lam, H
 
-    def _phi_hessian(self, w, tau, sdk, mk, mu, kink):
+    def phi_hessian(self, w, tau, sdk, mk, mu, kink):
         """(Hessian (nw + m, nw + m), value, gradient) of phi(w, tau), one sample's AL with
         its efforts as an input (see :meth:`_stage_derivatives_split`), by forward mode over
         the gradient one block of (q, qd, acceleration slot, h, tau) at a time. Each block's

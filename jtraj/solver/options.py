@@ -13,6 +13,7 @@ import numpy as np
 from .. import _tracecache
 from .._compile import SOLVER_XLA_OPTIONS, cpu_jit, supported_options
 from .._compile import solver_jit as _jit
+from .curvature import CURVATURES
 
 
 # ----------------------------------------------------------------------------------------
@@ -127,6 +128,12 @@ class SolverOptions(eqx.Module):
         ip_damping: floor of the interior-point method's damping shift, kept on the
             Hessian's diagonal after a step its line search cut to a quarter or less
             (default 1e-2; 0 switches it off).
+        ip_curvature: the interior-point method's Newton model of the dynamics terms
+            (:mod:`jtraj.solver.curvature`). "exact": the Lagrangian's Hessian;
+            "gauss_newton": without the effort multipliers' second derivatives of the
+            inverse dynamics (same gradients and optimality test, so the same optima, at a
+            much cheaper and smaller program). "auto" (default): "gauss_newton" for
+            spatial arms, "exact" elsewhere.
         kink_margin, kink_after: from the ``kink_after``-th Newton iteration of an AL
             subproblem on (default 20), its Newton model adds the penalty curvature of the
             inequalities within ``kink_margin`` (default 1e-3) short of their PHR kink,
@@ -171,6 +178,7 @@ class SolverOptions(eqx.Module):
     ip_compl_tol: float = eqx.field(static=True, default=1e-5)
     ip_project_tol: float = eqx.field(static=True, default=1e-4)
     ip_damping: float = eqx.field(static=True, default=1e-2)
+    ip_curvature: str = eqx.field(static=True, default="auto")
 
     @classmethod
     def pbm(cls, **overrides) -> "SolverOptions":
@@ -183,6 +191,8 @@ class SolverOptions(eqx.Module):
             raise ValueError(f"schedule must be 'default' or 'thesis', got {self.schedule!r}")
         if self.method not in ("auto", "al", "ip"):
             raise ValueError(f"method must be 'auto', 'al' or 'ip', got {self.method!r}")
+        if self.ip_curvature not in CURVATURES:
+            raise ValueError(f"ip_curvature must be one of {CURVATURES}, got {self.ip_curvature!r}")
         if self.inequality_penalty not in ("phr", "pbm"):
             raise ValueError(f"inequality_penalty must be 'phr' or 'pbm', got {self.inequality_penalty!r}")
         if not self.pbm_ratio > 1:
