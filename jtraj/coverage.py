@@ -49,8 +49,11 @@ def distance_fn(pairs):
     A = jnp.asarray((np.asarray(pairs, float) - lo) / span)
     lo, span = jnp.asarray(lo), jnp.asarray(span)
 
+    sq = jnp.sum(A**2, axis=1)
+
     def distance(x):
-        return jnp.sqrt(jnp.min(jnp.sum(((x - lo) / span - A) ** 2, axis=1)))
+        u = (x - lo) / span
+        return jnp.sqrt(jnp.maximum(jnp.min(sq - 2 * (A @ u)) + u @ u, 0.0))
     return distance
 
 

@@ -214,7 +214,7 @@ class Planner:
         lim = self.robot.limits
         N, n = self.N, self.n
         if self.periods is None:
-            from .transcription import integrate
+            from .repair import rollout as integrate
 
             f = self.model.predict_fn()
 

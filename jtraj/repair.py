@@ -44,7 +44,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .transcription import integrate
 
 #: points of the time-scaling grid for robots whose efforts are not homogeneous
 GRID = 32
@@ -59,6 +58,20 @@ class Repaired(NamedTuple):
     cost: jax.Array
     scale: jax.Array  # the time scaling s of the chosen candidate
     uniform: jax.Array  # whether the chosen candidate has uniform periods
+
+
+def rollout(q0, qd0, v, h):
+    """(q, qd), each (N+1, n): the decoupled recursion by cumulative sums (on a CPU
+    about 5x faster under ``vmap`` than :func:`jtraj.transcription.integrate`'s prefix
+    sums, which suit the solver's derivatives)."""
+    qd = qd0 + jnp.concatenate([jnp.zeros((1,) + v.shape[1:], v.dtype), jnp.cumsum(h[:, None] * v, axis=0)])
+    dq = h[:, None] * qd[:-1] + 0.5 * (h**2)[:, None] * v
+    return jnp.concatenate([q0[None], q0 + jnp.cumsum(dq, axis=0)]), qd
+
+
+def _quad(x, M):
+    """``x_k^T M x_k`` for each row of x."""
+    return jnp.sum((x @ M) * x, axis=-1)
 
 
 def terminal_rows(h):
@@ -76,8 +89,9 @@ def goal_projection(q0, qd0, q_goal, qd_goal, v, h):
     target = jnp.stack([qd_goal - qd0, q_goal - q0 - T * qd0])  # (2, n)
     r = target - A @ v
     Winv_At = (A / h).T  # (N, 2): W^{-1} A^T with W = diag(h)
-    G = A @ Winv_At
-    return v + Winv_At @ jnp.linalg.solve(G, r)
+    G = A @ Winv_At  # symmetric positive definite 2x2: inverted in closed form
+    Ginv = jnp.array([[G[1, 1], -G[0, 1]], [-G[1, 0], G[0, 0]]]) / (G[0, 0] * G[1, 1] - G[0, 1] * G[1, 0])
+    return v + Winv_At @ (Ginv @ r)
 
 
 def is_homogeneous(robot, trials: int = 3, seed: int = 0) -> bool:
@@ -106,9 +120,9 @@ def cost_of(robot, weights, q, qd, tau, h):
     """The cost of :class:`jtraj.Weights` (``sum_k h_k [time + tau_k^T U tau_k +
     qd_k^T Q qd_k + singularity w(q_k)]``, k < N) of a trajectory."""
     U, Q = weights.matrices(robot)
-    c = weights.time * h + h * jnp.einsum("ki,ij,kj->k", tau, U, tau)
+    c = weights.time * h + h * _quad(tau, U)
     if weights.has_kinetic:
-        c = c + h * jnp.einsum("ki,ij,kj->k", qd[:-1], Q, qd[:-1])
+        c = c + h * _quad(qd[:-1], Q)
     if weights.has_singularity:
         w = jax.vmap(robot.manipulability)(q[:-1])
         c = c + weights.singularity * h / jnp.maximum(w, 1e-9)
@@ -140,7 +154,7 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
     h_min, h_max = lim.h_min, lim.h_max
 
     def states(q0, qd0, v, h):
-        q, qd = integrate(q0, qd0, v, h)
+        q, qd = rollout(q0, qd0, v, h)
         return q, qd, ID(q[:-1], qd[:-1], v)
 
     def scaled(q0, qd0, v, h, s):
@@ -150,13 +164,12 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
     def s_range(h):
         return jnp.max(h_min / h), jnp.min(h_max / h)
 
-    def scale_homogeneous(q0, qd0, v, h):
-        q, qd, tau = states(q0, qd0, v, h)
+    def scale_homogeneous(q, qd, tau, v, h):
         s_f = jnp.maximum(jnp.maximum(_ratio(qd, lim.qd_max), jnp.sqrt(_ratio(v, lim.qdd_max))),
                           jnp.sqrt(_ratio(tau, lim.tau_max))) * (1 + 1e-12)
         U, Q = weights.matrices(robot)
-        B = jnp.sum(h * jnp.einsum("ki,ij,kj->k", tau, U, tau))
-        C = jnp.sum(h * jnp.einsum("ki,ij,kj->k", qd[:-1], Q, qd[:-1])) if weights.has_kinetic else 0.0
+        B = jnp.sum(h * _quad(tau, U))
+        C = jnp.sum(h * _quad(qd[:-1], Q)) if weights.has_kinetic else 0.0
         A = weights.time * jnp.sum(h)
         if weights.has_singularity:
             A = A + weights.singularity * jnp.sum(h / jnp.maximum(jax.vmap(robot.manipulability)(q[:-1]), 1e-9))
@@ -180,12 +193,17 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
         pick = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
         return ss[pick]
 
-    scale = scale_homogeneous if homogeneous else scale_grid
-
     def candidate(q0, qd0, q_goal, qd_goal, v, h):
         v = goal_projection(q0, qd0, q_goal, qd_goal, v, h)
-        s = scale(q0, qd0, v, h)
-        q, qd, tau, vs, hs = scaled(q0, qd0, v, h, s)
+        if homogeneous:
+            # the scaled plan's states and efforts follow from the unscaled ones: same q,
+            # qd / s, tau / s^2 (exact, up to rounding; the tests re-verify them)
+            q, qd, tau = states(q0, qd0, v, h)
+            s = scale_homogeneous(q, qd, tau, v, h)
+            qd, tau, vs, hs = qd / s, tau / s**2, v / s**2, h * s
+        else:
+            s = scale_grid(q0, qd0, v, h)
+            q, qd, tau, vs, hs = scaled(q0, qd0, v, h, s)
         err = jnp.maximum(jnp.linalg.norm(q[-1] - q_goal), jnp.linalg.norm(qd[-1] - qd_goal))
         return (vs, hs, q, qd, tau, cost_of(robot, weights, q, qd, tau, hs), s,
                 jnp.maximum(violation(robot, q, qd, vs, tau, hs), err))

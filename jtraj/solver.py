@@ -202,6 +202,8 @@ class SolverOptions(eqx.Module):
         ip_damping: floor of the interior-point method's damping shift, kept on the
             Hessian's diagonal after a step its line search cut to a quarter or less
             (default 1e-2; 0 switches it off).
+        ip_mu_init: the interior-point method's first barrier parameter (default 0.1); a
+            smaller one shortens the barrier schedule for a start near an optimum.
         kink_margin, kink_after: from the ``kink_after``-th Newton iteration of an AL
             subproblem on (default 20), its Newton model adds the penalty curvature of the
             inequalities within ``kink_margin`` (default 1e-3) short of their PHR kink,
@@ -246,6 +248,7 @@ class SolverOptions(eqx.Module):
     ip_compl_tol: float = eqx.field(static=True, default=1e-5)
     ip_project_tol: float = eqx.field(static=True, default=1e-4)
     ip_damping: float = eqx.field(static=True, default=1e-2)
+    ip_mu_init: float = eqx.field(static=True, default=0.1)
 
     @classmethod
     def pbm(cls, **overrides) -> "SolverOptions":
@@ -286,7 +289,7 @@ class SolverOptions(eqx.Module):
             if not ok:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         for name in ("tol_feasibility", "tol_optimality", "verify_tol", "penalty_init", "penalty_max",
-                     "damping_init", "restart_penalty_max", "pbm_init", "ip_tol"):
+                     "damping_init", "restart_penalty_max", "pbm_init", "ip_tol", "ip_mu_init"):
             value = getattr(self, name)
             try:
                 ok = 0 < float(value) < float("inf")  # NumPy scalars of any float width too
@@ -1469,7 +1472,8 @@ def _solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, 
 def _ip_run(nlp: _NLP, state: _State, opts: SolverOptions):
     """The interior-point method (:mod:`jtraj.ipm`) from the state's start; a state the
     AL loop would not run (a warm start already optimal) takes no iteration."""
-    return ipm.run(nlp, state.z, jnp.where(state.done, 0, _static(opts).ip_max_iter), _ip_tolerances(opts))
+    return ipm.run(nlp, state.z, jnp.where(state.done, 0, _static(opts).ip_max_iter), _ip_tolerances(opts),
+                   _static(opts).ip_mu_init)
 
 
 def _ip_tolerances(opts) -> ipm.Tolerances:
@@ -1849,7 +1853,7 @@ def _ip_init_batch_jit(nlps, states, opts):
     """The interior-point states of a batch (a state the AL loop would not run, a warm
     start already optimal, starts finished)."""
     def one(n, s):
-        st = ipm.init(n, s.z)
+        st = ipm.init(n, s.z, _static(opts).ip_mu_init)
         return st._replace(done=s.done)
 
     return eqx.filter_vmap(one)(nlps, states)
