@@ -29,9 +29,10 @@ The efforts come from the robot's inverse dynamics, and :class:`Plan` reports:
 * ``goal_error``: ``||q_N - q_goal||`` [rad], ``goal_velocity``: ``||qd_N||``, and
   ``predicted_goal_error``, the goal error of the raw prediction;
 * ``scale``: the repair's time scaling (1 without it);
-* ``coverage_distance`` and ``ood``: the query's distance to the training pairs
-  (:mod:`jtraj.coverage`) and whether it exceeds the training data's radius (out of
-  distribution).
+* ``coverage_distance``, ``coverage_box`` and ``ood``: the query's distance to the
+  nearest training pair and outside the training data's box (:mod:`jtraj.coverage`), and
+  whether it lies out of distribution (farther than the training data's radius, or
+  outside the box).
 
 A plan is ``feasible`` when ``violation <= tol`` (1e-6) and the goal position and
 velocity errors are ``<= goal_tol`` (1e-6). :meth:`Planner.plan` takes one start/goal
@@ -73,6 +74,7 @@ class Plan(NamedTuple):
     predicted_goal_error: jax.Array
     scale: jax.Array
     coverage_distance: jax.Array
+    coverage_box: jax.Array
     ood: jax.Array
 
 
@@ -117,12 +119,13 @@ class Planner:
     the plan reports and the repair's time scaling minimises. ``correct``: apply the
     feasibility repair (default) or return the raw prediction.
 
-    Coverage (``coverage_distance``, ``ood``): with the training pairs in the model's
-    metadata (models from :func:`jtraj.anfis.trajectory.train_mapping`), the distance to
-    the nearest one against ``coverage_radius``; otherwise, for a plan model, the
-    distance outside the model's input box against 0 (``coverage_kind`` says which);
-    a closed-loop model without training pairs has no coverage (``coverage_kind`` None,
-    distance 0, never flagged).
+    Coverage (``coverage_distance``, ``coverage_box``, ``ood``; :mod:`jtraj.coverage`):
+    with the training pairs in the model's metadata (models from
+    :func:`jtraj.anfis.trajectory.train_mapping`), the distance to the nearest one against
+    ``coverage_radius`` and the distance outside their box; otherwise, for a plan model,
+    the distance outside the model's input box (``coverage_kind`` says which); a
+    closed-loop model without training pairs has no coverage (``coverage_kind`` None,
+    never flagged).
     """
 
     def __init__(self, model, robot=None, *, periods=None, weights=None, correct: bool = True,
@@ -206,7 +209,7 @@ class Planner:
             self._distance = coverage.box_distance_fn(m.x_lo, m.x_span)
         else:
             self.coverage_kind, self.coverage_radius = None, 0.0
-            self._distance = lambda x: jnp.zeros((), x.dtype)
+            self._distance = lambda x: (jnp.zeros((), x.dtype), jnp.zeros((), x.dtype))
 
     def _predict(self):
         """``(q_start, q_goal) -> (q, qd, v, h)`` of the raw prediction (periods clipped into
@@ -265,20 +268,31 @@ class Planner:
                 width = jnp.where(jnp.isfinite(lim.q_max - lim.q_min), lim.q_max - lim.q_min, 1.0)
                 qv = jnp.max(jnp.maximum(jnp.maximum(lim.q_min - q, q - lim.q_max) / width, 0.0))
             parts = (_excess(tau, lim.tau_max), _excess(qd[1:], lim.qd_max), _excess(v, lim.qdd_max), qv, hv)
-            d = distance(jnp.concatenate([qs, qg]))
+            d, box = distance(jnp.concatenate([qs, qg]))
             return Plan(q, qd, v, tau, h, jnp.sum(h), cost, jnp.max(jnp.stack(parts)), *parts,
-                        jnp.linalg.norm(q[-1] - qg), jnp.linalg.norm(qd[-1]), pred_err, s, d, d > radius)
+                        jnp.linalg.norm(q[-1] - qg), jnp.linalg.norm(qd[-1]), pred_err, s, d, box,
+                        (d > radius) | (box > 1e-9))
         return core
 
     def _inputs(self, q_start, q_goal):
-        from ._checks import check_state
-
-        qs = np.asarray(check_state(q_start, "q_start", self.n), float)
-        qg = np.asarray(check_state(q_goal, "q_goal", self.n), float)
+        """The start and goal as float arrays, checked on the host (no device round trip):
+        the messages of :func:`jtraj._checks.check_state`."""
+        out = []
+        for x, name in ((q_start, "q_start"), (q_goal, "q_goal")):
+            try:
+                arr = np.asarray(x, dtype=float)
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"{name} must be an array of numbers, got {x!r}") from err
+            if arr.ndim == 0 or arr.shape[-1] != self.n:
+                raise ValueError(f"{name} must have shape ({self.n},) (or (..., {self.n})), got shape {arr.shape}")
+            if not np.isfinite(arr).all():
+                raise ValueError(f"{name} must be finite (no NaN or inf)")
+            out.append(arr)
+        qs, qg = out
         if qs.ndim > 2 or qs.shape != qg.shape:
             raise ValueError(f"q_start and q_goal must both have shape ({self.n},) or (B, {self.n}), got "
                              f"{qs.shape} and {qg.shape}")
-        return jnp.asarray(qs), jnp.asarray(qg)
+        return qs, qg
 
     def plan(self, q_start, q_goal) -> Plan:
         """The plan and its report (one jitted call). ``q_start``, ``q_goal``: ``(n,)``, or
@@ -314,7 +328,8 @@ class Planner:
                   "goal_velocity", "predicted_goal_error", "scale"):
             out[k] = float(getattr(p, k))
         out["coverage"] = dict(kind=self.coverage_kind, distance=float(p.coverage_distance),
-                               radius=self.coverage_radius, out_of_distribution=bool(p.ood))
+                               radius=self.coverage_radius, outside_box=float(p.coverage_box),
+                               out_of_distribution=bool(p.ood))
         out["out_of_distribution"] = bool(p.ood)
         for k in ("q", "qd", "v", "tau", "h"):
             out[k] = np.asarray(getattr(p, k)).tolist()

@@ -144,23 +144,34 @@ def test_non_homogeneous_robot_takes_the_cheapest_feasible_grid_scaling():
                                                         r.h)), rel=1e-9)
 
 
-def test_coverage_radius_and_distance_by_brute_force():
+def test_coverage_radius_and_distances_by_brute_force():
     rng = np.random.default_rng(5)
-    pairs = rng.uniform(-1, 1, (30, 6))
-    pairs[:, 2] = 0.5  # a constant coordinate keeps span 1
-    lo, span = coverage.normaliser(pairs)
-    A = (pairs - lo) / span
+    starts = rng.uniform(-1, 1, (30, 3))
+    steps = rng.uniform(-0.5, 0.5, (30, 3))
+    steps[:, 2] = 0.25  # a constant feature keeps span 1
+    pairs = np.c_[starts, starts + steps]
+    F = np.c_[starts, steps]  # the features, written out
+    lo, span = F.min(0), np.where(np.ptp(F, 0) > 0, np.ptp(F, 0), 1.0)
+    A = (F - lo) / span
     D = np.linalg.norm(A[:, None] - A[None], axis=2)
     np.fill_diagonal(D, np.inf)
     assert coverage.radius(pairs) == pytest.approx(D.min(1).max(), rel=1e-12)
     assert coverage.radius(pairs, chunk=7) == pytest.approx(D.min(1).max(), rel=1e-12)
-    x = rng.uniform(-1, 1, 6)
-    d = coverage.distance_fn(pairs)
-    assert float(d(jnp.asarray(x))) == pytest.approx(np.linalg.norm((x - lo) / span - A, axis=1).min(), rel=1e-9)
-    assert float(d(jnp.asarray(pairs[4]))) == pytest.approx(0.0, abs=1e-7)
-    box = coverage.box_distance_fn(lo, span)
-    assert float(box(jnp.asarray(pairs[3]))) == 0.0
-    assert float(box(jnp.asarray(lo - span))) == pytest.approx(np.sqrt(6), rel=1e-12)
+    dist = coverage.distance_fn(pairs)
+    x = np.r_[starts[0] + 0.01, starts[0] + 0.01 + steps[0]]
+    u = (np.r_[x[:3], x[3:] - x[:3]] - lo) / span
+    near, box = dist(jnp.asarray(x))
+    assert float(near) == pytest.approx(np.linalg.norm(u - A, axis=1).min(), rel=1e-7)
+    assert float(box) == pytest.approx(np.linalg.norm(np.maximum(np.maximum(-u, u - 1), 0)), abs=1e-12)
+    near, box = dist(jnp.asarray(pairs[4]))
+    assert float(near) == pytest.approx(0.0, abs=1e-7) and float(box) <= 1e-12
+    # a step longer than any training step lies outside the box, from a training start
+    i = int(np.argmax(steps[:, 0]))
+    long = np.r_[starts[i], starts[i] + steps[i] + 0.4 * np.r_[1, 0, 0]]
+    assert float(dist(jnp.asarray(long))[1]) == pytest.approx(0.4 / span[3], rel=1e-9)
+    boxd = coverage.box_distance_fn(lo, span)
+    assert float(boxd(jnp.asarray(lo))[1]) == 0.0
+    assert float(boxd(jnp.asarray(lo - span))[1]) == pytest.approx(np.sqrt(6), rel=1e-12)
 
 
 @pytest.fixture(scope="module")
@@ -195,7 +206,7 @@ def test_planner_batch_plans_re_verified(planner_and_data, tmp_path):
     # coverage: training pairs lie at distance 0, far queries are flagged
     assert np.all(np.asarray(pb.coverage_distance)[:5] <= 1e-7) and not np.asarray(pb.ood)[:5].any()
     far = planner.plan(qs[0] + 2.5, qg[0])
-    assert bool(far.ood) and float(far.coverage_distance) > planner.coverage_radius
+    assert bool(far.ood) and float(far.coverage_box) > 0
     out = planner.query(qs[0], qg[0])
     assert out["feasible"] and out["coverage"]["kind"] == "nearest training pair"
     assert json.loads(json.dumps(out))["cost"] == pytest.approx(float(pb.cost[0]), rel=1e-12)
@@ -217,3 +228,35 @@ def test_planner_refuses_bad_input(planner_and_data):
         Planner(planner.model, robots.get("ibm7535"))
     with pytest.raises(ValueError, match="correct must be"):
         Planner(planner.model, correct="yes")
+
+
+@pytest.mark.slow
+def test_a_feasible_plan_never_beats_the_exact_optimum_and_its_cost_is_the_solvers():
+    """The plan is feasible for the exact problem, so its cost is at least the optimum's
+    (up to the solver's tolerances); the plan's cost function equals the solver's at the
+    optimum; query(refine=True) reports the gap between them."""
+    from jtraj import Problem, solve
+    from jtraj.anfis import trajectory
+    from jtraj.online import Planner
+
+    data = trajectory.synthetic_dataset(P=24, N=10, seed=0)
+    model = trajectory.train_mapping(data, "plan", n_rules=2, epochs=1)[0]
+    rb = robots.get("serial3")
+    planner = Planner(model, rb, weights=W)
+    rng = np.random.default_rng(6)
+    checked = 0
+    for _ in range(3):
+        qs = rng.uniform(-1, 1, n)
+        qg = qs + rng.uniform(-0.3, 0.3, n)
+        p = planner.plan(qs, qg)
+        sol = solve(Problem(rb, qs, qg, N=10, weights=W))
+        if not (bool(sol.converged) and planner.feasible(p)):
+            continue
+        checked += 1
+        assert float(cost_of(rb, W, sol.q, sol.qd, sol.tau, sol.h)) == pytest.approx(float(sol.cost), rel=1e-12)
+        assert float(p.cost) >= float(sol.cost) * (1 - 1e-5)
+        out = planner.query(qs, qg, refine=True)
+        assert out["refined_converged"] and out["gap"] == pytest.approx(
+            (out["cost"] - out["refined_cost"]) / out["refined_cost"], rel=1e-12)
+        assert out["gap"] >= -1e-5
+    assert checked >= 2

@@ -110,7 +110,8 @@ def run(args) -> int:
     if cov["kind"] is None:
         print("coverage: unknown (the model records no training pairs)")
     else:
-        print(f"coverage: distance {cov['distance']:.3g} to the {cov['kind']} (radius {cov['radius']:.3g}): "
+        print(f"coverage: distance {cov['distance']:.3g} to the {cov['kind']} (radius {cov['radius']:.3g}), "
+              f"{cov['outside_box']:.3g} outside the training box: "
               + ("OUT OF DISTRIBUTION, the model has not seen such a query" if cov["out_of_distribution"]
                  else "in distribution"))
     if args.refine:
