@@ -212,6 +212,26 @@ def test_planner_batch_plans_re_verified(planner_and_data, tmp_path):
     assert json.loads(json.dumps(out))["cost"] == pytest.approx(float(pb.cost[0]), rel=1e-12)
 
 
+def test_query_command_prints_and_writes_cost_violation_and_coverage(planner_and_data, tmp_path, capsys):
+    from jtraj.commands import query as cmd
+
+    planner, data = planner_and_data
+    planner.model.save(tmp_path / "plan.anfis")
+    qs, qg = data["q_start"][1], data["q_goal"][1]
+    for label, start, flagged in (("in", qs, False), ("far", qs + 2.5, True)):
+        args = type("A", (), dict(model=str(tmp_path / "plan.anfis"), periods=None, start=list(start),
+                                  goal=list(qg), refine=False, warm="primal", json=str(tmp_path / f"{label}.json")))
+        assert cmd.run(args) == 0
+        text = capsys.readouterr().out
+        with open(args.json) as f:
+            out = json.load(f)
+        assert ("OUT OF DISTRIBUTION" in text) == flagged == out["out_of_distribution"]
+        assert "cost" in text and "worst violation" in text
+        # the model's robot (serial3, h_max 0.1): the plan lands on the goal whatever its bounds
+        assert out["goal_error"] <= 1e-9 and len(out["v"]) == 10 and len(out["tau"]) == 10
+        assert out["feasible"] == (out["violation"] <= 1e-6)
+
+
 def test_planner_refuses_bad_input(planner_and_data):
     from jtraj.online import Planner
 
