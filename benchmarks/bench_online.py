@@ -33,7 +33,8 @@ Printed and written (``--json``):
   trajectory), ``plan_mu3`` (interior point with a shortened barrier schedule,
   ``ip_mu_init=1e-3``, from the plan), ``al_cold`` / ``al_plan_full`` (the augmented-
   Lagrangian method alone, cold and from the plan with multipliers estimated there):
-  Newton iterations, wall time, convergence, and the final cost against ``cold``'s.
+  Newton iterations, wall time, convergence, and the final cost against ``cold``'s
+  (the same optimum where within 1e-3 relative: the solver's optimality tolerance is 3e-4).
 
 Timings are of this machine's CPU, under whatever else runs on it.
 """
@@ -280,14 +281,15 @@ def main(argv=None):
             both = [r for r in rows if r[lab]["converged"] and r[ref]["converged"]]
             dc = np.array([(r[lab]["cost"] - r[ref]["cost"]) / abs(r[ref]["cost"]) for r in both])
             s.update(iterations_ratio_median=float(np.median(it / np.maximum(ref_it, 1))),
-                     same_optimum=int(np.sum(np.abs(dc) <= 1e-4)) if len(both) else 0, both_converged=len(both),
+                     same_optimum=int(np.sum(np.abs(dc) <= 1e-3)) if len(both) else 0, both_converged=len(both),
                      cost_rel_diff_max_abs=float(np.abs(dc).max()) if len(both) else None)
         out["refine"][lab] = s
         line = (f"{lab:13s}: converged {conv.sum()}/{P}, iterations median {np.median(it):.0f} (p90 "
                 f"{np.percentile(it, 90):.0f}), wall median {np.median(sec) * 1e3:.1f} ms")
         if "iterations_ratio_median" in s:
             line += (f"; per-pair iterations / cold median {s['iterations_ratio_median']:.2f}; same optimum "
-                     f"(cost within 1e-4) {s['same_optimum']}/{s['both_converged']}")
+                     f"(cost within 1e-3, the solver's optimality tolerance 3e-4) {s['same_optimum']}/"
+                     f"{s['both_converged']}")
         print(line)
     if ref:
         ratio = lat["plan_jitted"]["median_us"] / (out["refine"][ref]["seconds"]["p50"] * 1e6)

@@ -200,7 +200,7 @@ class Planner:
             if pairs.ndim != 2 or pairs.shape[1] != 2 * self.n:
                 raise ValueError(f"the model's train_pairs have shape {pairs.shape}, expected (P, {2 * self.n})")
             self.coverage_kind = "nearest training pair"
-            self.coverage_radius = float(meta.get("coverage_radius", coverage.radius(pairs)))
+            self.coverage_radius = coverage.radius(pairs)  # (recomputed: milliseconds for 1000s of pairs)
             self._distance = coverage.distance_fn(pairs)
         elif meta["mapping"] == "plan":
             m = self.model.members[0] if hasattr(self.model, "members") else self.model

@@ -28,10 +28,12 @@ period box ``h_min <= s h_k <= h_max``. For other robots it takes the cheapest f
 ``s`` of a fixed log-spaced grid over the period box (the efforts evaluated at every grid
 point).
 
-Two candidates are repaired side by side: the predicted periods (clipped into the
+Four candidates are repaired side by side: the predicted periods (clipped into the
 box) and uniform periods of the same total time (which leave the time scaling the
-widest period box); the feasible one of lower cost is returned, else the one of smaller
-violation. The returned plan is recomputed from its ``(v, h)`` by the recursion and
+widest period box), each with the projected accelerations and with one
+:func:`effort_step` from them (a Gauss-Newton step towards less effort on the goal,
+kept near the prediction); the feasible one of lower cost is returned, else the one of
+smaller violation. The returned plan is recomputed from its ``(v, h)`` by the recursion and
 the robot's inverse dynamics: its reported violations are measured, not assumed.
 Joint, workspace and path constraints are measured, not repaired.
 """
@@ -47,6 +49,9 @@ import numpy as np
 
 #: points of the time-scaling grid for robots whose efforts are not homogeneous
 GRID = 32
+#: weight of the distance to the prediction in :func:`effort_step`, relative to the
+#: effort term's mean curvature
+RHO = 1.0
 
 
 class Repaired(NamedTuple):
@@ -92,6 +97,30 @@ def goal_projection(q0, qd0, q_goal, qd_goal, v, h):
     G = A @ Winv_At  # symmetric positive definite 2x2: inverted in closed form
     Ginv = jnp.array([[G[1, 1], -G[0, 1]], [-G[1, 0], G[0, 0]]]) / (G[0, 0] * G[1, 1] - G[0, 1] * G[1, 0])
     return v + Winv_At @ (Ginv @ r)
+
+
+def effort_step(robot, U, q0, qd0, q_goal, qd_goal, v, h, rho):
+    """One Gauss-Newton step from ``v`` (on the goal) towards the accelerations of least
+    effort ``sum_k h_k tau_k^T U tau_k + rho sum_k h_k |v_k - v_k^0|^2`` on the goal state:
+    the efforts linearised in ``v`` at the states of ``v`` (``tau_k ~ J_k v_k + c_k``,
+    ``J_k = dtau/dv``), the goal's 2n linear equations kept exactly. The KKT system is
+    block diagonal in the samples but for the 2n multipliers: N n x n solves and one
+    2n x 2n solve."""
+    n = v.shape[1]
+    A = terminal_rows(h)
+    target = jnp.stack([qd_goal - qd0, q_goal - q0 - jnp.sum(h) * qd0])  # (2, n)
+    q, qd = rollout(q0, qd0, v, h)
+    tau, J = jax.vmap(lambda a, b, c: (robot.inverse_dynamics(a, b, c),
+                                       jax.jacfwd(robot.inverse_dynamics, argnums=2)(a, b, c)))(q[:-1], qd[:-1], v)
+    c = tau - jnp.einsum("kij,kj->ki", J, v)
+    H = h[:, None, None] * (jnp.einsum("kji,jl,klm->kim", J, U, J) + rho * jnp.eye(n))  # halved Hessian
+    g = h[:, None] * (jnp.einsum("kji,jl,kl->ki", J, U, c) - rho * v)
+    Hinv = jnp.linalg.inv(H)
+    # v_k = -Hinv_k (g_k + sum_r A[r, k] lam_r); A v = target gives S lam = -A Hinv g - target
+    Hg = jnp.einsum("kij,kj->ki", Hinv, g)
+    S = jnp.einsum("rk,sk,kij->risj", A, A, Hinv).reshape(2 * n, 2 * n)
+    lam = jnp.linalg.solve(S, (-(A @ Hg) - target).reshape(2 * n)).reshape(2, n)
+    return -Hg - jnp.einsum("kij,kj->ki", Hinv, A.T @ lam)
 
 
 def is_homogeneous(robot, trials: int = 3, seed: int = 0) -> bool:
@@ -143,7 +172,7 @@ def violation(robot, q, qd, v, tau, h):
     return jnp.max(jnp.stack(ex))
 
 
-def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = GRID):
+def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = GRID, rho: float | None = None):
     """``repair(q0, qd0, q_goal, qd_goal, v, h) -> Repaired``: a jit-, vmap-able pure function
     (see the module doc). ``homogeneous`` defaults to :func:`is_homogeneous` (tested here,
     on the host)."""
@@ -193,8 +222,15 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
         pick = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
         return ss[pick]
 
-    def candidate(q0, qd0, q_goal, qd_goal, v, h):
+    rho = RHO if rho is None else rho
+    U = weights.matrices(robot)[0]
+    # the effort term's curvature scale: rho relative to it keeps the step's Hessian
+    # positive definite whatever the energy weight
+    u_scale = jnp.maximum(jnp.trace(U) / U.shape[0], 1e-12)
+
+    def candidate(q0, qd0, q_goal, qd_goal, v, h, step):
         v = goal_projection(q0, qd0, q_goal, qd_goal, v, h)
+        v = jnp.where(step, effort_step(robot, U, q0, qd0, q_goal, qd_goal, v, h, rho * u_scale), v)
         if homogeneous:
             # the scaled plan's states and efforts follow from the unscaled ones: same q,
             # qd / s, tau / s^2 (exact, up to rounding; the tests re-verify them)
@@ -210,12 +246,14 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
 
     def repair(q0, qd0, q_goal, qd_goal, v, h):
         h = jnp.clip(h, h_min, h_max)
-        hs = jnp.stack([h, jnp.full_like(h, jnp.mean(h))])
-        out = jax.vmap(candidate, in_axes=(None, None, None, None, None, 0))(q0, qd0, q_goal, qd_goal, v, hs)
+        hs = jnp.stack([h, jnp.full_like(h, jnp.mean(h))] * 2)
+        steps = jnp.array([False, False, True, True])
+        out = jax.vmap(candidate, in_axes=(None, None, None, None, None, 0, 0))(q0, qd0, q_goal, qd_goal, v, hs,
+                                                                               steps)
         cost, viol = out[5], out[7]
         ok = viol <= 1e-9
         i = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
         vs, hh, q, qd, tau, c, s, _ = (a[i] for a in out)
-        return Repaired(vs, hh, q, qd, tau, c, s, i == 1)
+        return Repaired(vs, hh, q, qd, tau, c, s, i % 2 == 1)
 
     return repair
