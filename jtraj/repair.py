@@ -172,10 +172,12 @@ def violation(robot, q, qd, v, tau, h):
     return jnp.max(jnp.stack(ex))
 
 
-def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = GRID, rho: float | None = None):
+def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = GRID, rho: float | None = None,
+                effort: bool = True):
     """``repair(q0, qd0, q_goal, qd_goal, v, h) -> Repaired``: a jit-, vmap-able pure function
     (see the module doc). ``homogeneous`` defaults to :func:`is_homogeneous` (tested here,
-    on the host)."""
+    on the host). ``effort=False`` leaves out the two :func:`effort_step` candidates (about
+    half the work; a costlier plan in the tail)."""
     lim = robot.limits
     if homogeneous is None:
         homogeneous = is_homogeneous(robot)
@@ -246,8 +248,8 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
 
     def repair(q0, qd0, q_goal, qd_goal, v, h):
         h = jnp.clip(h, h_min, h_max)
-        hs = jnp.stack([h, jnp.full_like(h, jnp.mean(h))] * 2)
-        steps = jnp.array([False, False, True, True])
+        hs = jnp.stack([h, jnp.full_like(h, jnp.mean(h))] * (2 if effort else 1))
+        steps = jnp.array([False, False, True, True] if effort else [False, False])
         out = jax.vmap(candidate, in_axes=(None, None, None, None, None, 0, 0))(q0, qd0, q_goal, qd_goal, v, hs,
                                                                                steps)
         cost, viol = out[5], out[7]

@@ -240,6 +240,12 @@ def test_planner_batch_plans_re_verified(planner_and_data, tmp_path):
         # one query equals its row of the batch
         p1 = planner.plan(qs[i], qg[i])
         np.testing.assert_allclose(np.asarray(p1.v), np.asarray(pb.v[i]), rtol=1e-12, atol=1e-12)
+    # without the least-effort candidates: feasible too, never cheaper (fewer candidates)
+    from jtraj.online import Planner
+
+    fast = Planner(planner.model, planner.robot, weights=W, effort=False).plan(qs, qg)
+    assert planner.feasible(fast).all()
+    assert np.all(np.asarray(fast.cost) >= np.asarray(pb.cost) * (1 - 1e-12))
     # the raw prediction misses the goal: the repair is what lands on it
     assert float(np.median(np.asarray(pb.predicted_goal_error))) > 1e-3
     # coverage: training pairs lie at distance 0, far queries are flagged
@@ -287,6 +293,8 @@ def test_planner_refuses_bad_input(planner_and_data):
         Planner(planner.model, robots.get("ibm7535"))
     with pytest.raises(ValueError, match="correct must be"):
         Planner(planner.model, correct="yes")
+    with pytest.raises(ValueError, match="effort must be"):
+        Planner(planner.model, effort=1)
 
 
 @pytest.mark.slow
