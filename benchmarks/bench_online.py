@@ -5,7 +5,9 @@ refinement from the plan against cold and nearest-neighbour starts.
         [--pairs 40] [--repeat 2000] [--batch 4096] [--variants cold,plan_primal,...]
         [--json benchmarks/figures/online.json]
 
-Issue #60 item 5. The planner model (mapping ``plan``, Sugeno order 0, as the anfis guide
+Figures in docs/guides/anfis.md ("What it reaches"), from
+``--data ds300 --model plan.anfis --pairs 40 --json benchmarks/figures/online.json`` with the
+dataset and model of that guide's commands. Issue #60 item 5. The planner model (mapping ``plan``, Sugeno order 0, as the anfis guide
 trains it) is trained here on the dataset's training split unless ``--model`` is given.
 Held-out pairs: the dataset's test split (last 10 % of its converged trajectories), topped
 up to ``--pairs`` with fresh pairs of the dataset's own sampling law (seed + 1000).
