@@ -1,34 +1,48 @@
 """Online planning with trained ANFIS models: a whole trajectory per (start, goal) in one
-jitted call, its feasibility, and optional exact refinement.
+jitted call, feasible by construction, with its cost, its coverage and optional exact
+refinement.
 
-Two kinds of planner:
+Two kinds of prediction:
 
 * **open loop**, one model of the ``plan`` mapping (``jtraj train --mapping plan``):
-  ``(q_start, q_goal) -> (v (N n), h (N))``. :meth:`Planner.plan` predicts the
-  accelerations and periods, clips the periods into ``[h_min, h_max]`` and rolls the
-  decoupled recursion out (``q'' = v``, the recursion of the exact solver) from the start
-  at rest;
+  ``(q_start, q_goal) -> (v (N n), h (N))``, the accelerations and periods of the whole
+  trajectory, run through the decoupled recursion (``q'' = v``, the exact solver's) from
+  the start at rest;
 * **closed loop** (the thesis' NeFOTC with NeFuMOP), a ``nefotc`` model, the torque
   controller ``(q_goal - q, qd, k/N) -> tau``, with ``periods=`` a ``nefumop`` model
   whose last output is ``h``: at each of the N steps the controller's torque (clipped to
-  the torque box) drives the robot's forward dynamics for the predicted period. The
-  goal offset is fed back, so errors are corrected on the way: on 100 held-out pairs of a
-  300-pair serial3 dataset the median goal error was 0.030 rad, against 0.20 rad for the
-  open-loop plan model (docs/guides/anfis.md).
+  the torque box) drives the robot's forward dynamics for the predicted period.
 
-The actuator efforts come from the robot's inverse dynamics, and :class:`Plan` reports:
+Either prediction ``(v, h)`` then goes through the feasibility repair of
+:mod:`jtraj.repair` (``correct=True``, the default): a projection of ``v`` onto the goal
+state (reached to rounding, at rest) and a time scaling that restores the velocity,
+acceleration and effort bounds at the lowest cost of the scaled plans, all inside the
+same jitted call. ``correct=False`` returns the raw prediction.
 
-* ``tau_violation``, ``qd_violation``, ``q_violation``: largest relative excess over the
-  robot's limits (0 when within; e.g. 0.1 means 10 % over);
-* ``h_violation``: largest relative excess of the raw predicted periods (before clipping);
-* ``goal_error``: ``||q_N - q_goal||`` [rad], ``goal_velocity``: ``||qd_N||``;
-* ``feasible``: every violation <= ``tol`` and goal error <= ``goal_tol``.
+The efforts come from the robot's inverse dynamics, and :class:`Plan` reports:
+
+* ``cost``: the cost of the training dataset's weights (:func:`jtraj.repair.cost_of`);
+* ``violation``: largest relative excess over the robot's boxes (efforts, velocities,
+  accelerations, joint positions, periods; 0 when within, 0.1 means 10 % over), and
+  each of ``tau_violation``, ``qd_violation``, ``qdd_violation``, ``q_violation``,
+  ``h_violation``;
+* ``goal_error``: ``||q_N - q_goal||`` [rad], ``goal_velocity``: ``||qd_N||``, and
+  ``predicted_goal_error``, the goal error of the raw prediction;
+* ``scale``: the repair's time scaling (1 without it);
+* ``coverage_distance``, ``coverage_box`` and ``ood``: the query's distance to the
+  nearest training pair and outside the training data's box (:mod:`jtraj.coverage`), and
+  whether it lies out of distribution (farther than the training data's radius, or
+  more than :data:`BOX_MARGIN` outside the box).
+
+A plan is ``feasible`` when ``violation <= tol`` (1e-6) and the goal position and
+velocity errors are ``<= goal_tol`` (1e-6). :meth:`Planner.plan` takes one start/goal
+pair ``(n,)`` or a batch ``(B, n)`` (one jitted, vmapped call).
 
 The robot is the one named in the model's metadata, with the sampling-period bound of
 the training dataset (``h_max`` in the metadata) where recorded. With ``refine=True``
-the plan warm-starts the exact solver on
-``Problem(robot, q_start, q_goal, N=N, weights=<the dataset's>)`` from ``(v, h)``
-(primal point only by default, see :meth:`Planner.query`).
+:meth:`Planner.query` warm-starts the exact solver on
+``Problem(robot, q_start, q_goal, N=N, weights=<the dataset's>)`` from the plan and
+reports the plan's cost gap to the refined optimum.
 """
 
 from __future__ import annotations
@@ -41,6 +55,12 @@ import jax.numpy as jnp
 import numpy as np
 
 
+#: a query flags out of distribution beyond this scaled distance outside the training box
+#: (jtraj.coverage): a new draw of the training law falls a little outside the range of
+#: a few hundred training pairs (4 of 40 held-out serial3 pairs at margin 0)
+BOX_MARGIN = 0.05
+
+
 class Plan(NamedTuple):
     q: jax.Array  # (N+1, n)
     qd: jax.Array  # (N+1, n)
@@ -48,12 +68,20 @@ class Plan(NamedTuple):
     tau: jax.Array  # (N, m)
     h: jax.Array  # (N,)
     T: jax.Array
+    cost: jax.Array
+    violation: jax.Array
     tau_violation: jax.Array
     qd_violation: jax.Array
+    qdd_violation: jax.Array
     q_violation: jax.Array
     h_violation: jax.Array
     goal_error: jax.Array
     goal_velocity: jax.Array
+    predicted_goal_error: jax.Array
+    scale: jax.Array
+    coverage_distance: jax.Array
+    coverage_box: jax.Array
+    ood: jax.Array
 
 
 def _load(model):
@@ -91,10 +119,24 @@ class Planner:
     ``model``: of mapping ``plan`` (open loop), or ``nefotc`` together with ``periods``,
     a ``nefumop`` model (or path) trained on the same dataset (closed loop; see the
     module doc). ``robot`` defaults to the one named in the model's metadata, with the
-    dataset's ``h_max`` where the metadata records it.
+    dataset's ``h_max`` where the metadata records it; a robot of another number of
+    joints than the model's is refused. ``weights`` (a :class:`jtraj.Weights`) default
+    to the dataset's (the model's metadata ``"weights"``), else ``Weights()``: the cost
+    the plan reports and the repair's time scaling minimises. ``correct``: apply the
+    feasibility repair (default) or return the raw prediction; ``effort``: with the
+    repair's least-effort step candidates (default; :func:`jtraj.repair.make_repair`).
+
+    Coverage (``coverage_distance``, ``coverage_box``, ``ood``; :mod:`jtraj.coverage`):
+    with the training pairs in the model's metadata (models from
+    :func:`jtraj.anfis.trajectory.train_mapping`), the distance to the nearest one against
+    ``coverage_radius`` and the distance outside their box; otherwise, for a plan model,
+    the distance outside the model's input box (``coverage_kind`` says which); a
+    closed-loop model without training pairs has no coverage (``coverage_kind`` None,
+    never flagged).
     """
 
-    def __init__(self, model, robot=None, *, periods=None, tol: float = 1e-6, goal_tol: float = 1e-2):
+    def __init__(self, model, robot=None, *, periods=None, weights=None, correct: bool = True,
+                 effort: bool = True, tol: float = 1e-6, goal_tol: float = 1e-6):
         from jtraj import robots
 
         model = _load(model)
@@ -119,6 +161,12 @@ class Planner:
                                  f"model for robot {meta.get('robot')!r}, N = {meta.get('N')}")
         elif periods is not None:
             raise ValueError("periods= is for a nefotc model; a plan model predicts its own periods")
+        for name, x in (("correct", correct), ("effort", effort)):
+            if not isinstance(x, bool):
+                raise ValueError(f"{name} must be True or False, got {x!r}")
+        for name, x in (("tol", tol), ("goal_tol", goal_tol)):
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not np.isfinite(x) or x < 0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {x!r}")
         self.model, self.periods = model, periods
         if robot is None:
             robot = robots.get(meta["robot"], **({"h_max": meta["h_max"]} if meta.get("h_max") else {}))
@@ -128,73 +176,138 @@ class Planner:
         if meta["mapping"] == "plan":
             if model.n_inputs != 2 * self.n or model.n_outputs != self.N * (self.n + 1):
                 raise ValueError(f"model shapes ({model.n_inputs} inputs, {model.n_outputs} outputs) do not "
-                                 f"match robot {meta['robot']} (n = {self.n}) with N = {self.N}")
+                                 f"match robot {getattr(robot, 'name', meta['robot'])} (n = {self.n}) with "
+                                 f"N = {self.N}")
         else:
             z = jnp.zeros(self.n)
             for m in (model, periods):
-                d = model_inputs(m.metadata, self.robot, z, z, z, 0, self.N).shape[0]
+                try:
+                    d = model_inputs(m.metadata, self.robot, z, z, z, 0, self.N).shape[0]
+                except (TypeError, ValueError) as e:
+                    raise ValueError(f"the {m.metadata['mapping']} model does not fit the robot: {e}") from None
                 if d != m.n_inputs:
-                    raise ValueError(f"the {m.metadata['mapping']} model has {m.n_inputs} inputs, its metadata "
-                                     f"describes {d}")
-        self.tol, self.goal_tol = tol, goal_tol
-        self._plan = jax.jit(self._build() if periods is None else self._build_closed_loop())
+                    raise ValueError(f"the {m.metadata['mapping']} model has {m.n_inputs} inputs, the robot's "
+                                     f"state gives {d}")
+        if weights is None:
+            import jtraj
 
-    def _report(self, q, qd, v, h, h_raw, qg):
-        rb = self.robot
-        lim = rb.limits
-        tau = jax.vmap(rb.inverse_dynamics)(q[:-1], qd[:-1], v)
-        hv = jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h_raw, h_raw - lim.h_max) / lim.h_max, 0.0))
-        qv = jnp.zeros(())
-        if lim.q_min is not None:
-            qv = jnp.max(jnp.maximum(jnp.maximum(lim.q_min - q, q - lim.q_max) / (lim.q_max - lim.q_min), 0.0))
-        return Plan(q, qd, v, tau, h, jnp.sum(h), _excess(tau, lim.tau_max), _excess(qd, lim.qd_max), qv, hv,
-                    jnp.linalg.norm(q[-1] - qg), jnp.linalg.norm(qd[-1]))
+            weights = jtraj.Weights.parse(meta["weights"]) if meta.get("weights") else jtraj.Weights()
+        self.weights = weights
+        self.tol, self.goal_tol, self.correct, self.effort = float(tol), float(goal_tol), correct, effort
+        self._coverage()
+        core = self._core()
+        self._plan = jax.jit(core)
+        self._plan_batch = jax.jit(jax.vmap(core))
 
-    def _build(self):
-        f = self.model.predict_fn()
-        N, n = self.N, self.n
+    def _coverage(self):
+        from . import coverage
+
+        meta = self.model.metadata
+        if meta.get("train_pairs"):
+            pairs = np.asarray(meta["train_pairs"], float)
+            if pairs.ndim != 2 or pairs.shape[1] != 2 * self.n:
+                raise ValueError(f"the model's train_pairs have shape {pairs.shape}, expected (P, {2 * self.n})")
+            self.coverage_kind = "nearest training pair"
+            self.coverage_radius = coverage.radius(pairs)  # (recomputed: milliseconds for 1000s of pairs)
+            self._distance = coverage.distance_fn(pairs)
+        elif meta["mapping"] == "plan":
+            m = self.model.members[0] if hasattr(self.model, "members") else self.model
+            self.coverage_kind = "model input box"
+            self.coverage_radius = 0.0
+            self._distance = coverage.box_distance_fn(m.x_lo, m.x_span)
+        else:
+            self.coverage_kind, self.coverage_radius = None, 0.0
+            self._distance = lambda x: (jnp.zeros((), x.dtype), jnp.zeros((), x.dtype))
+
+    def _predict(self):
+        """``(q_start, q_goal) -> (q, qd, v, h)`` of the raw prediction (periods clipped into
+        the box)."""
         lim = self.robot.limits
+        N, n = self.N, self.n
+        if self.periods is None:
+            from .repair import rollout as integrate
 
-        def plan(qs, qg):
-            y = f(jnp.concatenate([qs, qg])[None, :])[0]
-            v = y[: N * n].reshape(N, n)
-            h_raw = y[N * n:]
-            h = jnp.clip(h_raw, lim.h_min, lim.h_max)
-            dqd = h[:, None] * v
-            qd = jnp.concatenate([jnp.zeros((1, n), v.dtype), jnp.cumsum(dqd, axis=0)])
-            dq = h[:, None] * qd[:-1] + 0.5 * (h**2)[:, None] * v
-            q = jnp.concatenate([qs[None], qs + jnp.cumsum(dq, axis=0)])
-            return self._report(q, qd, v, h, h_raw, qg)
-        return plan
+            f = self.model.predict_fn()
 
-    def _build_closed_loop(self):
+            def predict(qs, qg):
+                y = f(jnp.concatenate([qs, qg])[None, :])[0]
+                v = y[: N * n].reshape(N, n)
+                h = jnp.clip(y[N * n:], lim.h_min, lim.h_max)
+                q, qd = integrate(qs, jnp.zeros_like(qs), v, h)
+                return q, qd, v, h
+            return predict
         ctl, per = self.model.predict_fn(), self.periods.predict_fn()
         mc, mp = self.model.metadata, self.periods.metadata
-        rb, N = self.robot, self.N
-        lim = rb.limits
+        rb = self.robot
         tau_max = jnp.inf if lim.tau_max is None else lim.tau_max
 
-        def plan(qs, qg):
+        def predict(qs, qg):
             def step(state, k):
                 q, qd = state
                 tau = jnp.clip(ctl(model_inputs(mc, rb, q, qd, qg, k, N)[None])[0], -tau_max, tau_max)
-                h_raw = per(model_inputs(mp, rb, q, qd, qg, k, N)[None])[0, -1]
-                h = jnp.clip(h_raw, lim.h_min, lim.h_max)
+                h = jnp.clip(per(model_inputs(mp, rb, q, qd, qg, k, N)[None])[0, -1], lim.h_min, lim.h_max)
                 a = rb.forward_dynamics(q, qd, tau)
-                return (q + h * qd + 0.5 * h * h * a, qd + h * a), (q, qd, a, h, h_raw)
+                return (q + h * qd + 0.5 * h * h * a, qd + h * a), (q, qd, a, h)
 
-            (qN, qdN), (q, qd, v, h, h_raw) = jax.lax.scan(step, (qs, jnp.zeros_like(qs)), jnp.arange(N))
-            return self._report(jnp.concatenate([q, qN[None]]), jnp.concatenate([qd, qdN[None]]), v, h, h_raw, qg)
-        return plan
+            (qN, qdN), (q, qd, v, h) = jax.lax.scan(step, (qs, jnp.zeros_like(qs)), jnp.arange(N))
+            return jnp.concatenate([q, qN[None]]), jnp.concatenate([qd, qdN[None]]), v, h
+        return predict
+
+    def _core(self):
+        from .repair import cost_of, make_repair
+
+        predict, rb, lim = self._predict(), self.robot, self.robot.limits
+        repair = make_repair(rb, self.weights, effort=self.effort) if self.correct else None
+        weights, distance, radius = self.weights, self._distance, self.coverage_radius
+
+        def core(qs, qg):
+            q, qd, v, h = predict(qs, qg)
+            pred_err = jnp.linalg.norm(q[-1] - qg)
+            if repair is None:
+                tau = jax.vmap(rb.inverse_dynamics)(q[:-1], qd[:-1], v)
+                cost, s = cost_of(rb, weights, q, qd, tau, h), jnp.ones(())
+            else:
+                z = jnp.zeros_like(qs)
+                r = repair(qs, z, qg, z, v, h)
+                q, qd, v, h, tau, cost, s = r.q, r.qd, r.v, r.h, r.tau, r.cost, r.scale
+            hv = jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0))
+            qv = jnp.zeros(())
+            if lim.q_min is not None:
+                width = jnp.where(jnp.isfinite(lim.q_max - lim.q_min), lim.q_max - lim.q_min, 1.0)
+                qv = jnp.max(jnp.maximum(jnp.maximum(lim.q_min - q, q - lim.q_max) / width, 0.0))
+            parts = (_excess(tau, lim.tau_max), _excess(qd[1:], lim.qd_max), _excess(v, lim.qdd_max), qv, hv)
+            d, box = distance(jnp.concatenate([qs, qg]))
+            return Plan(q, qd, v, tau, h, jnp.sum(h), cost, jnp.max(jnp.stack(parts)), *parts,
+                        jnp.linalg.norm(q[-1] - qg), jnp.linalg.norm(qd[-1]), pred_err, s, d, box,
+                        (d > radius) | (box > BOX_MARGIN))
+        return core
+
+    def _inputs(self, q_start, q_goal):
+        """The start and goal as float arrays, checked on the host (no device round trip):
+        the messages of :func:`jtraj._checks.check_state`."""
+        out = []
+        for x, name in ((q_start, "q_start"), (q_goal, "q_goal")):
+            try:
+                arr = np.asarray(x, dtype=float)
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"{name} must be an array of numbers, got {x!r}") from err
+            if arr.ndim == 0 or arr.shape[-1] != self.n:
+                raise ValueError(f"{name} must have shape ({self.n},) (or (..., {self.n})), got shape {arr.shape}")
+            if not np.isfinite(arr).all():
+                raise ValueError(f"{name} must be finite (no NaN or inf)")
+            out.append(arr)
+        qs, qg = out
+        if qs.ndim > 2 or qs.shape != qg.shape:
+            raise ValueError(f"q_start and q_goal must both have shape ({self.n},) or (B, {self.n}), got "
+                             f"{qs.shape} and {qg.shape}")
+        return qs, qg
 
     def plan(self, q_start, q_goal) -> Plan:
-        """The predicted trajectory and its feasibility (one jitted call). ``ValueError``
-        where ``q_start`` or ``q_goal`` is not an (n,) vector of finite numbers."""
-        from ._checks import check_state
-
-        qs = jnp.asarray(np.asarray(check_state(q_start, "q_start", self.n), float).reshape(self.n))
-        qg = jnp.asarray(np.asarray(check_state(q_goal, "q_goal", self.n), float).reshape(self.n))
-        return self._plan(qs, qg)
+        """The plan and its report (one jitted call). ``q_start``, ``q_goal``: ``(n,)``, or
+        ``(B, n)`` for a batch (every field of the Plan then has a leading B axis).
+        ``ValueError`` where they are not finite numbers of those shapes."""
+        qs, qg = self._inputs(q_start, q_goal)
+        return self._plan(qs, qg) if qs.ndim == 1 else self._plan_batch(qs, qg)
 
     def check(self, q_start, q_goal) -> None:
         """``ValueError`` where ``q_start`` or ``q_goal`` is not what ``jtraj.Problem``
@@ -208,33 +321,52 @@ class Planner:
 
     __call__ = plan
 
-    def feasible(self, p: Plan) -> bool:
-        worst = max(float(p.tau_violation), float(p.qd_violation), float(p.q_violation))
-        return worst <= self.tol and float(p.goal_error) <= self.goal_tol
+    def feasible(self, p: Plan):
+        """Whether the plan meets every box within ``tol`` (relative) and the goal position
+        and velocity within ``goal_tol``: a bool, or a (B,) bool array for a batch."""
+        ok = ((np.asarray(p.violation) <= self.tol) & (np.asarray(p.goal_error) <= self.goal_tol)
+              & (np.asarray(p.goal_velocity) <= self.goal_tol))
+        return bool(ok) if ok.ndim == 0 else ok
+
+    def report(self, p: Plan) -> dict:
+        """A single plan as a JSON-able dict (the trajectory included)."""
+        out = dict(T=float(p.T), cost=float(p.cost), feasible=self.feasible(p), corrected=self.correct,
+                   violation=float(p.violation))
+        for k in ("tau_violation", "qd_violation", "qdd_violation", "q_violation", "h_violation", "goal_error",
+                  "goal_velocity", "predicted_goal_error", "scale"):
+            out[k] = float(getattr(p, k))
+        out["coverage"] = dict(kind=self.coverage_kind, distance=float(p.coverage_distance),
+                               radius=self.coverage_radius, outside_box=float(p.coverage_box),
+                               out_of_distribution=bool(p.ood))
+        out["out_of_distribution"] = bool(p.ood)
+        for k in ("q", "qd", "v", "tau", "h"):
+            out[k] = np.asarray(getattr(p, k)).tolist()
+        return out
 
     def query(self, q_start, q_goal, *, refine: bool = False, weights=None, options=None,
               warm: str = "primal", N: int | None = None) -> dict:
-        """Plan, report feasibility, and optionally refine with the exact solver.
+        """Plan, report feasibility, cost and coverage, and optionally refine with the exact
+        solver.
 
         ``q_start`` and ``q_goal`` are checked first (:meth:`check`: ``ValueError``).
         ``N``: intervals of the refined problem, by default the model's; another N
         warm-starts from the plan re-sampled onto N equal periods (the plan's acceleration
         at each new interval's midpoint), which keeps the plan's total time.
 
-        ``weights`` default to those of the training dataset (stored in the model's
-        metadata as ``"weights"``, e.g. ``"time=1,energy=0.1"``), else ``Weights()``.
-        Returns a JSON-able dict; with ``refine`` it adds the solver's status,
-        iterations, time, and the same solve from the solver's default initial guess
-        (the cycloid, slowed to meet the torque bounds) for comparison
-        (``cycloidal_iterations``, ``cycloidal_seconds``).
+        ``weights`` of the refined problem default to the planner's (the training
+        dataset's). Returns :meth:`report`'s dict with ``seconds`` (the plan's wall time,
+        Python included); with ``refine`` it adds the solver's status, iterations, time,
+        cost, the plan's ``gap`` to the refined optimum (``(cost - refined_cost) /
+        refined_cost``, where the refined solve converged with the plan's weights and N),
+        and the same solve from the solver's default initial guess (the cycloid, slowed to
+        meet the torque bounds) for comparison (``cycloidal_iterations``,
+        ``cycloidal_seconds``).
 
         ``warm``: ``"primal"`` (default) starts the solver at the plan with the
         multipliers and penalty of a cold start; ``"full"`` is ``jtraj.solve(init=...)``,
         which also estimates multipliers at the plan and starts the penalty at
-        ``penalty_max / 100``: right for a guess near an optimum, but the plan is not
-        (median goal error ~0.3 rad), and on 60 held-out serial3 pairs
-        ``"full"`` converged on 2/60 against 43/60 from the cycloidal start, ``"primal"``
-        on 45/60 with 0.85x the iterations (``jtraj.solve(..., warm=)``)."""
+        ``penalty_max / 100`` (``jtraj.solve(..., warm=)``; benchmarks/bench_online.py
+        compares them)."""
         if warm not in ("primal", "full"):
             raise ValueError(f"warm must be 'primal' or 'full', got {warm!r}")
         if N is not None and (isinstance(N, bool) or not isinstance(N, (int, np.integer)) or N < 2):
@@ -243,11 +375,7 @@ class Planner:
         self.check(q_start, q_goal)
         t0 = time.perf_counter()
         p = jax.block_until_ready(self.plan(q_start, q_goal))
-        out = dict(seconds=time.perf_counter() - t0, T=float(p.T), feasible=self.feasible(p),
-                   tau_violation=float(p.tau_violation), qd_violation=float(p.qd_violation),
-                   q_violation=float(p.q_violation), h_violation=float(p.h_violation),
-                   goal_error=float(p.goal_error), goal_velocity=float(p.goal_velocity),
-                   q=np.asarray(p.q).tolist(), h=np.asarray(p.h).tolist())
+        out = dict(seconds=time.perf_counter() - t0, **self.report(p))
         if self.robot.limits.tau_max is not None and np.all(np.isfinite(np.asarray(p.q))):
             # the plan holds v_k over each interval too: its efforts between the samples
             from .resample import intersample_effort
@@ -257,10 +385,9 @@ class Planner:
         if refine:
             import jtraj
 
-            if weights is None and self.model.metadata.get("weights"):
-                weights = jtraj.Weights.parse(self.model.metadata["weights"])  # the dataset's cost
-            kw = {} if weights is None else {"weights": weights}
-            prob = jtraj.Problem(self.robot, np.asarray(q_start, float), np.asarray(q_goal, float), N=N, **kw)
+            same_cost = weights is None
+            prob = jtraj.Problem(self.robot, np.asarray(q_start, float), np.asarray(q_goal, float), N=N,
+                                 weights=self.weights if weights is None else weights)
             out["refined_N"] = N
             # cycloidal first: in a fresh process it pays the compilation (shared with the
             # warm solve), so refined_seconds is a compiled solve's time
@@ -280,8 +407,9 @@ class Planner:
                 out[f"{label}_seconds"] = dt
                 out[f"{label}_T"] = float(np.asarray(sol.T))
                 out[f"{label}_converged"] = bool(np.asarray(sol.converged))
+            if same_cost and N == self.N and out["refined_converged"]:
+                out["gap"] = (out["cost"] - out["refined_cost"]) / abs(out["refined_cost"])
         return out
-
 
 
 def _resampled(v, h, N: int, limits):

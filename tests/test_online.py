@@ -219,7 +219,7 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
     from jtraj.online import Planner
 
     model, rep, _ = trajectory.train_mapping(data, "plan", n_rules=4, epochs=5)
-    planner = Planner(model)
+    planner = Planner(model, correct=False)  # the raw prediction (tests/test_online_plan.py: the repair)
     qs, qg = data["q_start"][0], data["q_goal"][0]
     p = planner.plan(qs, qg)
     assert p.q.shape == (11, 3) and p.tau.shape == (10, 3) and p.h.shape == (10,)
@@ -241,8 +241,10 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
     assert float(p.goal_error) == pytest.approx(np.linalg.norm(q_sim[-1] - qg), abs=1e-12)
     assert float(p.T) == pytest.approx(np.sum(np.asarray(p.h)), rel=1e-12)
     out = planner.query(qs, qg)
-    worst = max(out["tau_violation"], out["qd_violation"], out["q_violation"])
-    assert out["feasible"] == (worst <= planner.tol and out["goal_error"] <= planner.goal_tol)
+    worst = max(out["tau_violation"], out["qd_violation"], out["qdd_violation"], out["q_violation"],
+                out["h_violation"])
+    assert out["violation"] == worst
+    assert out["feasible"] == (worst <= planner.tol and max(out["goal_error"], out["goal_velocity"]) <= planner.goal_tol)
     assert out["goal_error"] == pytest.approx(float(p.goal_error), rel=1e-12)
     # the efforts between the samples reach at least those at the samples and at every
     # interval's end (Pinocchio: the new state with the interval's own acceleration)
@@ -251,7 +253,8 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
     assert lower - 1e-9 <= out["effort_between_samples"] <= lower * 1.5
     # an ensemble plans too: of two copies of the model, the model's own plan
     twin = anfis.Ensemble.from_models([model, model], [1.0, 3.0], model.metadata)
-    np.testing.assert_allclose(np.asarray(Planner(twin).plan(qs, qg).q), np.asarray(p.q), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(Planner(twin, correct=False).plan(qs, qg).q), np.asarray(p.q), rtol=1e-12,
+                               atol=1e-12)
     path = tmp_path / "otc.anfis"
     trajectory.train_mapping(data, "nefotc", n_rules=3, epochs=1)[0].save(path)
     with pytest.raises(ValueError, match="periods="):
@@ -287,7 +290,7 @@ def test_closed_loop_planner_rolls_the_controller_out_through_the_dynamics(tmp_p
         mine = model_inputs(m.metadata, robot, jnp.asarray(d["q"][i, k]), jnp.asarray(d["qd"][i, k]),
                             jnp.asarray(d["q_goal"][i]), k, 10)
         np.testing.assert_allclose(np.asarray(mine), X[13], rtol=1e-12, atol=1e-12)
-    planner = Planner(ctl, periods=per)
+    planner = Planner(ctl, periods=per, correct=False)  # the raw rollout
     assert float(planner.robot.limits.h_max) == 0.2
     qs, qg = d["q_start"][2], d["q_goal"][2]
     p = planner.plan(qs, qg)
@@ -322,7 +325,10 @@ def test_closed_loop_planner_rolls_the_controller_out_through_the_dynamics(tmp_p
                               json=str(tmp_path / "q.json")))
     assert cmd.run(args) == 0
     with open(args.json) as f:
-        assert json.load(f)["goal_error"] == pytest.approx(float(p.goal_error), rel=1e-9)
+        out = json.load(f)
+    # the command's plan is the repaired rollout: on the goal, and the rollout's own miss reported
+    assert out["predicted_goal_error"] == pytest.approx(float(p.goal_error), rel=1e-9)
+    assert out["goal_error"] <= 1e-9 and out["goal_velocity"] <= 1e-9 and out["corrected"]
     args.periods = None
     with pytest.raises(ValueError, match="--periods"):
         cmd.run(args)

@@ -366,6 +366,8 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     from 0.403 to 0.318 (worst 0.576 -> 0.428), at 1.5-8x the training time. Report:
     ``augment`` (``"mirror"`` or ``"none"``), ``augment_note`` (why not, with ``"auto"``).
     """
+    from jtraj import coverage
+
     from .ensemble import Ensemble
     from .training import train
 
@@ -419,6 +421,13 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     h_max = (meta.get("limits") or {}).get("h_max")
     if h_max is not None:
         md["h_max"] = float(h_max)  # the dataset's sampling-period bound (the Planner's robot)
+    # the training trajectories' (q_start, q_goal): the online planner's coverage
+    # (distance of a query to them, jtraj.coverage)
+    pairs = np.c_[np.asarray(data["q_start"], float), np.asarray(data["q_goal"], float)][np.unique(traj[tr])]
+    if not why_not:
+        pairs = np.r_[pairs, -pairs]  # the mirror images are training trajectories too
+    md["train_pairs"] = pairs.tolist()
+    md["coverage_radius"] = coverage.radius(pairs)
     t0 = time.perf_counter()
     options.setdefault("clip_outputs", True)  # targets bounded by the robot's limits (see Model)
     options.setdefault("ridge", 1e-6)  # as jtraj train: 1e-10 overfits sparse trajectory data

@@ -1,5 +1,7 @@
-"""Plan a trajectory for a start/goal pair with trained models, report its feasibility,
-and optionally refine it with the exact solver.
+"""Plan a trajectory for a start/goal pair with trained models, feasible by construction
+(jtraj.repair: goal reached, bounds restored by a time scaling), report its cost,
+violations and coverage (distance to the training pairs, out-of-distribution flag), and
+optionally refine it with the exact solver.
 
 Open loop: --model of mapping plan. Closed loop (the thesis' NeFOTC with NeFuMOP):
 --model of mapping nefotc (the torque controller) and --periods of mapping nefumop
@@ -98,15 +100,26 @@ def run(args) -> int:
                    else jtraj.SolverOptions(method=method))
     out = planner.query(q_start, q_goal, refine=args.refine, warm=getattr(args, "warm", "primal"),
                         weights=weights, options=options, N=getattr(args, "N", None))
-    print(f"plan: T = {out['T']:.4f} s, feasible = {out['feasible']}, goal error {out['goal_error']:.3g} rad, "
-          f"tau over limit {out['tau_violation']:.3g}, qd over limit {out['qd_violation']:.3g}"
-          + (f" (between the samples: up to {out['effort_between_samples']:.4f} x tau_max)"
+    cov = out["coverage"]
+    print(f"plan: T = {out['T']:.4f} s, cost {out['cost']:.6g}, feasible = {out['feasible']} (worst violation "
+          f"{out['violation']:.3g}, goal error {out['goal_error']:.3g} rad"
+          + (f", model's own goal error {out['predicted_goal_error']:.3g} rad, time scaling {out['scale']:.4g}"
+             if out["corrected"] else "") + ")"
+          + (f"; between the samples: efforts up to {out['effort_between_samples']:.4f} x tau_max"
              if "effort_between_samples" in out else ""))
+    if cov["kind"] is None:
+        print("coverage: unknown (the model records no training pairs)")
+    else:
+        print(f"coverage: distance {cov['distance']:.3g} to the {cov['kind']} (radius {cov['radius']:.3g}), "
+              f"{cov['outside_box']:.3g} outside the training box: "
+              + ("OUT OF DISTRIBUTION, the model has not seen such a query" if cov["out_of_distribution"]
+                 else "in distribution"))
     if args.refine:
         print(f"refined ({out['refined_warm']} warm start, N = {out['refined_N']}): {out['refined_status']} in "
               f"{out['refined_iterations']} iterations, {out['refined_seconds']:.2f} s "
               f"(cycloidal start: {out['cycloidal_iterations']} iterations, "
-              f"{out['cycloidal_seconds']:.2f} s, compilation included when not cached)")
+              f"{out['cycloidal_seconds']:.2f} s, compilation included when not cached)"
+              + (f"; plan's cost gap {100 * out['gap']:.2f} %" if "gap" in out else ""))
     if args.json:
         with open(args.json, "w") as f:
             json.dump(finite_json(out), f, indent=2, allow_nan=False)

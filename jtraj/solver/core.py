@@ -76,7 +76,8 @@ def solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, w
 def ip_run(nlp: NLP, state: ALState, opts: SolverOptions):
     """The interior-point method (:mod:`jtraj.solver.ipm`) from the state's start; a state the
     AL loop would not run (a warm start already optimal) takes no iteration."""
-    return ipm.run(nlp, state.z, jnp.where(state.done, 0, static_options(opts).ip_max_iter), ip_tolerances(opts))
+    return ipm.run(nlp, state.z, jnp.where(state.done, 0, static_options(opts).ip_max_iter), ip_tolerances(opts),
+                   static_options(opts).ip_mu_init)
 
 
 def ip_tolerances(opts) -> ipm.Tolerances:

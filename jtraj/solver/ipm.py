@@ -615,6 +615,7 @@ def loop(nlp, st: IPState, max_iter, tol, limit=None) -> IPState:
     return jax.lax.while_loop(cond, lambda s: step(nlp, s, tol), st)
 
 
-def run(nlp, z0, max_iter, tol) -> IPState:
-    """The interior-point loop from z0: at most ``max_iter`` iterations."""
-    return loop(nlp, init(nlp, z0), max_iter, tol)
+def run(nlp, z0, max_iter, tol, mu0=_MU0) -> IPState:
+    """The interior-point loop from z0 with first barrier parameter ``mu0``: at most
+    ``max_iter`` iterations."""
+    return loop(nlp, init(nlp, z0, mu0), max_iter, tol)

@@ -163,7 +163,7 @@ def _ip_init_batch_jit(nlps, states, opts):
     """The interior-point states of a batch (a state the AL loop would not run, a warm
     start already optimal, starts finished)."""
     def one(n, s):
-        st = ipm.init(n, s.z)
+        st = ipm.init(n, s.z, static_options(opts).ip_mu_init)
         return st._replace(done=s.done)
 
     return eqx.filter_vmap(one)(nlps, states)

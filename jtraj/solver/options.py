@@ -128,6 +128,8 @@ class SolverOptions(eqx.Module):
         ip_damping: floor of the interior-point method's damping shift, kept on the
             Hessian's diagonal after a step its line search cut to a quarter or less
             (default 1e-2; 0 switches it off).
+        ip_mu_init: the interior-point method's first barrier parameter (default 0.1); a
+            smaller one shortens the barrier schedule for a start near an optimum.
         ip_curvature: the interior-point method's Newton model of the dynamics terms
             (:mod:`jtraj.solver.curvature`). "exact": the Lagrangian's Hessian;
             "gauss_newton": without the effort multipliers' second derivatives of the
@@ -178,6 +180,7 @@ class SolverOptions(eqx.Module):
     ip_compl_tol: float = eqx.field(static=True, default=1e-5)
     ip_project_tol: float = eqx.field(static=True, default=1e-4)
     ip_damping: float = eqx.field(static=True, default=1e-2)
+    ip_mu_init: float = eqx.field(static=True, default=0.1)
     ip_curvature: str = eqx.field(static=True, default="auto")
 
     @classmethod
@@ -221,7 +224,7 @@ class SolverOptions(eqx.Module):
             if not ok:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         for name in ("tol_feasibility", "tol_optimality", "verify_tol", "penalty_init", "penalty_max",
-                     "damping_init", "restart_penalty_max", "pbm_init", "ip_tol"):
+                     "damping_init", "restart_penalty_max", "pbm_init", "ip_tol", "ip_mu_init"):
             value = getattr(self, name)
             try:
                 ok = 0 < float(value) < float("inf")  # NumPy scalars of any float width too

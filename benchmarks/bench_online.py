@@ -1,0 +1,305 @@
+"""Online planner benchmark: latency, feasibility, cost gap, coverage, batches, and exact
+refinement from the plan against cold and nearest-neighbour starts.
+
+    .venv/bin/python benchmarks/bench_online.py --data DATASET [--model PLAN.anfis]
+        [--pairs 40] [--repeat 2000] [--batch 4096] [--variants cold,plan_primal,...]
+        [--json benchmarks/figures/online.json]
+
+Figures in docs/guides/anfis.md ("What it reaches"), from
+``--data ds300 --model plan.anfis --pairs 40 --json benchmarks/figures/online.json`` with the
+dataset and model of that guide's commands. Issue #60 item 5. The planner model (mapping ``plan``, Sugeno order 0, as the anfis guide
+trains it) is trained here on the dataset's training split unless ``--model`` is given.
+Held-out pairs: the dataset's test split (last 10 % of its converged trajectories), topped
+up to ``--pairs`` with fresh pairs of the dataset's own sampling law (seed + 1000).
+
+Printed and written (``--json``):
+
+* latency of one jitted plan (``Planner._plan`` on device arrays, the repair and the
+  coverage included; median and p99 over ``--repeat`` calls cycling through the pairs),
+  of the Python call ``Planner.plan`` (input checks included) and of the model alone;
+* feasibility (each plan re-verified independently by ``jtraj_peers/verify.py``,
+  NumPy recursion and Pinocchio's RNEA, serial3 only: bounds within 1e-6 relative,
+  goal within 1e-6), the goal error, the raw model's goal error;
+* the cost gap ``(plan - optimum) / optimum`` to the exact solve from the cycloidal
+  guess, where it converged; the same for the nearest training trajectory (inputs
+  scaled as the coverage scales them) put through the same repair (a lookup baseline);
+* coverage: the share of held-out pairs flagged out of distribution, and of pairs drawn
+  with twice the dataset's step range (those with a step beyond the training range, and
+  the others);
+* batch: plans per second of ``Planner.plan`` on ``--batch`` fresh pairs (one jitted,
+  vmapped call, best of 5) and the share of them feasible;
+* refinement, one compiled solve per pair and variant, compilation excluded (one untimed
+  solve of each variant first): ``cold`` (default options from the cycloidal guess, the
+  exact warm solve's latency of the reference), ``plan_primal`` / ``plan_full``
+  (``jtraj.solve(init=plan, warm=...)``), ``nn_primal`` (from the nearest training
+  trajectory), ``plan_mu3`` (interior point with a shortened barrier schedule,
+  ``ip_mu_init=1e-3``, from the plan), ``al_cold`` / ``al_plan_full`` (the augmented-
+  Lagrangian method alone, cold and from the plan with multipliers estimated there):
+  Newton iterations, wall time, convergence, and the final cost against ``cold``'s
+  (the same optimum where within 1e-3 relative: the solver's optimality tolerance is 3e-4).
+
+Timings are of this machine's CPU, under whatever else runs on it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+VARIANTS = ("cold", "plan_primal", "plan_full", "nn_primal", "plan_mu3", "al_cold", "al_plan_full")
+
+
+def _lat(f, args_list, repeat):
+    jax.block_until_ready(f(*args_list[0]))
+    ts = np.empty(repeat)
+    for i in range(repeat):
+        a = args_list[i % len(args_list)]
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(*a))
+        ts[i] = time.perf_counter() - t0
+    return dict(median_us=float(np.median(ts) * 1e6), p99_us=float(np.percentile(ts, 99) * 1e6),
+                min_us=float(ts.min() * 1e6), p10_us=float(np.percentile(ts, 10) * 1e6))
+
+
+def _q(a, qs):
+    a = np.asarray(a, float)
+    return {f"p{q}": float(np.percentile(a, q)) for q in qs} | {"max": float(a.max()), "mean": float(a.mean())}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--model")
+    ap.add_argument("--pairs", type=int, default=40)
+    ap.add_argument("--repeat", type=int, default=2000)
+    ap.add_argument("--batch", type=int, default=4096)
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--json")
+    args = ap.parse_args(argv)
+    variants = [v for v in args.variants.split(",") if v]
+    bad = set(variants) - set(VARIANTS)
+    if bad:
+        raise SystemExit(f"unknown variants {sorted(bad)}; choose from {VARIANTS}")
+
+    import jtraj
+    from jtraj import anfis, dataset
+    from jtraj.anfis import trajectory
+    from jtraj.dataset import sampling
+    from jtraj.online import Planner
+    from jtraj.repair import make_repair
+
+    verify = None
+    data = dataset.load(args.data)
+    meta = data["metadata"]
+    h_max = (meta.get("limits") or {}).get("h_max")
+    robot = jtraj.robots.get(meta["robot"], **({"h_max": float(h_max)} if h_max else {}))
+    if meta["robot"] == "serial3":
+        from jtraj_peers import verify
+    N, n = int(meta["N"]), robot.n
+    wtext = meta.get("weights_text", "time=1,energy=0.1")
+    weights = jtraj.Weights.parse(wtext)
+    out = dict(robot=meta["robot"], N=N, weights=wtext, h_max=float(robot.limits.h_max))
+
+    X, Y, traj, _, _ = trajectory.view(data, "plan")
+    tr, te = trajectory.split(traj)
+    if args.model:
+        model = anfis.load(args.model, mapping="plan")
+    else:
+        t0 = time.perf_counter()
+        model, rep, _ = trajectory.train_mapping(data, "plan", order=0)
+        out["training"] = dict(seconds=time.perf_counter() - t0, test_rmse=rep["test_rmse"],
+                               linear_test_rmse=rep["linear_test_rmse"], knn_test_rmse=rep["knn_test_rmse"])
+    planner = Planner(model, robot, weights=weights)
+    out.update(model_rules=int(model.n_rules), coverage_kind=planner.coverage_kind,
+               coverage_radius=planner.coverage_radius)
+
+    qs_all, qg_all = np.asarray(data["q_start"], float), np.asarray(data["q_goal"], float)
+    test_ids = np.unique(traj[te])[: args.pairs]
+    pairs = [("test", qs_all[i], qg_all[i]) for i in test_ids]
+    ident = meta["identity"]["distribution"]
+    dist_kw = {k: ident[k] for k in ("space", "start_range", "step_range", "min_separation", "ik_method")}
+    seed = int(meta["identity"]["seed"]) + 1000
+    if len(pairs) < args.pairs:
+        fq0, fq1 = sampling.sample_pairs(robot, sampling.Distribution(**dist_kw), seed, 0, args.pairs - len(pairs))
+        pairs += [("fresh", a, b) for a, b in zip(fq0, fq1)]
+    P = len(pairs)
+    QS = np.array([p[1] for p in pairs])
+    QG = np.array([p[2] for p in pairs])
+    out["pairs"] = dict(total=P, test_split=int(sum(p[0] == "test" for p in pairs)))
+    print(f"{meta['robot']}, N = {N}, weights {wtext}; model {model.n_rules} rules; {P} held-out pairs "
+          f"({out['pairs']['test_split']} of the test split)")
+
+    # --- latency
+    dev = [(jnp.asarray(a), jnp.asarray(b)) for a, b in zip(QS, QG)]
+    lat = dict(plan_jitted=_lat(planner._plan, dev, args.repeat))
+    f_model = jax.jit(lambda x: model.predict_fn()(x[None])[0])
+    lat["model_only"] = _lat(f_model, [(jnp.concatenate(d),) for d in dev], args.repeat)
+    lat["plan_python_call"] = _lat(planner.plan, list(zip(QS, QG)), max(args.repeat // 4, 50))
+    lat["load_average_1min"] = os.getloadavg()[0]
+    lat["cpus"] = os.cpu_count()
+    out["latency"] = lat
+    print(f"latency (us, median / p99): plan jitted {lat['plan_jitted']['median_us']:.1f} / "
+          f"{lat['plan_jitted']['p99_us']:.1f} (min {lat['plan_jitted']['min_us']:.1f}); model alone "
+          f"{lat['model_only']['median_us']:.1f}; Planner.plan (checks included) "
+          f"{lat['plan_python_call']['median_us']:.1f}; load average {lat['load_average_1min']:.1f} on "
+          f"{lat['cpus']} CPUs")
+
+    # --- feasibility, goal, coverage of the held-out plans
+    pb = planner.plan(QS, QG)
+    tol = 1e-6
+    rows = []
+    for i in range(P):
+        r = dict(source=pairs[i][0], q_start=QS[i].tolist(), q_goal=QG[i].tolist(),
+                 cost=float(pb.cost[i]), T=float(pb.T[i]), violation=float(pb.violation[i]),
+                 goal_error=float(pb.goal_error[i]), predicted_goal_error=float(pb.predicted_goal_error[i]),
+                 scale=float(pb.scale[i]), coverage_distance=float(pb.coverage_distance[i]), ood=bool(pb.ood[i]))
+        if verify is not None:
+            chk = verify.verify(QS[i], QG[i], np.asarray(pb.v[i]), np.asarray(pb.h[i]), h_max=float(robot.limits.h_max),
+                                weights=(float(weights.time), float(weights.energy), float(weights.kinetic)), tol=tol)
+            r.update(verified=chk["ok"], verified_goal_error=chk["goal_error"],
+                     verified_violation=max(chk["max_rel_violation"].values()), verified_cost=chk["cost"])
+        rows.append(r)
+    feas = np.array([r.get("verified", planner.feasible(jax.tree.map(lambda a, i=i: a[i], pb))) for i, r in
+                     enumerate(rows)])
+    out["plans"] = dict(feasible=int(feas.sum()), of=P, verifier="jtraj_peers.verify (NumPy + Pinocchio)" if verify else
+                        "the planner's own report", goal_error=_q([r["goal_error"] for r in rows], (50, 90)),
+                        predicted_goal_error=_q([r["predicted_goal_error"] for r in rows], (50, 90)),
+                        ood=int(sum(r["ood"] for r in rows)))
+    print(f"plans: feasible {feas.sum()}/{P} (re-verified: {out['plans']['verifier']}, tol {tol}); goal error "
+          f"max {out['plans']['goal_error']['max']:.2e}; raw model's goal error median "
+          f"{out['plans']['predicted_goal_error']['p50']:.3g} rad; flagged out of distribution {out['plans']['ood']}/{P}")
+
+    # coverage on pairs twice as far apart as the dataset's
+    wide = sampling.Distribution(**(dist_kw | {"step_range": 2 * float(dist_kw["step_range"])}))
+    w0, w1 = sampling.sample_pairs(robot, wide, seed + 1, 0, 200)
+    # pairs with a step beyond the training law's range on some joint
+    far = np.max(np.abs(w1 - w0), axis=1) > float(dist_kw["step_range"])
+    pw = planner.plan(w0, w1)
+    ood_w = np.asarray(pw.ood)
+    out["coverage"] = dict(wide_pairs=int(len(w0)), beyond_range=int(far.sum()),
+                           beyond_range_flagged=int(ood_w[far].sum()), within_range=int((~far).sum()),
+                           within_range_flagged=int(ood_w[~far].sum()))
+    print(f"coverage: of {len(w0)} pairs drawn with twice the step range, those with a step beyond the training "
+          f"range flagged {ood_w[far].sum()}/{far.sum()}, the others {ood_w[~far].sum()}/{(~far).sum()}")
+
+    # --- batch throughput
+    b0, b1 = sampling.sample_pairs(robot, sampling.Distribution(**dist_kw), seed + 2, 0, args.batch)
+    B0, B1 = jnp.asarray(b0), jnp.asarray(b1)
+    jax.block_until_ready(planner._plan_batch(B0, B1))
+    best = np.inf
+    for _ in range(5):
+        t0 = time.perf_counter()
+        pbb = jax.block_until_ready(planner._plan_batch(B0, B1))
+        best = min(best, time.perf_counter() - t0)
+    bf = planner.feasible(pbb)
+    out["batch"] = dict(size=args.batch, seconds=best, plans_per_second=args.batch / best,
+                        feasible=int(bf.sum()), ood=int(np.asarray(pbb.ood).sum()))
+    print(f"batch of {args.batch}: {args.batch / best:,.0f} plans/s, feasible {bf.sum()}/{args.batch} "
+          f"(own report), flagged out of distribution {int(np.asarray(pbb.ood).sum())}")
+
+    # --- nearest training trajectory, repaired (lookup baseline), and its raw (v, h)
+    from jtraj import coverage
+
+    Xtr = X[tr]  # one row per training trajectory
+    Ytr = Y[tr]
+    lo, span = coverage.normaliser(Xtr)
+    A = (Xtr - lo) / span
+    nn = [int(np.argmin(np.sum(((np.r_[a, b] - lo) / span - A) ** 2, 1))) for a, b in zip(QS, QG)]
+    nn_v = np.array([Ytr[j][: N * n].reshape(N, n) for j in nn])
+    nn_h = np.array([Ytr[j][N * n:] for j in nn])
+    rep = jax.jit(jax.vmap(make_repair(robot, weights), in_axes=(0, None, 0, None, 0, 0)))
+    z = jnp.zeros(n)
+    nr = rep(jnp.asarray(QS), z, jnp.asarray(QG), z, jnp.asarray(nn_v), jnp.asarray(nn_h))
+    for i, r in enumerate(rows):
+        r["nn_repaired_cost"] = float(nr.cost[i])
+
+    # --- exact solves
+    opts = {"cold": jtraj.SolverOptions(), "plan_primal": jtraj.SolverOptions(),
+            "plan_full": jtraj.SolverOptions(), "nn_primal": jtraj.SolverOptions(),
+            "plan_mu3": jtraj.SolverOptions(ip_mu_init=1e-3), "al_cold": jtraj.SolverOptions(method="al"),
+            "al_plan_full": jtraj.SolverOptions(method="al")}
+
+    def run(label, i):
+        prob = jtraj.Problem(robot, QS[i], QG[i], N=N, weights=weights)
+        if label in ("cold", "al_cold"):
+            init, warm = None, "full"
+        elif label == "nn_primal":
+            init, warm = (jnp.asarray(nn_v[i]), jnp.asarray(nn_h[i])), "primal"
+        else:
+            init, warm = (pb.v[i], pb.h[i]), ("primal" if label == "plan_primal" else "full")
+        t0 = time.perf_counter()
+        sol = jtraj.solve(prob, init=init, options=opts[label], warm=warm)
+        jax.block_until_ready(sol.status)
+        dt = time.perf_counter() - t0
+        return dict(converged=bool(sol.converged), status=int(sol.status), iterations=int(sol.iterations),
+                    seconds=dt, cost=float(sol.cost))
+
+    t0 = time.perf_counter()
+    for lab in variants:
+        run(lab, 0)
+    out["compile_seconds"] = time.perf_counter() - t0
+    print(f"exact solves compiled ({', '.join(variants)}): {out['compile_seconds']:.0f} s", flush=True)
+    for i, r in enumerate(rows):
+        order = variants if i % 2 == 0 else variants[::-1]
+        for lab in order:
+            r[lab] = run(lab, i)
+        print(f"  {i + 1:3d}/{P} " + "  ".join(f"{lab} {r[lab]['iterations']:3d} it {r[lab]['seconds'] * 1e3:6.1f} ms"
+                                              + ("" if r[lab]["converged"] else " (not converged)")
+                                              for lab in variants), flush=True)
+
+    ref = "cold" if "cold" in variants else None
+    if ref:
+        ok = [r for r in rows if r[ref]["converged"]]
+        gap = np.array([(r["cost"] - r[ref]["cost"]) / abs(r[ref]["cost"]) for r in ok])
+        gnn = np.array([(r["nn_repaired_cost"] - r[ref]["cost"]) / abs(r[ref]["cost"]) for r in ok])
+        for r in ok:
+            r["gap"] = (r["cost"] - r[ref]["cost"]) / abs(r[ref]["cost"])
+        out["gap"] = dict(pairs=len(ok), plan=_q(gap, (50, 90)), nn_repaired=_q(gnn, (50, 90)),
+                          within_3pct_median=bool(np.median(gap) <= 0.03),
+                          within_10pct_p90=bool(np.percentile(gap, 90) <= 0.10))
+        print(f"cost gap to the exact optimum ({len(ok)} pairs where it converged): plan median "
+              f"{100 * np.median(gap):.2f} %, p90 {100 * np.percentile(gap, 90):.2f} %, max {100 * gap.max():.2f} %; "
+              f"nearest training trajectory repaired: median {100 * np.median(gnn):.2f} %, "
+              f"p90 {100 * np.percentile(gnn, 90):.2f} %")
+    ref_it = np.array([r[ref]["iterations"] for r in rows]) if ref else None
+    out["refine"] = {}
+    for lab in variants:
+        it = np.array([r[lab]["iterations"] for r in rows])
+        sec = np.array([r[lab]["seconds"] for r in rows])
+        conv = np.array([r[lab]["converged"] for r in rows])
+        s = dict(converged=int(conv.sum()), iterations=_q(it, (50, 90)), seconds=_q(sec, (50, 90)))
+        if ref and lab != ref:
+            both = [r for r in rows if r[lab]["converged"] and r[ref]["converged"]]
+            dc = np.array([(r[lab]["cost"] - r[ref]["cost"]) / abs(r[ref]["cost"]) for r in both])
+            s.update(iterations_ratio_median=float(np.median(it / np.maximum(ref_it, 1))),
+                     same_optimum=int(np.sum(np.abs(dc) <= 1e-3)) if len(both) else 0, both_converged=len(both),
+                     cost_rel_diff_max_abs=float(np.abs(dc).max()) if len(both) else None)
+        out["refine"][lab] = s
+        line = (f"{lab:13s}: converged {conv.sum()}/{P}, iterations median {np.median(it):.0f} (p90 "
+                f"{np.percentile(it, 90):.0f}), wall median {np.median(sec) * 1e3:.1f} ms")
+        if "iterations_ratio_median" in s:
+            line += (f"; per-pair iterations / cold median {s['iterations_ratio_median']:.2f}; same optimum "
+                     f"(cost within 1e-3, the solver's optimality tolerance 3e-4) {s['same_optimum']}/"
+                     f"{s['both_converged']}")
+        print(line)
+    if ref:
+        ratio = lat["plan_jitted"]["median_us"] / (out["refine"][ref]["seconds"]["p50"] * 1e6)
+        out["plan_latency_over_exact_solve"] = ratio
+        print(f"plan latency / exact compiled solve (median): {ratio:.4f}")
+    out["rows"] = rows
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(out, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

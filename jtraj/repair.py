@@ -1,0 +1,261 @@
+"""Feasibility repair of a predicted decoupled trajectory ``(v, h)``: a fixed, jitted
+correction that lands exactly on the goal state and restores the velocity,
+acceleration and effort bounds.
+
+The decoupled recursion (``q'' = v`` held over each period) is linear in ``v`` for
+fixed periods ``h``; its terminal state is
+
+    qd_N = qd_0 + sum_k h_k v_k,
+    q_N  = q_0 + T qd_0 + sum_k c_k v_k,   c_k = h_k (T - t_{k+1}) + h_k^2 / 2,
+
+two linear equations per joint (``t_{k+1} = h_0 + ... + h_k``). :func:`goal_projection`
+moves ``v`` onto them by the smallest change in ``sum_k h_k |dv_k|^2`` (the time
+integral of the squared acceleration change): one 2x2 solve shared by all joints.
+
+A uniform time scaling ``h -> s h``, ``v -> v / s^2`` keeps every sample ``q_k`` (so the
+goal stays reached) and divides ``qd`` by ``s``. For a robot whose efforts are homogeneous
+of degree two in the time derivatives (no gravity, friction or drive damping:
+``tau(q, qd / s, v / s^2) = tau(q, qd, v) / s^2``, :func:`is_homogeneous`) the bounds
+then read ``s >= |qd| / qd_max``, ``s^2 >= |v| / qdd_max``, ``s^2 >= |tau| / tau_max``
+and the cost of the scaled plan is
+
+    J(s) = (time T + singularity sum_k h_k w(q_k)) s + (sum_k h_k qd_k^T Q qd_k) / s
+           + (sum_k h_k tau_k^T U tau_k) / s^3,
+
+convex in ``s``, minimised in closed form (a quadratic in ``s^2``): :func:`make_repair`
+takes the smallest ``s`` of the feasible ones that is at least that minimiser, within the
+period box ``h_min <= s h_k <= h_max``. For other robots it takes the cheapest feasible
+``s`` of a fixed log-spaced grid over the period box (the efforts evaluated at every grid
+point).
+
+Four candidates are repaired side by side: the predicted periods (clipped into the
+box) and uniform periods of the same total time (which leave the time scaling the
+widest period box), each with the projected accelerations and with one
+:func:`effort_step` from them (a Gauss-Newton step towards less effort on the goal,
+kept near the prediction); the feasible one of lower cost is returned, else the one of
+smaller violation. The returned plan is recomputed from its ``(v, h)`` by the recursion and
+the robot's inverse dynamics: its reported violations are measured, not assumed.
+Joint, workspace and path constraints are measured, not repaired.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+#: points of the time-scaling grid for robots whose efforts are not homogeneous
+GRID = 32
+#: weight of the distance to the prediction in :func:`effort_step`, relative to the
+#: effort term's mean curvature
+RHO = 1.0
+
+
+class Repaired(NamedTuple):
+    v: jax.Array  # (N, n)
+    h: jax.Array  # (N,)
+    q: jax.Array  # (N+1, n)
+    qd: jax.Array  # (N+1, n)
+    tau: jax.Array  # (N, m)
+    cost: jax.Array
+    scale: jax.Array  # the time scaling s of the chosen candidate
+    uniform: jax.Array  # whether the chosen candidate has uniform periods
+
+
+def rollout(q0, qd0, v, h):
+    """(q, qd), each (N+1, n): the decoupled recursion by cumulative sums (on a CPU
+    about 5x faster under ``vmap`` than :func:`jtraj.transcription.integrate`'s prefix
+    sums, which suit the solver's derivatives)."""
+    qd = qd0 + jnp.concatenate([jnp.zeros((1,) + v.shape[1:], v.dtype), jnp.cumsum(h[:, None] * v, axis=0)])
+    dq = h[:, None] * qd[:-1] + 0.5 * (h**2)[:, None] * v
+    return jnp.concatenate([q0[None], q0 + jnp.cumsum(dq, axis=0)]), qd
+
+
+def _quad(x, M):
+    """``x_k^T M x_k`` for each row of x."""
+    return jnp.sum((x @ M) * x, axis=-1)
+
+
+def terminal_rows(h):
+    """(2, N): rows ``h_k`` and ``c_k`` of the terminal map (module doc)."""
+    t_next = jnp.cumsum(h)
+    T = t_next[-1]
+    return jnp.stack([h, h * (T - t_next) + 0.5 * h**2])
+
+
+def goal_projection(q0, qd0, q_goal, qd_goal, v, h):
+    """``v`` (N, n) moved onto ``q_N = q_goal``, ``qd_N = qd_goal`` by the smallest change
+    in ``sum_k h_k |dv_k|^2`` (module doc), for periods ``h`` (N,) > 0."""
+    A = terminal_rows(h)
+    T = jnp.sum(h)
+    target = jnp.stack([qd_goal - qd0, q_goal - q0 - T * qd0])  # (2, n)
+    r = target - A @ v
+    Winv_At = (A / h).T  # (N, 2): W^{-1} A^T with W = diag(h)
+    G = A @ Winv_At  # symmetric positive definite 2x2: inverted in closed form
+    Ginv = jnp.array([[G[1, 1], -G[0, 1]], [-G[1, 0], G[0, 0]]]) / (G[0, 0] * G[1, 1] - G[0, 1] * G[1, 0])
+    return v + Winv_At @ (Ginv @ r)
+
+
+def effort_step(robot, U, q0, qd0, q_goal, qd_goal, v, h, rho):
+    """One Gauss-Newton step from ``v`` (on the goal) towards the accelerations of least
+    effort ``sum_k h_k tau_k^T U tau_k + rho sum_k h_k |v_k - v_k^0|^2`` on the goal state:
+    the efforts linearised in ``v`` at the states of ``v`` (``tau_k ~ J_k v_k + c_k``,
+    ``J_k = dtau/dv``), the goal's 2n linear equations kept exactly. The KKT system is
+    block diagonal in the samples but for the 2n multipliers: N n x n solves and one
+    2n x 2n solve."""
+    n = v.shape[1]
+    A = terminal_rows(h)
+    target = jnp.stack([qd_goal - qd0, q_goal - q0 - jnp.sum(h) * qd0])  # (2, n)
+    q, qd = rollout(q0, qd0, v, h)
+    tau, J = jax.vmap(lambda a, b, c: (robot.inverse_dynamics(a, b, c),
+                                       jax.jacfwd(robot.inverse_dynamics, argnums=2)(a, b, c)))(q[:-1], qd[:-1], v)
+    c = tau - jnp.einsum("kij,kj->ki", J, v)
+    H = h[:, None, None] * (jnp.einsum("kji,jl,klm->kim", J, U, J) + rho * jnp.eye(n))  # halved Hessian
+    g = h[:, None] * (jnp.einsum("kji,jl,kl->ki", J, U, c) - rho * v)
+    Hinv = jnp.linalg.inv(H)
+    # v_k = -Hinv_k (g_k + sum_r A[r, k] lam_r); A v = target gives S lam = -A Hinv g - target
+    Hg = jnp.einsum("kij,kj->ki", Hinv, g)
+    S = jnp.einsum("rk,sk,kij->risj", A, A, Hinv).reshape(2 * n, 2 * n)
+    lam = jnp.linalg.solve(S, (-(A @ Hg) - target).reshape(2 * n)).reshape(2, n)
+    return -Hg - jnp.einsum("kij,kj->ki", Hinv, A.T @ lam)
+
+
+def is_homogeneous(robot, trials: int = 3, seed: int = 0) -> bool:
+    """Whether ``robot``'s efforts satisfy ``tau(q, qd / s, v / s^2) = tau(q, qd, v) / s^2``
+    (tested at random states, s = 2, relative tolerance 1e-9): rigid bodies without
+    gravity, friction or drive damping."""
+    rng = np.random.default_rng(seed)
+    n = robot.n
+    for _ in range(trials):
+        q, qd, v = (jnp.asarray(rng.uniform(-1, 1, n)) for _ in range(3))
+        t1 = np.asarray(robot.inverse_dynamics(q, qd, v))
+        t2 = np.asarray(robot.inverse_dynamics(q, qd / 2, v / 4)) * 4
+        if not np.all(np.abs(t1 - t2) <= 1e-9 * (1 + np.abs(t1))):
+            return False
+    return True
+
+
+def _ratio(x, bound):
+    """Largest |x| / bound (0 without a bound)."""
+    if bound is None:
+        return jnp.zeros(())
+    return jnp.max(jnp.abs(x) / bound)
+
+
+def cost_of(robot, weights, q, qd, tau, h):
+    """The cost of :class:`jtraj.Weights` (``sum_k h_k [time + tau_k^T U tau_k +
+    qd_k^T Q qd_k + singularity w(q_k)]``, k < N) of a trajectory."""
+    U, Q = weights.matrices(robot)
+    c = weights.time * h + h * _quad(tau, U)
+    if weights.has_kinetic:
+        c = c + h * _quad(qd[:-1], Q)
+    if weights.has_singularity:
+        w = jax.vmap(robot.manipulability)(q[:-1])
+        c = c + weights.singularity * h / jnp.maximum(w, 1e-9)
+    return jnp.sum(c)
+
+
+def violation(robot, q, qd, v, tau, h):
+    """Largest relative excess over the robot's boxes (0 when within): efforts, joint
+    velocities (samples 1..N), accelerations, joint positions (relative to the box
+    width) and periods (relative to h_max)."""
+    lim = robot.limits
+    ex = [jnp.maximum(_ratio(tau, lim.tau_max) - 1, 0.0), jnp.maximum(_ratio(qd[1:], lim.qd_max) - 1, 0.0),
+          jnp.maximum(_ratio(v, lim.qdd_max) - 1, 0.0),
+          jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0))]
+    if lim.q_min is not None:
+        width = jnp.where(jnp.isfinite(lim.q_max - lim.q_min), lim.q_max - lim.q_min, 1.0)
+        ex.append(jnp.max(jnp.maximum(jnp.maximum(lim.q_min - q, q - lim.q_max) / width, 0.0)))
+    return jnp.max(jnp.stack(ex))
+
+
+def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = GRID, rho: float | None = None,
+                effort: bool = True):
+    """``repair(q0, qd0, q_goal, qd_goal, v, h) -> Repaired``: a jit-, vmap-able pure function
+    (see the module doc). ``homogeneous`` defaults to :func:`is_homogeneous` (tested here,
+    on the host). ``effort=False`` leaves out the two :func:`effort_step` candidates (about
+    half the work; a costlier plan in the tail)."""
+    lim = robot.limits
+    if homogeneous is None:
+        homogeneous = is_homogeneous(robot)
+    ID = jax.vmap(robot.inverse_dynamics)
+    h_min, h_max = lim.h_min, lim.h_max
+
+    def states(q0, qd0, v, h):
+        q, qd = rollout(q0, qd0, v, h)
+        return q, qd, ID(q[:-1], qd[:-1], v)
+
+    def scaled(q0, qd0, v, h, s):
+        q, qd, tau = states(q0, qd0, v / s**2, h * s)
+        return q, qd, tau, v / s**2, h * s
+
+    def s_range(h):
+        return jnp.max(h_min / h), jnp.min(h_max / h)
+
+    def scale_homogeneous(q, qd, tau, v, h):
+        s_f = jnp.maximum(jnp.maximum(_ratio(qd, lim.qd_max), jnp.sqrt(_ratio(v, lim.qdd_max))),
+                          jnp.sqrt(_ratio(tau, lim.tau_max))) * (1 + 1e-12)
+        U, Q = weights.matrices(robot)
+        B = jnp.sum(h * _quad(tau, U))
+        C = jnp.sum(h * _quad(qd[:-1], Q)) if weights.has_kinetic else 0.0
+        A = weights.time * jnp.sum(h)
+        if weights.has_singularity:
+            A = A + weights.singularity * jnp.sum(h / jnp.maximum(jax.vmap(robot.manipulability)(q[:-1]), 1e-9))
+        # J'(s) = A - C / s^2 - 3 B / s^4 = 0: A x^2 - C x - 3 B = 0 in x = s^2
+        safe_A = jnp.where(A > 0, A, 1.0)
+        x = (C + jnp.sqrt(C**2 + 12 * A * B)) / (2 * safe_A)
+        s_lo, s_hi = s_range(h)
+        s_opt = jnp.where(A > 0, jnp.sqrt(x), s_hi)
+        return jnp.minimum(jnp.maximum(jnp.maximum(s_opt, s_f), s_lo), s_hi)
+
+    def scale_grid(q0, qd0, v, h):
+        s_lo, s_hi = s_range(h)
+        ss = jnp.exp(jnp.linspace(jnp.log(s_lo), jnp.log(s_hi), grid))
+
+        def one(s):
+            q, qd, tau, vs, hs = scaled(q0, qd0, v, h, s)
+            return violation(robot, q, qd, vs, tau, hs), cost_of(robot, weights, q, qd, tau, hs)
+
+        viol, cost = jax.vmap(one)(ss)
+        ok = viol <= 0
+        pick = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
+        return ss[pick]
+
+    rho = RHO if rho is None else rho
+    U = weights.matrices(robot)[0]
+    # the effort term's curvature scale: rho relative to it keeps the step's Hessian
+    # positive definite whatever the energy weight
+    u_scale = jnp.maximum(jnp.trace(U) / U.shape[0], 1e-12)
+
+    def candidate(q0, qd0, q_goal, qd_goal, v, h, step):
+        v = goal_projection(q0, qd0, q_goal, qd_goal, v, h)
+        v = jnp.where(step, effort_step(robot, U, q0, qd0, q_goal, qd_goal, v, h, rho * u_scale), v)
+        if homogeneous:
+            # the scaled plan's states and efforts follow from the unscaled ones: same q,
+            # qd / s, tau / s^2 (exact, up to rounding; the tests re-verify them)
+            q, qd, tau = states(q0, qd0, v, h)
+            s = scale_homogeneous(q, qd, tau, v, h)
+            qd, tau, vs, hs = qd / s, tau / s**2, v / s**2, h * s
+        else:
+            s = scale_grid(q0, qd0, v, h)
+            q, qd, tau, vs, hs = scaled(q0, qd0, v, h, s)
+        err = jnp.maximum(jnp.linalg.norm(q[-1] - q_goal), jnp.linalg.norm(qd[-1] - qd_goal))
+        return (vs, hs, q, qd, tau, cost_of(robot, weights, q, qd, tau, hs), s,
+                jnp.maximum(violation(robot, q, qd, vs, tau, hs), err))
+
+    def repair(q0, qd0, q_goal, qd_goal, v, h):
+        h = jnp.clip(h, h_min, h_max)
+        hs = jnp.stack([h, jnp.full_like(h, jnp.mean(h))] * (2 if effort else 1))
+        steps = jnp.array([False, False, True, True] if effort else [False, False])
+        out = jax.vmap(candidate, in_axes=(None, None, None, None, None, 0, 0))(q0, qd0, q_goal, qd_goal, v, hs,
+                                                                               steps)
+        cost, viol = out[5], out[7]
+        ok = viol <= 1e-9
+        i = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
+        vs, hh, q, qd, tau, c, s, _ = (a[i] for a in out)
+        return Repaired(vs, hh, q, qd, tau, c, s, i % 2 == 1)
+
+    return repair

@@ -1,0 +1,326 @@
+"""The online planner's feasibility repair (jtraj.repair), batches and coverage
+(jtraj.coverage), every plan re-verified independently: states re-simulated in NumPy,
+efforts from Pinocchio's RNEA (jtraj_peers/verify.py), bounds and goal checked
+with stated tolerances."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jtraj import Weights, coverage, robots
+from jtraj.repair import cost_of, goal_projection, is_homogeneous, make_repair
+
+V = pytest.importorskip("jtraj_peers.verify")
+
+W = Weights(time=1.0, energy=0.1)
+N, n = 20, 3
+
+
+def _prediction(rng, scale=1.0):
+    """A start/goal pair and a predicted (v, h) of the kind a model makes: the cycloid's
+    accelerations over random periods, plus noise of relative size ``scale``."""
+    qs = rng.uniform(-1.2, 1.2, n)
+    qg = qs + rng.uniform(-0.4, 0.4, n)  # within reach of T <= N h_max = 2 s
+    h = rng.uniform(0.05, 0.09, N)
+    t = np.cumsum(h) - h / 2
+    T = h.sum()
+    v = np.outer(np.sin(2 * np.pi * t / T), (qg - qs) * 2 * np.pi / T**2)
+    v = v * (1 + scale * rng.normal(0.0, 1.0, (N, n))) + 0.1 * scale * rng.normal(0.0, 1.0, (N, n))
+    return qs, qg, v, h
+
+
+def _recursion(q0, qd0, v, h):
+    """The decoupled recursion, written out step by step."""
+    q, qd = [np.asarray(q0, float)], [np.asarray(qd0, float) * np.ones(n)]
+    for k in range(len(h)):
+        q.append(q[-1] + h[k] * qd[-1] + 0.5 * h[k] ** 2 * v[k])
+        qd.append(qd[-1] + h[k] * v[k])
+    return np.array(q), np.array(qd)
+
+
+def test_goal_projection_is_the_weighted_least_change_onto_the_goal():
+    rng = np.random.default_rng(1)
+    qs, qg, v, h = _prediction(rng)
+    qd0, qdg = rng.normal(0, 0.3, n), rng.normal(0, 0.3, n)
+    w = np.asarray(goal_projection(*map(jnp.asarray, (qs, qd0, qg, qdg, v, h))))
+    q, qd = _recursion(qs, qd0, w, h)
+    np.testing.assert_allclose(q[-1], qg, atol=1e-12)
+    np.testing.assert_allclose(qd[-1], qdg, atol=1e-12)
+    # the minimiser of sum_k h_k |dv_k|^2 subject to the terminal state, from the KKT system
+    # built here from the step-by-step recursion's linear map (unit impulses)
+    E = np.zeros((2, N))
+    for k in range(N):
+        e = np.zeros((N, n))
+        e[k] = 1.0
+        qe, qde = _recursion(np.zeros(n), np.zeros(n), e, h)
+        E[:, k] = qde[-1, 0], qe[-1, 0]
+    q0, qd0_end = _recursion(qs, qd0, v, h)
+    r = np.stack([qdg - qd0_end[-1], qg - q0[-1]])
+    K = np.block([[np.diag(2 * h), E.T], [E, np.zeros((2, 2))]])
+    dv = np.linalg.solve(K, np.r_[np.zeros((N, n)), r])[:N]
+    np.testing.assert_allclose(w - v, dv, rtol=1e-9, atol=1e-10)
+
+
+def test_effort_step_solves_the_linearised_least_effort_problem_on_the_goal():
+    from jtraj.repair import effort_step
+
+    rb = robots.get("serial3")
+    rng = np.random.default_rng(7)
+    qs, qg, v, h = _prediction(rng, 0.3)
+    z = np.zeros(n)
+    v0 = np.asarray(goal_projection(*map(jnp.asarray, (qs, z, qg, z, v, h))))
+    U = np.asarray(W.matrices(rb)[0])
+    rho = 0.05
+    v1 = np.asarray(effort_step(rb, jnp.asarray(U), *map(jnp.asarray, (qs, z, qg, z, v0, h)), rho))
+    q, qd = _recursion(qs, z, v1, h)
+    np.testing.assert_allclose(q[-1], qg, atol=1e-10)
+    np.testing.assert_allclose(qd[-1], 0.0, atol=1e-10)
+    # the same quadratic programme, dense: efforts linearised by central differences of the
+    # inverse dynamics at the states of v0, the goal's equations from the recursion
+    q0, qd0 = _recursion(qs, z, v0, h)
+    ID = lambda a, b, c: np.asarray(rb.inverse_dynamics(jnp.asarray(a), jnp.asarray(b), jnp.asarray(c)))  # noqa
+    Hd = np.zeros((N * n, N * n))
+    gd = np.zeros(N * n)
+    for k in range(N):
+        J = np.stack([(ID(q0[k], qd0[k], v0[k] + 1e-6 * e) - ID(q0[k], qd0[k], v0[k] - 1e-6 * e)) / 2e-6
+                      for e in np.eye(n)], axis=1)
+        c = ID(q0[k], qd0[k], v0[k]) - J @ v0[k]
+        Hd[k * n:(k + 1) * n, k * n:(k + 1) * n] = h[k] * (J.T @ U @ J + rho * np.eye(n))
+        gd[k * n:(k + 1) * n] = h[k] * (J.T @ U @ c - rho * v0[k])
+    E = np.zeros((2 * n, N * n))  # rows: qd_N then q_N, per joint
+    for k in range(N):
+        for j in range(n):
+            e = np.zeros((N, n))
+            e[k, j] = 1.0
+            qe, qde = _recursion(np.zeros(n), np.zeros(n), e, h)
+            E[:n, k * n + j], E[n:, k * n + j] = qde[-1], qe[-1]
+    K = np.block([[Hd, E.T], [E, np.zeros((2 * n, 2 * n))]])
+    rhs = np.r_[-gd, np.zeros(n), qg - qs]
+    ref = np.linalg.solve(K, rhs)[:N * n].reshape(N, n)
+    np.testing.assert_allclose(v1, ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
+
+
+def test_homogeneity_test_tells_the_horizontal_arm_from_the_geared_vertical_one():
+    assert is_homogeneous(robots.get("serial3"))
+    assert not is_homogeneous(robots.get("serial3_vertical"))  # gravity and motor damping
+
+
+@pytest.fixture(scope="module")
+def serial3_repair():
+    return jax.jit(jax.vmap(make_repair(robots.get("serial3"), W), in_axes=(0, None, 0, None, 0, 0)))
+
+
+def test_repaired_plans_are_feasible_and_the_cheapest_time_scaling(serial3_repair):
+    rng = np.random.default_rng(2)
+    P = [_prediction(rng, scale) for scale in (0.3, 1.0, 0.0, 0.05, 0.5, 0.2)]
+    qs, qg, v, h = (np.array([p[i] for p in P]) for i in range(4))
+    z = jnp.zeros(n)
+    r = serial3_repair(jnp.asarray(qs), z, jnp.asarray(qg), z, jnp.asarray(v), jnp.asarray(h))
+    lim = robots.get("serial3").limits
+    costs_checked = feasible = 0
+    for i in range(len(P)):
+        vi, hi = np.asarray(r.v[i]), np.asarray(r.h[i])
+        chk = V.verify(qs[i], qg[i], vi, hi, weights=(1.0, 0.1, 0.0), tol=1e-9)
+        # the goal to 1e-9 (rounding), every box to 1e-9 relative, unless the time scaling
+        # ran into the period bound (then the remaining excess is the efforts')
+        if not chk["ok"]:
+            assert chk["goal_error"] <= 1e-9 and hi.max() == pytest.approx(float(lim.h_max), rel=1e-12)
+            continue
+        feasible += 1
+        np.testing.assert_allclose(r.q[i], chk["q"], atol=1e-12)
+        np.testing.assert_allclose(r.tau[i], chk["tau"], rtol=1e-9, atol=1e-9)
+        assert float(r.cost[i]) == pytest.approx(chk["cost"], rel=1e-12)
+        # the samples q_k are those of the projected prediction (time scaling keeps them) or
+        # of its uniform-period twin
+        # a uniform time scaling s(1 +- 1e-3) of the plan is either infeasible or dearer
+        for f in (1 - 1e-3, 1 + 1e-3):
+            hs = hi * f
+            if hs.max() > float(lim.h_max) or hs.min() < float(lim.h_min):
+                continue
+            other = V.verify(qs[i], qg[i], vi / f**2, hs, weights=(1.0, 0.1, 0.0), tol=1e-9)
+            assert not other["ok"] or other["cost"] >= chk["cost"] - 1e-12
+            costs_checked += other["ok"]
+    assert feasible >= 4 and costs_checked >= 1  # a time scaling set by the cost
+
+
+def test_repair_of_an_optimum_keeps_it():
+    # an optimal trajectory (time scaling at its cost minimum, on the goal) is a fixed
+    # point up to the active bounds' rounding: cost and time within 1e-6
+    rb = robots.get("serial3")
+    rep = jax.jit(make_repair(rb, W))
+    rng = np.random.default_rng(3)
+    qs, qg, v, h = _prediction(rng, 0.3)
+    z = jnp.zeros(n)
+    r1 = rep(jnp.asarray(qs), z, jnp.asarray(qg), z, jnp.asarray(v), jnp.asarray(h))
+    r2 = rep(jnp.asarray(qs), z, jnp.asarray(qg), z, r1.v, r1.h)
+    assert float(r2.cost) == pytest.approx(float(r1.cost), rel=1e-9)
+    assert float(r2.scale) == pytest.approx(1.0, abs=1e-9)
+
+
+def test_non_homogeneous_robot_takes_the_cheapest_feasible_grid_scaling():
+    rb = robots.get("serial3_vertical", h_max=0.3)
+    rep = jax.jit(make_repair(rb, W, grid=16))
+    rng = np.random.default_rng(4)
+    qs, qg, v, h = _prediction(rng, 0.5)
+    z = jnp.zeros(n)
+    r = rep(jnp.asarray(qs), z, jnp.asarray(qg), z, jnp.asarray(v), jnp.asarray(h))
+    q, qd = _recursion(qs, z, np.asarray(r.v), np.asarray(r.h))
+    np.testing.assert_allclose(q[-1], qg, atol=1e-10)
+    np.testing.assert_allclose(qd[-1], 0.0, atol=1e-10)
+    tau = np.asarray(jax.vmap(rb.inverse_dynamics)(jnp.asarray(q[:-1]), jnp.asarray(qd[:-1]), r.v))
+    lim = rb.limits
+    assert np.max(np.abs(tau) / np.asarray(lim.tau_max)) <= 1 + 1e-9
+    assert np.max(np.abs(qd) / np.asarray(lim.qd_max)) <= 1 + 1e-9
+    assert np.max(np.abs(np.asarray(r.v)) / np.asarray(lim.qdd_max)) <= 1 + 1e-9
+    assert float(lim.h_min) - 1e-12 <= np.min(np.asarray(r.h)) and np.max(np.asarray(r.h)) <= float(lim.h_max) + 1e-12
+    assert float(r.cost) == pytest.approx(float(cost_of(rb, W, jnp.asarray(q), jnp.asarray(qd), jnp.asarray(tau),
+                                                        r.h)), rel=1e-9)
+
+
+def test_coverage_radius_and_distances_by_brute_force():
+    rng = np.random.default_rng(5)
+    starts = rng.uniform(-1, 1, (30, 3))
+    steps = rng.uniform(-0.5, 0.5, (30, 3))
+    steps[:, 2] = 0.25  # a constant feature keeps span 1
+    pairs = np.c_[starts, starts + steps]
+    F = np.c_[starts, steps]  # the features, written out
+    lo, span = F.min(0), np.where(np.ptp(F, 0) > 0, np.ptp(F, 0), 1.0)
+    A = (F - lo) / span
+    D = np.linalg.norm(A[:, None] - A[None], axis=2)
+    np.fill_diagonal(D, np.inf)
+    assert coverage.radius(pairs) == pytest.approx(D.min(1).max(), rel=1e-12)
+    assert coverage.radius(pairs, chunk=7) == pytest.approx(D.min(1).max(), rel=1e-12)
+    dist = coverage.distance_fn(pairs)
+    x = np.r_[starts[0] + 0.01, starts[0] + 0.01 + steps[0]]
+    u = (np.r_[x[:3], x[3:] - x[:3]] - lo) / span
+    near, box = dist(jnp.asarray(x))
+    assert float(near) == pytest.approx(np.linalg.norm(u - A, axis=1).min(), rel=1e-7)
+    assert float(box) == pytest.approx(np.linalg.norm(np.maximum(np.maximum(-u, u - 1), 0)), abs=1e-12)
+    near, box = dist(jnp.asarray(pairs[4]))
+    assert float(near) == pytest.approx(0.0, abs=1e-7) and float(box) <= 1e-12
+    # a step longer than any training step lies outside the box, from a training start
+    i = int(np.argmax(steps[:, 0]))
+    long = np.r_[starts[i], starts[i] + steps[i] + 0.4 * np.r_[1, 0, 0]]
+    assert float(dist(jnp.asarray(long))[1]) == pytest.approx(0.4 / span[3], rel=1e-9)
+    boxd = coverage.box_distance_fn(lo, span)
+    assert float(boxd(jnp.asarray(lo))[1]) == 0.0
+    assert float(boxd(jnp.asarray(lo - span))[1]) == pytest.approx(np.sqrt(6), rel=1e-12)
+
+
+@pytest.fixture(scope="module")
+def planner_and_data():
+    from jtraj.anfis import trajectory
+    from jtraj.online import Planner
+
+    data = trajectory.synthetic_dataset(P=24, N=10, seed=0)
+    model = trajectory.train_mapping(data, "plan", n_rules=2, epochs=2)[0]
+    # the synthetic trajectories take 3 s over 10 periods: a period bound that admits them
+    return Planner(model, robots.get("serial3", h_max=1.5), weights=W), data
+
+
+def test_planner_batch_plans_re_verified(planner_and_data, tmp_path):
+    planner, data = planner_and_data
+    qs, qg = data["q_start"][:8], data["q_goal"][:8]
+    pb = planner.plan(qs, qg)
+    assert pb.q.shape == (8, 11, 3) and pb.h.shape == (8, 10)
+    ok = planner.feasible(pb)
+    assert ok.shape == (8,) and ok.all()
+    for i in range(8):
+        chk = V.verify(qs[i], qg[i], np.asarray(pb.v[i]), np.asarray(pb.h[i]), h_max=1.5,
+                       weights=(1.0, 0.1, 0.0), tol=1e-9)
+        assert chk["ok"], chk["max_rel_violation"]
+        assert float(pb.cost[i]) == pytest.approx(chk["cost"], rel=1e-12)
+        assert float(pb.violation[i]) <= 1e-9 and float(pb.goal_error[i]) <= 1e-9
+        # one query equals its row of the batch
+        p1 = planner.plan(qs[i], qg[i])
+        np.testing.assert_allclose(np.asarray(p1.v), np.asarray(pb.v[i]), rtol=1e-12, atol=1e-12)
+    # without the least-effort candidates: feasible too, never cheaper (fewer candidates)
+    from jtraj.online import Planner
+
+    fast = Planner(planner.model, planner.robot, weights=W, effort=False).plan(qs, qg)
+    assert planner.feasible(fast).all()
+    assert np.all(np.asarray(fast.cost) >= np.asarray(pb.cost) * (1 - 1e-12))
+    # the raw prediction misses the goal: the repair is what lands on it
+    assert float(np.median(np.asarray(pb.predicted_goal_error))) > 1e-3
+    # coverage: training pairs lie at distance 0, far queries are flagged
+    assert np.all(np.asarray(pb.coverage_distance)[:5] <= 1e-7) and not np.asarray(pb.ood)[:5].any()
+    far = planner.plan(qs[0] + 2.5, qg[0])
+    assert bool(far.ood) and float(far.coverage_box) > 0
+    out = planner.query(qs[0], qg[0])
+    assert out["feasible"] and out["coverage"]["kind"] == "nearest training pair"
+    assert json.loads(json.dumps(out))["cost"] == pytest.approx(float(pb.cost[0]), rel=1e-12)
+
+
+def test_query_command_prints_and_writes_cost_violation_and_coverage(planner_and_data, tmp_path, capsys):
+    from jtraj.commands import query as cmd
+
+    planner, data = planner_and_data
+    planner.model.save(tmp_path / "plan.anfis")
+    qs, qg = data["q_start"][1], data["q_goal"][1]
+    for label, start, flagged in (("in", qs, False), ("far", qs + 2.5, True)):
+        args = type("A", (), dict(model=str(tmp_path / "plan.anfis"), periods=None, start=list(start),
+                                  goal=list(qg), refine=False, warm="primal", json=str(tmp_path / f"{label}.json")))
+        assert cmd.run(args) == 0
+        text = capsys.readouterr().out
+        with open(args.json) as f:
+            out = json.load(f)
+        assert ("OUT OF DISTRIBUTION" in text) == flagged == out["out_of_distribution"]
+        assert "cost" in text and "worst violation" in text
+        # the model's robot (serial3, h_max 0.1): the plan lands on the goal whatever its bounds
+        assert out["goal_error"] <= 1e-9 and len(out["v"]) == 10 and len(out["tau"]) == 10
+        assert out["feasible"] == (out["violation"] <= 1e-6)
+
+
+def test_planner_refuses_bad_input(planner_and_data):
+    from jtraj.online import Planner
+
+    planner, data = planner_and_data
+    with pytest.raises(ValueError, match="q_start must be finite"):
+        planner.plan([np.nan, 0, 0], [0, 0, 0])
+    with pytest.raises(ValueError, match="q_goal must have shape"):
+        planner.plan([0, 0, 0], [0, 0])
+    with pytest.raises(ValueError, match="q_start and q_goal must both have shape"):
+        planner.plan(np.zeros((2, 3)), np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="q_start and q_goal must both have shape"):
+        planner.plan(np.zeros((2, 2, 3)), np.zeros((2, 2, 3)))
+    with pytest.raises(ValueError, match="do not match robot"):
+        Planner(planner.model, robots.get("ibm7535"))
+    with pytest.raises(ValueError, match="correct must be"):
+        Planner(planner.model, correct="yes")
+    with pytest.raises(ValueError, match="effort must be"):
+        Planner(planner.model, effort=1)
+
+
+@pytest.mark.slow
+def test_a_feasible_plan_never_beats_the_exact_optimum_and_its_cost_is_the_solvers():
+    """The plan is feasible for the exact problem, so its cost is at least the optimum's
+    (up to the solver's tolerances); the plan's cost function equals the solver's at the
+    optimum; query(refine=True) reports the gap between them."""
+    from jtraj import Problem, solve
+    from jtraj.anfis import trajectory
+    from jtraj.online import Planner
+
+    data = trajectory.synthetic_dataset(P=24, N=20, seed=0)
+    model = trajectory.train_mapping(data, "plan", n_rules=2, epochs=1)[0]
+    rb = robots.get("serial3", h_max=0.2)  # the synthetic trajectories are slow: room to slow the plans
+    planner = Planner(model, rb, weights=W)
+    rng = np.random.default_rng(6)
+    checked = 0
+    for _ in range(3):
+        qs = rng.uniform(-1, 1, n)
+        qg = qs + rng.uniform(-0.4, 0.4, n)
+        p = planner.plan(qs, qg)
+        sol = solve(Problem(rb, qs, qg, N=20, weights=W))
+        if not (bool(sol.converged) and planner.feasible(p)):
+            continue
+        checked += 1
+        assert float(cost_of(rb, W, sol.q, sol.qd, sol.tau, sol.h)) == pytest.approx(float(sol.cost), rel=1e-12)
+        assert float(p.cost) >= float(sol.cost) * (1 - 1e-5)
+        out = planner.query(qs, qg, refine=True)
+        assert out["refined_converged"] and out["gap"] == pytest.approx(
+            (out["cost"] - out["refined_cost"]) / out["refined_cost"], rel=1e-12)
+        assert out["gap"] >= -1e-5
+    assert checked >= 2
