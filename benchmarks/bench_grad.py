@@ -86,6 +86,13 @@ def main(argv=None):
     from peers.pairs import benchmark_pairs
 
     kinds = tuple(k for k in args.kinds.split(",") if k)
+
+    def dump():  # after every part (and every pair of part 1): a cut-short run keeps its figures
+        if args.json:
+            os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+            with open(args.json, "w") as f:
+                json.dump(figures, f, indent=1)
+
     device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
     print(f"jax {jax.__version__} on {device}, N = {args.N}", flush=True)
     figures = {"N": args.N, "seed": args.seed, "device": device, "host": platform.node(),
@@ -119,7 +126,7 @@ def main(argv=None):
                 if kind == "via":
                     mid = np.asarray(free_sol.q)[args.N // 2]
                     p_mid = np.asarray(robot.forward_kinematics(jnp.asarray(mid))) + np.array([0.02, -0.01])
-                    kw["via_points"] = [jtraj.ViaPoint(point=p_mid, tol=1e-3)]
+                    kw["via_points"] = [jtraj.ViaPoint(point=jnp.asarray(p_mid), tol=jnp.asarray(1e-3))]
                 p = jtraj.Problem(robot, q0, q1, N=args.N, weights=w, **kw) if kw else free
                 base = jtraj.solve(p, options=tight, init=(free_sol.v, free_sol.h)) if kw else free_sol
                 if not bool(base.converged):
@@ -179,6 +186,9 @@ def main(argv=None):
                         errs[(kind, o, name)].append(e)
                     e = abs(jvp[i] - rich[i]) / max(abs(rich[i]), 1e-6)
                     cases.append((e, kind, o, ip, i, jvp[i], central))
+            figures["fd_partial"] = {"pairs_done": ip + 1, "seconds": time.perf_counter() - t0,
+                                     "errors": {f"{k}/d{o}/{e}": _stats(v) for (k, o, e), v in errs.items()}}
+            dump()
             if (ip + 1) % 8 == 0:
                 print(f"   ... {ip + 1} pairs, {time.perf_counter() - t0:.0f} s", flush=True)
         elapsed = time.perf_counter() - t0
@@ -194,6 +204,7 @@ def main(argv=None):
                 print(f"   {'':8s} {'':5s} Richardson: {_fmt(r)}")
         allr = [e for (k, o, n), v in errs.items() if n == "richardson" for e in v]
         print(f"   all kinds, Richardson: {_fmt(_stats(allr))}; above 1e-5: {int(np.sum(np.asarray(allr) > 1e-5))}")
+        figures.pop("fd_partial", None)
         figures["fd"] = {"pairs": args.fd_pairs, "skipped": skipped, "step": args.step, "seconds": elapsed,
                          "errors": fd_fig, "all_richardson": _stats(allr),
                          "above_1e-5": int(np.sum(np.asarray(allr) > 1e-5))}
@@ -216,6 +227,7 @@ def main(argv=None):
                               for r in rows)
                   + f"; Richardson with re-solves at 1e-12: " + ("n/a" if rt is None else f"{rt:.1e}"), flush=True)
         figures["fd"]["worst"] = sweep
+        dump()
 
     # ---- 2. backward pass against the batched forward solve -----------------------------
     if args.time_pairs:
@@ -246,6 +258,7 @@ def main(argv=None):
                   f"{t_bwd / t_fwd:.3f}x; linearisation + backward beyond the solve "
                   f"{(t_lin - t_fwd + t_bwd) / t_fwd:.2f}x", flush=True)
         figures["backward"] = {"batch": args.time_pairs, "runs": runs}
+        dump()
 
     # ---- 3. NaN count -------------------------------------------------------------------
     if args.pairs:
@@ -269,10 +282,8 @@ def main(argv=None):
         figures["nan"] = {"pairs": args.pairs, "converged": int(conv.sum()), "nan_on_converged": nan_conv,
                           "nan_on_others": nan_other, "others_all_zero": zero_other, "seconds": elapsed}
 
+    dump()
     if args.json:
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(figures, f, indent=1)
         print(f"figures written to {args.json}")
 
 

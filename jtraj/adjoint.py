@@ -186,8 +186,10 @@ def stagewise_kkt(problem, tr, nlp, act, z, kkt_jvp, rows_of) -> StagewiseKKT:
 
         zero = tuple(jnp.zeros_like(v) for v in b)
         _, x, _, ok = jax.lax.while_loop(cond, body, (jnp.asarray(0), zero, b, jnp.asarray(True)))
-        # finite always (a failed factorisation is reported by `ok`): a transposed solve
-        # of an invalid sample must not turn its zero cotangent into NaN
-        return tuple(jnp.where(jnp.isfinite(v), v, 0.0) for v in x), ok
+        # finite for a finite b (a failed factorisation is reported by `ok`): a transposed
+        # solve of an invalid sample must not turn its zero cotangent into NaN; a NaN in b
+        # (the NaN cotangent of on_failure="nan") stays NaN
+        x = tuple(jnp.where(jnp.isfinite(v), v, 0.0) for v in x)
+        return tuple(jnp.where(jnp.isfinite(bnorm), v, jnp.nan) for v in x), ok
 
     return StagewiseKKT(matvec=matvec, iterate=iterate)

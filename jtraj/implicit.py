@@ -241,7 +241,7 @@ def implicit_tangent(problem: Problem, tr: Transcription, solution, tangent, con
     set fits, the KKT system regular). ``method``: ``"stagewise"`` (the decoupled
     transcription's default, :mod:`jtraj.adjoint`) or ``"dense"`` (every other
     transcription's, and the reference). Where not valid, the tangents are finite values
-    the caller masks."""
+    the caller masks (a NaN in ``tangent``, or in a cotangent in reverse mode, stays NaN)."""
     method = _method(tr, method)
     dyn, static = eqx.partition(problem, eqx.is_inexact_array)
     z = z_of(problem, tr, solution)
@@ -259,7 +259,6 @@ def implicit_tangent(problem: Problem, tr: Transcription, solution, tangent, con
     else:
         dz, regular = _stagewise_solve(problem, tr, F, dyn, z, act, dF)
     valid = converged & finite & act.fits & regular
-    dz = jnp.where(valid, dz, 0.0)
     _, dout = jax.jvp(lambda zz, d_: outputs(eqx.combine(d_, static), tr, zz), (z, dyn), (dz, tangent))
     return dz, dout, z, valid
 
