@@ -225,7 +225,7 @@ def main(argv=None):
             print(f"   worst: {kind} d{o} pair {ip}: Richardson {e:.2e}; central by step "
                   + ", ".join(f"{r['step']:g}: " + ("n/a" if r["error"] is None else f"{r['error']:.1e}")
                               for r in rows)
-                  + f"; Richardson with re-solves at 1e-12: " + ("n/a" if rt is None else f"{rt:.1e}"), flush=True)
+                  + "; Richardson with re-solves at 1e-12: " + ("n/a" if rt is None else f"{rt:.1e}"), flush=True)
         figures["fd"]["worst"] = sweep
         dump()
 

@@ -251,7 +251,6 @@ def implicit_tangent(problem: Problem, tr: Transcription, solution, tangent, con
     act = active_set(problem, tr, z)
     # the held variables on their bounds (the point the active set describes)
     z = jnp.where(act.at_lo, layout.z_lo, jnp.where(act.at_hi, layout.z_hi, z))
-    nz, r = z.shape[0], act.idx.shape[0]
     F = functools.partial(_kkt_residual, static=static, tr=tr, act=act)
     _, dF = jax.jvp(lambda d_: F(d_, z=z, l=act.mult), (dyn,), (tangent,))
     if method == "dense":
