@@ -9,7 +9,7 @@ native KKT kernel and the loops are not traced for derivatives); its tangent is 
 derivative of the optimum by the implicit function theorem. Reverse mode follows by
 transposition: the tangent is linear in the input tangents and built from transposable
 operations only (forward-mode derivatives of the problem's functions and a linear
-solve with a factorisation computed from primal values).
+solve whose operator is computed from primal values).
 
 Mathematics. At the returned optimum ``z*`` (the scaled controls and periods,
 :class:`jtraj.transcription.Layout`) the NLP ``min f(z, theta)`` s.t. ``c_E(z, theta) = 0``,
@@ -40,9 +40,23 @@ derivative of that map along ``(dz, dtheta)``.
 
 The active rows are compressed into ``r = min(rows, nz)`` slots (at most nz constraints
 can be active with linearly independent gradients; more make the point degenerate and
-the derivative invalid). K is dense, ``(nz + r)`` square, and factorised by LU: for
-serial3 at N = 20 that is 160 x 160. The stage-wise (Riccati) structure of the Newton
-steps is not used here; the dense solve is what runs for every transcription.
+the derivative invalid). The linear system is solved in one of two ways
+(:data:`KKT_SOLVE`):
+
+* ``"stagewise"``, the decoupled transcription's: the symmetric form of K (the
+  bound-held variables' columns moved to the right-hand side) is an equality-constrained
+  linear-quadratic problem over the stages, solved in O(N) by the Riccati recursion of
+  the Newton steps inside an iteration on the multipliers (:mod:`jtraj.adjoint`),
+  wrapped in ``jax.lax.custom_linear_solve`` so that reverse mode transposes it into the
+  same solve; no (nz + r)-square matrix is formed. It is valid where every stage
+  factorisation is positive definite and it reproduces a probe solution to
+  :data:`PROBE_TOL`;
+* ``"dense"``, every other transcription's and the reference the tests compare with: K
+  formed by forward-mode derivatives, (nz + r) square, and factorised by LU (160 x 160
+  for serial3 at N = 20); valid where the factorisation is regular.
+
+The active set and the least-squares multipliers themselves (:func:`active_set`) are
+computed densely in both cases (a Jacobian of all rows in z and an nz-square solve).
 
 Weakly active constraints (on their boundary with a multiplier at or below the
 threshold) are treated as inactive: the result is the derivative of the strictly active
@@ -50,8 +64,8 @@ set, the one-sided derivative in the directions that keep such a constraint sati
 At a point where the active set changes the derivative is one-sided in this sense.
 
 Failures are never silent. A derivative is valid where the solve converged
-(``Status.CONVERGED``), the active set fits (``r`` slots) and K's factorisation is
-regular. Elsewhere a single solve's tangents and gradients are NaN
+(``Status.CONVERGED``), the active set fits (``r`` slots) and the KKT system is
+regular (as its solve above tests it). Elsewhere a single solve's tangents and gradients are NaN
 (``on_failure="nan"``, the default) or the solve raises at run time when it is
 differentiated (``on_failure="raise"``, through ``equinox.error_if``: inside ``jit`` too,
 as an ``XlaRuntimeError``/``EquinoxRuntimeError``); in a batch each invalid sample's
@@ -85,6 +99,11 @@ ACT_TOL = 1e-3
 BOUND_TOL = 1e-3
 #: a candidate is active where its multiplier exceeds WEAK * max(1, max multiplier)
 WEAK = 1e-7
+
+#: the linear solve of the derivatives through jtraj.solve / solve_batch: None (the
+#: transcription's default: "stagewise" for the decoupled one, "dense" otherwise),
+#: "stagewise" or "dense" (the reference, e.g. to compare in tests)
+KKT_SOLVE: str | None = None
 
 #: the differentiable fields of a Solution (the others get zero tangents)
 DIFF_FIELDS = ("q", "qd", "v", "tau", "h", "T", "cost", "cost_terms", "energy")
@@ -215,12 +234,15 @@ def _kkt_residual(dyn, static, tr: Transcription, act: ActiveSet, z, l):
     return jnp.concatenate([Fz, Fc])
 
 
-def implicit_tangent(problem: Problem, tr: Transcription, solution, tangent, converged):
+def implicit_tangent(problem: Problem, tr: Transcription, solution, tangent, converged, method: str | None = None):
     """The tangent of the optimum along ``tangent`` (a pytree like ``problem``'s
     inexact-array part, :func:`equinox.partition`): returns ``(dz, outputs' tangents,
     z, valid)``. Linear in ``tangent``; ``valid`` is a traced bool (converged, the active
-    set fits, K regular). Where not valid, the factorisation is replaced by the identity
-    (finite tangents the caller masks)."""
+    set fits, the KKT system regular). ``method``: ``"stagewise"`` (the decoupled
+    transcription's default, :mod:`jtraj.adjoint`) or ``"dense"`` (every other
+    transcription's, and the reference). Where not valid, the tangents are finite values
+    the caller masks (a NaN in ``tangent``, or in a cotangent in reverse mode, stays NaN)."""
+    method = _method(tr, method)
     dyn, static = eqx.partition(problem, eqx.is_inexact_array)
     z = z_of(problem, tr, solution)
     finite = jnp.all(jnp.isfinite(z))
@@ -229,21 +251,69 @@ def implicit_tangent(problem: Problem, tr: Transcription, solution, tangent, con
     act = active_set(problem, tr, z)
     # the held variables on their bounds (the point the active set describes)
     z = jnp.where(act.at_lo, layout.z_lo, jnp.where(act.at_hi, layout.z_hi, z))
-    nz, r = z.shape[0], act.idx.shape[0]
     F = functools.partial(_kkt_residual, static=static, tr=tr, act=act)
+    _, dF = jax.jvp(lambda d_: F(d_, z=z, l=act.mult), (dyn,), (tangent,))
+    if method == "dense":
+        dz, regular = _dense_solve(F, dyn, z, act, dF, converged & finite & act.fits)
+    else:
+        dz, regular = _stagewise_solve(problem, tr, F, dyn, z, act, dF)
+    valid = converged & finite & act.fits & regular
+    _, dout = jax.jvp(lambda zz, d_: outputs(eqx.combine(d_, static), tr, zz), (z, dyn), (dz, tangent))
+    return dz, dout, z, valid
+
+
+def _method(tr: Transcription, method):
+    if method is None:
+        return "stagewise" if tr.name == "decoupled" else "dense"
+    if method not in ("stagewise", "dense"):
+        raise ValueError(f"method must be 'stagewise' or 'dense', got {method!r}")
+    if method == "stagewise" and tr.name != "decoupled":
+        raise ValueError(f"method='stagewise' needs the decoupled transcription, got {tr.name!r}")
+    return method
+
+
+def _dense_solve(F, dyn, z, act, dF, usable):
+    """dz by a dense LU factorisation of K = dF/d(z, l), (nz + r) square."""
+    nz, r = z.shape[0], act.idx.shape[0]
     K = jax.jacfwd(lambda w: F(dyn, z=w[:nz], l=w[nz:]))(jnp.concatenate([z, act.mult]))
     lu, piv = jax.scipy.linalg.lu_factor(K)
     d = jnp.abs(jnp.diagonal(lu))
     regular = jnp.all(jnp.isfinite(lu)) & (jnp.min(d) > 1e-13 * jnp.maximum(jnp.max(d), 1e-300))
-    valid = converged & finite & act.fits & regular
-    eye = jnp.eye(nz + r, dtype=K.dtype)
-    lu = jnp.where(valid, lu, eye)
-    piv = jnp.where(valid, piv, jnp.arange(nz + r, dtype=piv.dtype))
-    _, dF = jax.jvp(lambda d_: F(d_, z=z, l=act.mult), (dyn,), (tangent,))
-    dw = jax.scipy.linalg.lu_solve((lu, piv), -dF)
-    dz = dw[:nz]
-    _, dout = jax.jvp(lambda zz, d_: outputs(eqx.combine(d_, static), tr, zz), (z, dyn), (dz, tangent))
-    return dz, dout, z, valid
+    keep = usable & regular
+    lu = jnp.where(keep, lu, jnp.eye(nz + r, dtype=K.dtype))
+    piv = jnp.where(keep, piv, jnp.arange(nz + r, dtype=piv.dtype))
+    return jax.scipy.linalg.lu_solve((lu, piv), -dF)[:nz], regular
+
+
+#: the stage-wise solve is valid where it reproduces a probe solution to this relative accuracy
+PROBE_TOL = 1e-7
+
+
+def _stagewise_solve(problem, tr, F, dyn, z, act, dF):
+    """dz by the stage-wise solve of the symmetric KKT system (:mod:`jtraj.adjoint`),
+    wrapped in ``jax.lax.custom_linear_solve`` (reverse mode: the same solve)."""
+    from .adjoint import stagewise_kkt
+
+    nz = z.shape[0]
+    nlp = _nlp(problem, tr)
+    _, K_mv = jax.linearize(lambda w: F(dyn, z=w[:nz], l=w[nz:]), jnp.concatenate([z, act.mult]))
+    sk = stagewise_kkt(problem, tr, nlp, act, z, lambda xz, xl: K_mv(jnp.concatenate([xz, xl])),
+                       lambda zz: _rows(nlp, zz)[0])
+    fixed = act.at_lo | act.at_hi
+    ff, on = (~fixed).astype(z.dtype), act.on.astype(z.dtype)
+    # the bound-held variables follow their bounds; their columns move to the right-hand side
+    dzb = jnp.where(fixed, -dF[:nz], 0.0)
+    Kb = K_mv(jnp.concatenate([dzb, jnp.zeros_like(act.mult)]))
+    b = ((-dF[:nz] - Kb[:nz]) * ff, (-dF[nz:] - Kb[nz:]) * on)
+    xz, _ = jax.lax.custom_linear_solve(sk.matvec, b, sk.solve, symmetric=True)
+    # regularity: the solve reproduces a probe solution (a singular or ill-conditioned
+    # system, a reduced Hessian that is not positive definite, or an iteration that does
+    # not converge fails it)
+    e = (ff, on)
+    xe, ok = sk.iterate(sk.matvec(e))
+    err = jnp.sqrt(sum(jnp.sum((a - b_) ** 2) for a, b_ in zip(xe, e)) / jnp.maximum(1.0, jnp.sum(ff) + jnp.sum(on)))
+    regular = ok & jnp.isfinite(err) & (err < PROBE_TOL)
+    return xz * ff + dzb, regular
 
 
 # ----------------------------------------------------------------------------------------
@@ -308,14 +378,16 @@ def _primal_batch(cfg: _Config, dyn, init):
 
 def _tangent_solution(cfg: _Config, dyn, ddyn, sol):
     """The Solution-shaped tangent of one solve (floats everywhere, see _to_float)."""
-    return _tangent_program(cfg.static, cfg.transcription, cfg.on_failure, dyn, ddyn, sol)
+    # "raise" is "nan" plus a run-time check outside (one program for both)
+    on_failure = "zero" if cfg.on_failure == "zero" else "nan"
+    return _tangent_program(cfg.static, cfg.transcription, on_failure, KKT_SOLVE, dyn, ddyn, sol)
 
 
 @eqx.filter_jit  # keyed by the problem's structure, not by the solver options
-def _tangent_program(static, transcription: str, on_failure: str, dyn, ddyn, sol):
+def _tangent_program(static, transcription: str, on_failure: str, method, dyn, ddyn, sol):
     tr = Transcription(transcription)
     problem = eqx.combine(dyn, static)
-    _, dout, _, valid = implicit_tangent(problem, tr, sol, ddyn, sol.status == 0)
+    _, dout, _, valid = implicit_tangent(problem, tr, sol, ddyn, sol.status == 0, method=method)
     if on_failure == "zero":
         dout = jax.tree.map(lambda t: jnp.where(valid, t, 0.0), dout)
     else:  # a product with a primal factor: NaN in forward and in reverse mode

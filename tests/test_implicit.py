@@ -1,12 +1,15 @@
 """Derivatives through jtraj.solve / solve_batch (jtraj.implicit) against central finite
-differences of warm re-solves.
+differences of warm re-solves, and the stage-wise KKT solve (jtraj.adjoint) against the
+dense reference.
 
 The re-solves use the AL method at tight tolerances (1e-10): the interior-point method
 ends at its own ``ip_tol`` (a barrier parameter of 1e-8, variables up to 1e-4 inside a
 bound they press on), which limits central differences of T to about 1e-3 relative.
-Every test solves serial3 at N = 10 with the same options, so they share one compiled
-solver and one compiled tangent program. Agreement: 1e-5 relative (plus a small absolute
-floor for entries near zero).
+The default tests solve serial3 at N = 10 with the same options and share one compiled
+solver and one reverse-mode program: the module fixture ``grads`` holds the gradients of
+T and of the cost in every array leaf of the problem from one ``jax.vjp``, and the
+tests compare its entries with finite differences. Agreement: 1e-5 relative (plus a
+small absolute floor for entries near zero) where the re-solves' noise allows it.
 """
 
 import equinox as eqx
@@ -16,6 +19,7 @@ import numpy as np
 import pytest
 
 import jtraj
+from jtraj import implicit
 from jtraj.implicit import valid_derivatives
 
 START, GOAL = np.array((0.2, -0.3, 0.4)), np.array((0.3, -0.2, 0.3))
@@ -35,6 +39,24 @@ def base():
     sol = jtraj.solve(_problem(), options=TIGHT)
     assert bool(sol.converged), sol.status_message
     return sol
+
+
+def _reverse(problem, options=TIGHT):
+    """Gradients of (T, cost) in every inexact-array leaf of ``problem`` (one vjp, two
+    cotangents): {"T": tree, "cost": tree} shaped like the problem's array part."""
+    dyn, static = eqx.partition(problem, eqx.is_inexact_array)
+
+    def f(d):
+        s = jtraj.solve(eqx.combine(d, static), options=options)
+        return jnp.stack([s.T, s.cost])
+
+    _, vjp = jax.vjp(f, dyn)
+    return {"T": vjp(jnp.array([1.0, 0.0]))[0], "cost": vjp(jnp.array([0.0, 1.0]))[0]}
+
+
+@pytest.fixture(scope="module")
+def grads():
+    return _reverse(_problem())
 
 
 def _fd(make, x0, out, base, rel=1e-5, absolute=None, options=TIGHT):
@@ -60,36 +82,98 @@ def _close(a, b, rtol=1e-5, floor=1e-7):
     np.testing.assert_allclose(a, b, rtol=rtol, atol=floor + rtol * 1e-2 * scale)
 
 
-def test_grad_of_T_and_cost_wrt_goal(base):
-    def f(g):
-        s = jtraj.solve(_problem(q_goal=g), options=TIGHT)
-        return s.T, s.cost
-
-    (gT, gc) = [jax.grad(lambda g, i=i: f(g)[i])(jnp.asarray(GOAL)) for i in range(2)]
-    fd = _fd(lambda g: _problem(q_goal=g), GOAL, lambda s: np.array([s.T, s.cost]), base, absolute=1e-5)
-    _close(gT, fd[0])
-    _close(gc, fd[1])
-
-
-@pytest.mark.slow  # jacfwd batches the tangent program: one more compilation
-def test_jacobian_of_q_and_h_wrt_start_forward_and_reverse(base):
-    def f(q0):
-        s = jtraj.solve(_problem(q_start=q0), options=TIGHT)
-        return s.q, s.h
-
-    Jq_f, Jh_f = jax.jacfwd(f)(jnp.asarray(START))
-    Jq_r, Jh_r = jax.jacrev(f)(jnp.asarray(START))
-    np.testing.assert_allclose(Jq_f, Jq_r, rtol=1e-9, atol=1e-11)
-    np.testing.assert_allclose(Jh_f, Jh_r, rtol=1e-9, atol=1e-11)
-    # the periods of re-solves carry ~5e-9 of noise at these tolerances: a step of 1e-4
-    fd_h = _fd(lambda q0: _problem(q_start=q0), START, lambda s: s.h, base, absolute=1e-4)
-    _close(Jh_f, fd_h, rtol=1e-4, floor=5e-5)
-    fd_q = _fd(lambda q0: _problem(q_start=q0), START, lambda s: s.q, base, absolute=1e-4)
-    _close(Jq_f, fd_q, rtol=1e-4, floor=5e-5)
+def _tree_close(a, b, rtol):
+    """Every leaf of a within rtol of b, relative to the largest entry of b's leaf (or,
+    for a leaf that is zero up to rounding, 1e-6 of the largest entry of all of b)."""
+    ys = [np.asarray(y) for y in jax.tree.leaves(b)]
+    top = max(np.max(np.abs(y), initial=0.0) for y in ys)
+    for x, y in zip(jax.tree.leaves(a), ys, strict=True):
+        scale = max(np.max(np.abs(y), initial=0.0), 1e-6 * top)
+        np.testing.assert_allclose(np.asarray(x), y, rtol=0, atol=rtol * scale)
 
 
+def _T_and_cost(s):
+    return np.array([s.T, s.cost])
+
+
+def test_grad_wrt_goal_and_start(grads, base):
+    fd = _fd(lambda g: _problem(q_goal=g), GOAL, _T_and_cost, base, absolute=1e-5)
+    _close(grads["T"].q_goal, fd[0])
+    _close(grads["cost"].q_goal, fd[1])
+    fd = _fd(lambda q0: _problem(q_start=q0), START, _T_and_cost, base, absolute=1e-5)
+    _close(grads["T"].q_start, fd[0])
+    _close(grads["cost"].q_start, fd[1])
+
+
+def test_grad_wrt_weights_and_torque_limit(grads, base):
+    w0 = np.array([WEIGHTS["time"], WEIGHTS["energy"]])
+    # T is not stationary in the weights: the re-solves' noise (~1e-9) needs a longer step
+    fd = _fd(lambda w: _problem(weights=jtraj.Weights(time=w[0], energy=w[1])), w0, _T_and_cost, base, rel=1e-4)
+    g = grads["T"].weights, grads["cost"].weights
+    _close([g[0].time, g[0].energy], fd[0], rtol=1e-4)
+    _close([g[1].time, g[1].energy], fd[1])
+    tau0 = np.asarray(ROBOT.limits.tau_max)
+    fd = _fd(lambda t: _problem(robot=jtraj.robots.get("serial3", tau_max=t)), tau0, _T_and_cost, base, rel=1e-4)
+    _close(grads["T"].robot.limits.tau_max, fd[0], rtol=1e-4)
+    _close(grads["cost"].robot.limits.tau_max, fd[1], rtol=1e-4)
+
+
+def test_grad_wrt_masses(grads, base):
+    m0 = np.asarray(ROBOT.masses)
+    fd = _fd(lambda m: _problem(robot=jtraj.robots.get("serial3", masses=m)), m0, _T_and_cost, base, rel=1e-4)
+    _close(grads["cost"].robot.masses, fd[1])
+    _close(grads["T"].robot.masses, fd[0], rtol=1e-4)
+
+
+@pytest.mark.slow  # differentiating another set of leaves is a reverse program of its own
+def test_grad_wrt_masses_through_robots_get(grads):
+    """The masses traced through ``robots.get(..., masses=m)`` (host checks skipped): the
+    same gradient as the problem's leaf."""
+    m0 = np.asarray(ROBOT.masses)
+
+    def cost(m):
+        return jtraj.solve(_problem(robot=jtraj.robots.get("serial3", masses=m)), options=TIGHT).cost
+
+    g = jax.grad(cost)(jnp.asarray(m0))
+    np.testing.assert_allclose(g, grads["cost"].robot.masses, rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.slow  # the dense reference is a reverse program of its own
+def test_stagewise_solve_equals_dense_reference(grads, monkeypatch):
+    """The stage-wise KKT solve (jtraj.adjoint, the decoupled default) against the dense LU
+    of the same system: every input's gradient of T and cost to 1e-8."""
+    monkeypatch.setattr(implicit, "KKT_SOLVE", "dense")
+    dense = _reverse(_problem())
+    _tree_close(grads, dense, 1e-8)
+
+
+def test_unconverged_single_solve_gives_nan_or_raises(grads):
+    """(The same program as ``grads``: the options differ only in traced numbers.)"""
+    short = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2, method="al",
+                                restart_iter=0)
+    g = _reverse(_problem(), options=short)
+    for out in ("T", "cost"):
+        for leaf in (g[out].q_goal, g[out].q_start, g[out].weights.time, g[out].robot.masses):
+            assert np.all(np.isnan(leaf))
+    dyn, static = eqx.partition(_problem(), eqx.is_inexact_array)
+    with pytest.raises(Exception, match="did not converge"):
+        jax.block_until_ready(jax.grad(lambda d: jtraj.solve(eqx.combine(d, static), options=short,
+                                                             on_failure="raise").T)(dyn))
+
+
+def test_static_inputs_are_refused_when_traced():
+    with pytest.raises(ValueError, match="N"):
+        jax.grad(lambda n: jtraj.Problem(ROBOT, START, GOAL, N=n).T_max)(3.0)
+    with pytest.raises(ValueError, match="on_failure"):
+        jtraj.solve(_problem(), on_failure="zero")
+    with pytest.raises(ValueError, match="method"):
+        implicit._method(jtraj.transcription.Transcription("decoupled"), "lu")
+
+
+@pytest.mark.slow  # the forward-mode tangent program is a compilation of its own
 def test_jvp_wrt_weights_and_mass(base):
-    """Forward mode along a direction that moves the weights and a link mass at once."""
+    """Forward mode along a direction that moves the weights and a link mass at once; a
+    solve that did not converge gives a NaN tangent."""
     p0 = _problem()
 
     def out(p):
@@ -112,9 +196,31 @@ def test_jvp_wrt_weights_and_mass(base):
     fd = _fd(make, [0.0], lambda s: np.array([s.T, s.cost, s.energy]), base, absolute=1e-3)[:, 0]
     _close(tangent, fd, rtol=1e-4)
 
+    short = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2, method="al",
+                                restart_iter=0)
+    _, t = jax.jvp(lambda d: jtraj.solve(eqx.combine(d, static), options=short).T, (dyn,), (direction,))
+    assert np.isnan(t)
+
+
+@pytest.mark.slow  # jacfwd batches the tangent program: one more compilation
+def test_jacobian_of_q_and_h_wrt_start_forward_and_reverse(base):
+    def f(q0):
+        s = jtraj.solve(_problem(q_start=q0), options=TIGHT)
+        return s.q, s.h
+
+    Jq_f, Jh_f = jax.jacfwd(f)(jnp.asarray(START))
+    Jq_r, Jh_r = jax.jacrev(f)(jnp.asarray(START))
+    np.testing.assert_allclose(Jq_f, Jq_r, rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(Jh_f, Jh_r, rtol=1e-9, atol=1e-11)
+    # the periods of re-solves carry ~5e-9 of noise at these tolerances: a step of 1e-4
+    fd_h = _fd(lambda q0: _problem(q_start=q0), START, lambda s: s.h, base, absolute=1e-4)
+    _close(Jh_f, fd_h, rtol=1e-4, floor=5e-5)
+    fd_q = _fd(lambda q0: _problem(q_start=q0), START, lambda s: s.q, base, absolute=1e-4)
+    _close(Jq_f, fd_q, rtol=1e-4, floor=5e-5)
+
 
 @pytest.mark.slow  # a binding T_max gives another active set: its own tangent program (about 2 min)
-def test_grad_wrt_torque_limit_and_binding_T_max(base):
+def test_grad_wrt_torque_limit_and_binding_T_max(base, monkeypatch):
     T_max = 0.998 * float(base.T)
     opts = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-8, max_iter=3000, method="al")
 
@@ -133,6 +239,10 @@ def test_grad_wrt_torque_limit_and_binding_T_max(base):
     fd_T = _fd(lambda t: _problem(T_max=float(t[0])), [T_max], lambda s: s.cost, ref, options=opts)[0]
     _close(g_tau, fd_tau)
     _close(g_T, fd_T)
+    # the bound on T active: the stage-wise solve's time term against the dense reference
+    monkeypatch.setattr(implicit, "KKT_SOLVE", "dense")
+    dense = jax.grad(f, argnums=(0, 1))(jnp.asarray(tau0), jnp.asarray(T_max))
+    _tree_close((g_tau, g_T), dense, 1e-8)
 
 
 @pytest.mark.slow  # the whole solver compiled inside an outer jit: minutes
@@ -143,29 +253,6 @@ def test_jit_of_the_whole_equals_eager(base):
     g = jnp.asarray(GOAL)
     np.testing.assert_allclose(jax.jit(jax.grad(f))(g), jax.grad(f)(g), rtol=1e-7)
     np.testing.assert_allclose(jax.jit(f)(g), base.T, rtol=1e-9)
-
-
-def test_unconverged_single_solve_gives_nan_or_raises():
-    short = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2, method="al",
-                                restart_iter=0)
-
-    def f(g, mode="nan"):
-        s = jtraj.solve(_problem(q_goal=g), options=short, on_failure=mode)
-        return s.T
-
-    g = jax.grad(f)(jnp.asarray(GOAL))
-    assert np.all(np.isnan(g))
-    _, t = jax.jvp(f, (jnp.asarray(GOAL),), (jnp.ones(3),))
-    assert np.isnan(t)
-    with pytest.raises(Exception, match="did not converge"):
-        jax.block_until_ready(jax.grad(lambda g: f(g, "raise"))(jnp.asarray(GOAL)))
-
-
-def test_static_inputs_are_refused_when_traced():
-    with pytest.raises(ValueError, match="N"):
-        jax.grad(lambda n: jtraj.Problem(ROBOT, START, GOAL, N=n).T_max)(3.0)
-    with pytest.raises(ValueError, match="on_failure"):
-        jtraj.solve(_problem(), on_failure="zero")
 
 
 @pytest.mark.slow  # a vmapped solver and a vmapped tangent program: minutes of compilation
@@ -181,6 +268,7 @@ def test_batch_derivatives_equal_per_sample_and_flag_failures(base):
     (_, sol), grads = jax.value_and_grad(total_T, has_aux=True)(jnp.asarray(goals))
     mask = np.asarray(valid_derivatives(sol))
     assert mask.tolist() == [True, True, False]
+    assert int(sol.status[2]) != 0 and not bool(sol.converged[2])  # the status says why
     assert np.all(grads[2] == 0) and np.all(np.isfinite(grads))
 
     def one(g):
@@ -205,7 +293,7 @@ def test_vmap_of_grad_equals_per_sample_grad():
 
 
 @pytest.mark.slow
-def test_via_point_position_and_tolerance():
+def test_via_point_position_and_tolerance(monkeypatch):
     p_mid = np.asarray(ROBOT.forward_kinematics(jnp.asarray((START + GOAL) / 2))) + np.array([0.01, 0.0])
 
     def make(x):
@@ -222,10 +310,12 @@ def test_via_point_position_and_tolerance():
     g = jax.grad(f)(jnp.asarray(x0))
     fd = _fd(make, x0, lambda s: s.T, base)
     _close(g, fd, rtol=1e-4)
+    monkeypatch.setattr(implicit, "KKT_SOLVE", "dense")
+    _tree_close(g, jax.grad(f)(jnp.asarray(x0)), 1e-8)
 
 
 @pytest.mark.slow
-def test_path_constrained_robot_pkm2():
+def test_path_constrained_robot_pkm2(monkeypatch):
     robot = jtraj.robots.get("pkm2")
     q0 = np.asarray(robot.limits.q_min) * 0.5 + np.asarray(robot.limits.q_max) * 0.5
     lo, hi = np.asarray(robot.limits.q_min), np.asarray(robot.limits.q_max)
@@ -239,18 +329,5 @@ def test_path_constrained_robot_pkm2():
     g = jax.grad(lambda x: jtraj.solve(make(x), options=TIGHT).cost)(jnp.asarray(qg))
     fd = _fd(make, qg, lambda s: s.cost, base, absolute=1e-6)
     _close(g, fd, rtol=1e-4)
-
-
-def test_grad_wrt_masses_through_robots_get(base):
-    """The masses traced through ``robots.get(..., masses=m)`` (host checks skipped)."""
-    m0 = np.asarray(ROBOT.masses)
-
-    def f(m):
-        s = jtraj.solve(_problem(robot=jtraj.robots.get("serial3", masses=m)), options=TIGHT)
-        return jnp.stack([s.cost, s.T])
-
-    J = jax.jacrev(f)(jnp.asarray(m0))
-    fd = _fd(lambda m: _problem(robot=jtraj.robots.get("serial3", masses=m)), m0,
-             lambda s: np.array([s.cost, s.T]), base, rel=1e-4)
-    _close(J[0], fd[0])
-    _close(J[1], fd[1], rtol=1e-4)
+    monkeypatch.setattr(implicit, "KKT_SOLVE", "dense")
+    _tree_close(g, jax.grad(lambda x: jtraj.solve(make(x), options=TIGHT).cost)(jnp.asarray(qg)), 1e-8)
