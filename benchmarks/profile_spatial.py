@@ -1,5 +1,5 @@
 """Where a spatial arm's interior-point solve spends its compile and run time, for one
-curvature of the dynamics (``SolverOptions.ip_curvature``, :mod:`jtraj.curvature`).
+curvature of the dynamics (``SolverOptions.ip_curvature``, :mod:`jtraj.solver.curvature`).
 
     python benchmarks/profile_spatial.py [--robot panda] [--N 40] [--curvature exact|gauss_newton]
                                          [--pieces] [--iteration] [--no-program] [--tight]

@@ -97,8 +97,8 @@ def stagewise_kkt(problem, tr, nlp, act, z, kkt_jvp, rows_of) -> StagewiseKKT:
         rows_of: ``z -> all constraint rows`` (flat, the order of the active set's
             indices).
     """
-    from .ipm import _z_to_stages
-    from .solver import Multipliers
+    from .solver.ipm import z_to_stages
+    from .solver.nlp import Multipliers
 
     layout = nlp.layout
     N, n = layout.N, problem.robot.n
@@ -150,7 +150,7 @@ def stagewise_kkt(problem, tr, nlp, act, z, kkt_jvp, rows_of) -> StagewiseKKT:
     zeros_x = jnp.zeros_like(model.cx)
 
     def m_solve(g):  # M_f^{-1} g_f (held entries 0): one Riccati factorisation and sweep
-        d, ok = lq.newton_directions(model._replace(cx=zeros_x, cu=-_z_to_stages(g, N, n)), free,
+        d, ok = lq.newton_directions(model._replace(cx=zeros_x, cu=-z_to_stages(g, N, n)), free,
                                      jnp.zeros((1,), dt))
         return jnp.where(ok[0], d[0], 0.0), ok[0]
 

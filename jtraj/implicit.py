@@ -24,7 +24,7 @@ multipliers ``lambda``. Its active set is fixed at ``z*``:
 
 The multipliers are the least-squares ones at ``z*`` over the equalities and the nearly
 active inequalities, in the free variables (the estimate of the solver's certificate,
-:func:`jtraj.solver._ls_multipliers`, recomputed on the variables that stay free): at a
+:func:`jtraj.solver.certify.ls_multipliers`, recomputed on the variables that stay free): at a
 KKT point that satisfies LICQ they are the unique multipliers, so no state of the
 solver's run is needed and the primal solve is the unchanged solver (single solves and
 the host-driven batch driver alike). With the active set ``A`` and the free variables
@@ -351,7 +351,7 @@ def _from_float(sol):
 
 @functools.lru_cache(maxsize=None)
 def _nested(fn):
-    """A solver entry point (decorated by ``jtraj.solver._options_jit``) as a plain
+    """A solver entry point (decorated by ``jtraj.solver.options.options_jit``) as a plain
     ``eqx.filter_jit`` for use inside another trace: XLA compiler options are for
     top-level programs only."""
     return eqx.filter_jit(fn.__wrapped__)

@@ -285,7 +285,7 @@ def _riccati(h, bq, bqd, bh, Q, S, R, cx, cu, PN, ff, shifts):
 
 def kkt_directions(model: StageModel, shifts: Array, terminal: Array) -> tuple[Array, Array, Array]:
     """Newton directions for several right-hand sides from one factorisation per shift
-    (the interior-point method's KKT solve, :mod:`jtraj.ipm`): column 0 is
+    (the interior-point method's KKT solve, :mod:`jtraj.solver.ipm`): column 0 is
     ``-(H + s I)^{-1} g`` for the model's own gradient, column j >= 1 is
     ``-(H + s I)^{-1} J_N^T e_j``, the response to a unit linear term
     ``terminal[:, j - 1]`` on the terminal state (the rows of the terminal equalities'

@@ -424,7 +424,7 @@ def decoupled_hessian(layout: Layout, W, c, Hk):
     """Hessian in z of ``sum_k l_k(W_k(z))`` for the decoupled recursion, from the stage
     co-states ``c = dl_k/dw_k`` (N+1, nw) and stage Hessians ``Hk`` (N+1, nw, nw), both
     from autodiff, using the closed form of the recursion's derivatives (the solver's
-    fast path; :meth:`jtraj.solver._NLP.al_derivatives` falls back to ``jacfwd`` for the
+    fast path; :meth:`jtraj.solver.nlp.NLP.al_derivatives` falls back to ``jacfwd`` for the
     other transcriptions, and the tests check both against each other).
 
     With ``t_k = sum_{i<k} h_i`` and ``j < k``, the recursion gives (I: n x n identity)::

@@ -238,7 +238,7 @@ def init(nlp, z0, mu0=_MU0) -> IPState:
         projections=jnp.asarray(0), damping=jnp.asarray(0.0, dt), certified=jnp.asarray(jnp.inf, dt))
 
 
-def _z_to_stages(v, N, n):
+def z_to_stages(v, N, n):
     """A vector in z's layout (all v, then all h) -> (N, n+1) stage controls."""
     return jnp.concatenate([v[:N * n].reshape(N, n), v[N * n:, None]], axis=1)
 
@@ -301,7 +301,7 @@ def _model(nlp, st: IPState):
     model = lq.stage_model(W, c, Hk, layout.u_scale, layout.h_scale, (dphi, d2phi))
     dl, du, has_lo, has_hi = _bounds(nlp, z)
     bound_h = jnp.where(has_lo, st.zl / dl, 0.0) + jnp.where(has_hi, st.zu / du, 0.0)
-    model = model._replace(R=model.R + jax.vmap(jnp.diag)(_z_to_stages(bound_h, N, n)))
+    model = model._replace(R=model.R + jax.vmap(jnp.diag)(z_to_stages(bound_h, N, n)))
     goal = lambda x: tr.stage_constraints(problem, jnp.concatenate([x, W[N, 2 * n:]]), jax.tree.map(  # noqa: E731
         lambda a: a[N], nlp.sd))[0]["goal"]
     Ex = jax.jacfwd(goal)(W[N, :2 * n])  # (2n, 2n)
@@ -325,7 +325,7 @@ def _with_rhs(nlp, st: IPState, model, Jg, dgT, p: _Pieces, mu):
     dl, du, has_lo, has_hi = _bounds(nlp, st.z)
     bound_g = jnp.where(has_lo, -mu / dl, 0.0) + jnp.where(has_hi, mu / du, 0.0)
     cx = model.cx.at[:, :2 * n].add(corr[:, :2 * n]).at[N, -1].add(corrT)
-    cu = model.cu + corr[:N, 2 * n:] * sy[None, :] + _z_to_stages(bound_g, N, n)
+    cu = model.cu + corr[:N, 2 * n:] * sy[None, :] + z_to_stages(bound_g, N, n)
     return model._replace(cx=cx, cu=cu)
 
 
@@ -353,7 +353,7 @@ def _direction(nlp, st: IPState, p: _Pieces, Jg, dgT, Ex, d, dX, mu, any_pd) -> 
     dz = d[:, 0] + jnp.sum(d[:, 1:] * dlam[None, :], axis=-1)
     dXz = dX[..., 0] + jnp.sum(dX[..., 1:] * dlam[None, None, :], axis=-1)  # (N+1, nx)
     sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
-    du_st = _z_to_stages(dz, N, n) * sy[None, :]
+    du_st = z_to_stages(dz, N, n) * sy[None, :]
     dW = jnp.concatenate([dXz[:, :2 * n], jnp.concatenate([du_st, jnp.zeros((1, n + 1), dt)])], axis=1)
     Jdz = jnp.sum(Jg * dW[:, None, :], axis=-1)
     dT = jnp.sum(du_st[:, -1])
