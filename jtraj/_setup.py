@@ -161,7 +161,32 @@ def enable_cache(path: str | None = None, *, small: bool = True) -> str | None:
             # which it otherwise writes in place: a process could read another's half-written
             # entry (JAX then warns and compiles). Least recently used entries go first.
             jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
+            remove_orphans(path)
     return path
+
+
+def remove_orphans(path: str) -> list[str]:
+    """Remove the entries of JAX's size-capped cache at ``path`` that have no access-time
+    file (``<key>-cache`` without ``<key>-atime``): a process killed while writing one
+    leaves it, possibly truncated, and JAX's eviction then fails on every later write.
+    Done under JAX's own lock of the folder (skipped if another process holds it for
+    more than a second). Returns the removed files' names."""
+    import filelock
+
+    removed = []
+    try:
+        with filelock.FileLock(os.path.join(path, ".lockfile"), timeout=1.0):
+            names = set(os.listdir(path))
+            for name in names:
+                if name.endswith("-cache") and name[:-len("-cache")] + "-atime" not in names:
+                    try:
+                        os.remove(os.path.join(path, name))
+                        removed.append(name)
+                    except OSError:
+                        pass
+    except (filelock.Timeout, OSError):
+        pass
+    return removed
 
 
 def ensure_cache() -> None:

@@ -248,3 +248,16 @@ def test_import_jtraj_loads_no_subpackage_and_is_quick():
     heavy, _, jtraj_s = r.stdout.rsplit(" ", 2)
     assert heavy == "[]", heavy
     assert float(jtraj_s) < 10.0  # loose: a loaded 2-core machine; about 0.5-1 s after jax
+
+
+def test_orphan_cache_entries_are_removed(tmp_path):
+    """An entry of JAX's size-capped cache without its access-time file (a process killed
+    while writing it) breaks JAX's eviction for every later write: enabling the cache
+    removes such entries, and only those."""
+    (tmp_path / "jit_a-1-cache").write_bytes(b"partial")
+    (tmp_path / "jit_b-2-cache").write_bytes(b"whole")
+    (tmp_path / "jit_b-2-atime").write_bytes((1).to_bytes(8, "little"))
+    (tmp_path / "jit_c-3-atime").write_bytes((1).to_bytes(8, "little"))  # an atime alone is harmless
+    assert _setup.remove_orphans(str(tmp_path)) == ["jit_a-1-cache"]
+    left = sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith("."))
+    assert left == ["jit_b-2-atime", "jit_b-2-cache", "jit_c-3-atime"]
