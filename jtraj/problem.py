@@ -227,6 +227,13 @@ class Problem(eqx.Module):
             bound holds at both ends of every interval (and between them within 2.4e-4
             relative on 64 benchmark pairs, 1.7e-3 on 96 dataset pairs with h_max 0.2 s),
             for 1.56-1.77x the solve time. Decoupled transcription only.
+        jerk: bound the change of acceleration between consecutive intervals by the
+            robot's ``limits.qddd_max`` (``|v_{k+1} - v_k| <= qddd_max (h_k + h_{k+1}) / 2``,
+            see :func:`jtraj.transcription.jerk_inequalities`). None (default): on where
+            the robot's limits include a jerk bound (``panda``), off elsewhere (``serial3``
+            and the thesis' other robots have none). The rows couple consecutive stages:
+            such problems are solved by the augmented-Lagrangian method with dense Newton
+            systems (``method="auto"`` picks it; "ip" and the Riccati solve refuse them).
     """
 
     robot: Robot
@@ -239,10 +246,11 @@ class Problem(eqx.Module):
     T_max: Array
     N: int = eqx.field(static=True)
     efforts: str = eqx.field(static=True, default="samples")
+    jerk: bool = eqx.field(static=True, default=False)
 
     def __init__(self, robot: Robot, q_start, q_goal, *, N: int = 20, weights: Weights | None = None,
                  qd_start=0.0, qd_goal=0.0, via_points: Sequence = (), T_max: float | None = None,
-                 efforts: str = "samples", validate: bool = True):
+                 efforts: str = "samples", jerk: bool | None = None, validate: bool = True):
         if not isinstance(robot, Robot):
             raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
         if isinstance(N, jax.core.Tracer):
@@ -251,10 +259,19 @@ class Problem(eqx.Module):
             raise ValueError(f"N must be an integer >= 2, got {N!r}")
         if not isinstance(efforts, str) or efforts not in EFFORTS:
             raise ValueError(f"efforts must be one of {EFFORTS}, got {efforts!r}")
+        has_jerk = robot.limits.qddd_max is not None
+        if jerk is None:
+            jerk = has_jerk
+        elif not isinstance(jerk, (bool, np.bool_)):
+            raise ValueError(f"jerk must be True, False or None, got {jerk!r}")
+        elif jerk and not has_jerk:
+            raise ValueError(f"jerk=True needs a jerk bound in the robot's limits (limits.qddd_max); robot "
+                             f"{robot.name!r} has none")
         n = robot.n
         self.robot = robot
         self.N = int(N)
         self.efforts = efforts
+        self.jerk = bool(jerk)
         self.q_start = check_state(q_start, "q_start", n)
         self.q_goal = check_state(q_goal, "q_goal", n)
         self.qd_start = check_state(jnp.broadcast_to(jnp.asarray(qd_start, float), (n,))

@@ -499,7 +499,9 @@ class _NLP(eqx.Module):
         return jax.grad(self.al_and_parts, has_aux=True)(z, mult, mu)
 
     def global_al(self, z, mult, mu):
-        return self.time_al(jnp.sum(self.layout.unpack(z)[1]), mult, mu)
+        # (the jerk rows, Problem(jerk=True), are global rows of z; the Riccati paths,
+        # which take the global rows as functions of T alone, are not used for them)
+        return self.ineq_term(self.tr.global_inequalities(self.problem, self.layout, z), mult.glob, mu)
 
     def al_value(self, z, mult, mu):
         return self.al_and_parts(z, mult, mu)[0]
@@ -1426,12 +1428,15 @@ def initial_guess(problem: Problem, opts: SolverOptions, tr: Transcription):
     return tr.initial_controls(problem, v0, h0), h0
 
 
-def _stagewise(opts: SolverOptions, tr: Transcription) -> bool:
+def _stagewise(opts: SolverOptions, tr: Transcription, jerk: bool = False) -> bool:
     """Whether the Newton directions come from the stage-wise solve (see
-    ``SolverOptions.linear_solver``)."""
+    ``SolverOptions.linear_solver``; never with jerk rows, which couple stages)."""
     solver = opts.linear_solver
     if solver == "auto":
-        solver = "riccati" if jax.default_backend() == "cpu" else "dense"
+        solver = "riccati" if jax.default_backend() == "cpu" and not jerk else "dense"
+    if solver == "riccati" and jerk:
+        raise ValueError("options.linear_solver='riccati' does not handle Problem(jerk=True) (its rows couple "
+                         "consecutive stages); use linear_solver='auto' or 'dense', or jerk=False")
     return solver == "riccati" and tr.name == "decoupled"
 
 
@@ -1439,7 +1444,7 @@ def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, war
     """(nlp, starting state, valid) for one problem; invalid samples start from a finite
     placeholder and are flagged at the end."""
     layout = tr.layout(problem)
-    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem), stagewise=_stagewise(opts, tr),
+    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem), stagewise=_stagewise(opts, tr, problem.jerk),
                ineq_penalty=opts.inequality_penalty, pbm_init=opts.pbm_init, pbm_ratio=opts.pbm_ratio)
     u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
@@ -1534,6 +1539,8 @@ def _finish(nlp: _NLP, s: _State, opts: SolverOptions, valid, light=False) -> So
         viol["tau"] = jnp.maximum(viol.get("tau", 0.0), jnp.max(jnp.maximum(jnp.abs(tau) / lim.tau_max - 1, 0)))
     viol["h"] = jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0))
     viol["T"] = jnp.maximum(glob[0], 0.0)
+    if problem.jerk:  # the jerk rows (normalised, see jtraj.transcription.jerk_inequalities)
+        viol["jerk"] = jnp.max(jnp.maximum(glob[1:], 0.0))
     viol["goal"] = jnp.maximum(jnp.max(jnp.abs(q[-1] - problem.q_goal)), jnp.max(jnp.abs(qd[-1] - problem.qd_goal)))
     if problem.via_points:
         # the Euclidean distance beyond each via point's own tol, absolute (task units)
@@ -1631,10 +1638,11 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     if not isinstance(problem, Problem):
         raise ValueError(f"problem must be a jtraj.Problem, got {type(problem).__name__}")
     _check_efforts(problem.efforts, transcription)
+    Transcription(transcription).check_jerk(problem)
     if warm not in ("full", "primal"):
         raise ValueError(f"warm must be 'full' or 'primal', got {warm!r}")
     warm = init is not None and warm == "full"
-    opts = _resolve_method(options, transcription, problem.robot)
+    opts = _resolve_method(options, transcription, problem.robot, problem.jerk)
     # float64 only, the compilation cache on, a first compilation logged (jtraj._setup)
     key = _setup.before_solve(problem.robot, problem.N, batch=False, problem=problem, options=opts,
                               transcription=transcription, efforts=problem.efforts)
@@ -1658,34 +1666,39 @@ def _placeholder_init(N: int, m_u: int):
     return np.zeros((N, m_u)), np.zeros(N)
 
 
-def _resolve_method(opts: SolverOptions | None, transcription: str, robot) -> SolverOptions:
+def _resolve_method(opts: SolverOptions | None, transcription: str, robot, jerk: bool = False) -> SolverOptions:
     """The options (the defaults for None) with ``method="auto"`` resolved (see
     :class:`SolverOptions`) and an explicit "ip" checked. Cached: building a
     SolverOptions and checking it costs about 0.15 ms, which one warm solve (about 5 ms)
     paid twice."""
     if opts is not None and not isinstance(opts, SolverOptions):
         raise ValueError(f"options must be a jtraj.SolverOptions, got {type(opts).__name__}")
-    return _resolved(opts, transcription, getattr(robot, "path_equalities", None) is not None)
+    return _resolved(opts, transcription, getattr(robot, "path_equalities", None) is not None, bool(jerk))
 
 
 @functools.lru_cache(maxsize=64)
-def _resolved(opts: SolverOptions | None, transcription: str, path_equalities: bool) -> SolverOptions:
+def _resolved(opts: SolverOptions | None, transcription: str, path_equalities: bool,
+              jerk: bool = False) -> SolverOptions:
     opts = SolverOptions() if opts is None else opts
     if opts.method == "auto":
-        ip = transcription == "decoupled" and not path_equalities and opts.inequality_penalty == "phr"
+        ip = transcription == "decoupled" and not path_equalities and not jerk and opts.inequality_penalty == "phr"
         return dataclasses.replace(opts, method="ip" if ip else "al")
-    _check_method(opts, transcription, path_equalities)
+    _check_method(opts, transcription, path_equalities, jerk)
     return opts
 
 
-def _check_method(opts: SolverOptions, transcription: str, path_equalities: bool):
-    """``method="ip"`` needs the decoupled transcription and no equalities but the goal."""
+def _check_method(opts: SolverOptions, transcription: str, path_equalities: bool, jerk: bool = False):
+    """``method="ip"`` needs the decoupled transcription, no equalities but the goal and
+    no jerk rows (its global rows are functions of T alone)."""
     if opts.method != "ip":
         return
     if transcription != "decoupled":
         raise ValueError(f"options.method='ip' needs transcription='decoupled', got {transcription!r}")
     if path_equalities:
         raise ValueError("options.method='ip' does not handle a robot's path_equalities; use method='al'")
+    if jerk:
+        raise ValueError("options.method='ip' does not handle Problem(jerk=True) (its rows couple consecutive "
+                         "stages); use method='al' or 'auto', or jerk=False")
 
 
 def _check_efforts(efforts, transcription):
@@ -2206,7 +2219,11 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     T_max = xp.broadcast_to(xp.asarray(np.inf if T_max is None else T_max, float), (B,))
     Transcription(transcription)
     _check_efforts(efforts, transcription)
-    opts = _resolve_method(options, transcription, robot)
+    jerk = robot.limits.qddd_max is not None  # the problems' default (see Problem's jerk)
+    if jerk and transcription not in Transcription.JERK:
+        raise ValueError(f"robot {robot.name!r} has a jerk bound, which transcription {transcription!r} cannot "
+                         f"impose; solve Problem(..., jerk=False) one by one, or use one of {Transcription.JERK}")
+    opts = _resolve_method(options, transcription, robot, jerk)
     weights = Weights() if weights is None else weights
     key = _setup.before_solve(robot, N, batch=True, weights=weights, options=opts, transcription=transcription,
                               efforts=efforts)
