@@ -344,14 +344,33 @@ class Problem(eqx.Module):
         return bad
 
     @staticmethod
-    def from_task(robot: Robot, p_start, p_goal, *, q_init=None, ik_method: str = "weighted",
-                  **kwargs) -> "Problem":
+    def from_task(robot: Robot, p_start, p_goal, *, R_start=None, R_goal=None, q_init=None,
+                  ik_method: str = "weighted", ik_starts: int = 8, **kwargs) -> "Problem":
         """Build a problem from task-space start and goal points using inverse kinematics.
 
-        Raises ``ValueError`` when a point is unreachable.
+        Planar robots: :func:`jtraj.robots.ik.ik` (``ik_method``). Spatial robots (a 3-D
+        task point and a ``rotation(q)``: URDF arms, ``gough_stewart``): positions, and
+        with ``R_start`` / ``R_goal`` (3, 3) full poses, by
+        :func:`jtraj.robots.spatial_ik.solve_pose` (damped least squares in the joint
+        box, a null-space term for redundant arms) from ``q_init`` (default the middle
+        of the joint box) and ``ik_starts - 1`` seeded starts; the goal's search starts
+        at the start's solution. ``kwargs`` go to :class:`Problem`.
+
+        Raises ``ValueError`` when a point or pose is unreachable, with the IK status and
+        its residuals in the message.
         """
-        q_start = ik_or_raise(robot, p_start, q_init, "p_start", ik_method)
-        q_goal = ik_or_raise(robot, p_goal, q_start, "p_goal", ik_method)
+        spatial = callable(getattr(robot, "rotation", None)) and jax.eval_shape(
+            robot.forward_kinematics, jax.ShapeDtypeStruct((robot.n,), jnp.result_type(float))).shape == (3,)
+        if not spatial:
+            for name, R in (("R_start", R_start), ("R_goal", R_goal)):
+                if R is not None:
+                    raise ValueError(f"{name} needs a spatial robot (a 3-D task point and a rotation(q) method); "
+                                     f"robot {robot.name!r} is not one")
+            q_start = ik_or_raise(robot, p_start, q_init, "p_start", ik_method)
+            q_goal = ik_or_raise(robot, p_goal, q_start, "p_goal", ik_method)
+        else:
+            q_start = pose_or_raise(robot, p_start, R_start, q_init, "p_start", ik_starts)
+            q_goal = pose_or_raise(robot, p_goal, R_goal, q_start, "p_goal", ik_starts)
         return Problem(robot, q_start, q_goal, **kwargs)
 
 
@@ -363,6 +382,23 @@ def ik_or_raise(robot, p, q_init, name, method="weighted"):
     if int(res.status) != 0:
         raise ValueError(f"{name} = {np.asarray(p).tolist()} is unreachable for robot "
                          f"{robot.name!r} (IK status {int(res.status)}, residual {float(res.error):.3g} m)")
+    return res.q
+
+
+def pose_or_raise(robot, p, R, q_init, name, starts=8):
+    """Spatial inverse kinematics of a position (``R`` None) or a pose, raising
+    ``ValueError`` naming ``name`` with the IK status and residuals."""
+    from .robots.ik import STATUS
+    from .robots.spatial_ik import solve_pose
+
+    res = solve_pose(robot, p, R, q_init, starts=starts)
+    status = int(res.status)
+    if status != 0:
+        what = "position" if R is None else "pose (position and rotation)"
+        rot = "" if R is None else f", orientation residual {float(res.rot_error):.3g} rad"
+        raise ValueError(f"{name} = {np.asarray(p).tolist()}: this {what} is unreachable for robot {robot.name!r} "
+                         f"within its joint limits (IK status {status}: {STATUS.get(status, '?')}; position "
+                         f"residual {float(res.error):.3g} m{rot}; {starts} starts tried)")
     return res.q
 
 
