@@ -143,3 +143,28 @@ def test_jerk_bound_binds_and_matches_ipopt():
         r2 = A.solve_pair(spec, Q0, Q1, N=N, weights=(WEIGHTS["time"], WEIGHTS["energy"], 0.0),
                           init=(np.asarray(sol.v), np.asarray(sol.h)))
         assert r2["strict_success"] and abs(float(sol.cost) - r2["cost"]) <= 2e-4 * r2["cost"]
+
+
+@pytest.mark.slow
+def test_sensitivity_to_the_jerk_bound():
+    """The optimal cost's derivative in qddd_max by implicit differentiation (the jerk
+    rows among the active constraints) against central differences of re-solves."""
+    robot = serial3_jerk()
+    W = jtraj.Weights(**WEIGHTS)
+    problem = jtraj.Problem(robot, Q0, Q1, N=N, weights=W)
+    tight = jtraj.SolverOptions(tol_optimality=1e-8)  # a traced option: the same programs
+    sol = jtraj.solve(problem, options=tight)
+    assert sol.converged
+    sens = jtraj.sensitivity(problem, "qddd_max", solution=sol, options=tight)
+    d = 0.02 * J
+
+    def cost(jerk):
+        r = jtraj.robots.with_params(robot, qddd_max=jnp.full(3, jerk))
+        s = jtraj.solve(jtraj.Problem(r, Q0, Q1, N=N, weights=W), init=(sol.v, sol.h), options=tight)
+        assert s.converged
+        return float(s.cost)
+
+    fd = (cost(J + d) - cost(J - d)) / (2 * d)
+    total = float(np.sum(sens["cost"]))  # all three joints' bounds moved together
+    assert fd < 0  # a looser bound, a cheaper move
+    assert abs(total - fd) <= 2e-2 * abs(fd), (sens["cost"], fd)
