@@ -1444,7 +1444,8 @@ def _prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, war
     """(nlp, starting state, valid) for one problem; invalid samples start from a finite
     placeholder and are flagged at the end."""
     layout = tr.layout(problem)
-    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem), stagewise=_stagewise(opts, tr, problem.jerk),
+    nlp = _NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem),
+               stagewise=_stagewise(opts, tr, problem.jerk),
                ineq_penalty=opts.inequality_penalty, pbm_init=opts.pbm_init, pbm_ratio=opts.pbm_ratio)
     u0, h0 = init
     z0 = jnp.clip(layout.pack(u0, h0), layout.z_lo, layout.z_hi)
