@@ -69,14 +69,15 @@ def test_defaults_and_global_rows():
     np.testing.assert_array_equal(g_on[:1], g_off)
     np.testing.assert_allclose(g_on[1:], jerk_inequalities(v, h, robot.limits), rtol=0, atol=1e-12)
     # the decoupled rows are linear in z (no curvature of their own)
-    H = jax.hessian(lambda zz: jnp.sum(jnp.sin(jnp.arange(g_on.size)) * tr.global_inequalities(p_on, lay, zz)))(z)
+    weighted = lambda zz: jnp.sum(jnp.sin(jnp.arange(g_on.size)) * tr.global_inequalities(p_on, lay, zz))  # noqa: E731
+    H = jax.jit(jax.hessian(weighted))(z)
     assert float(jnp.max(jnp.abs(H))) == 0.0
     # the spline's rows bound its cubic's exact jerk, (qdd_{k+1} - qdd_k) / h_k
     sp = Transcription("spline")
     lay_s = sp.layout(p_on)
     knots = jnp.asarray(Q0 + np.cumsum(rng.uniform(-0.05, 0.05, (N, 3)), axis=0))
     u = jnp.concatenate([knots[:-1], jnp.asarray(Q1)[None]])
-    g_s = np.asarray(sp.global_inequalities(p_on, lay_s, lay_s.pack(u, h))[1:]).reshape(N, 3, 2)
+    g_s = np.asarray(jax.jit(lambda zz: sp.global_inequalities(p_on, lay_s, zz))(lay_s.pack(u, h))[1:]).reshape(N, 3, 2)
     _, _, qdd = jtraj.transcription.clamped_spline(jnp.asarray(Q0), jnp.zeros(3), jnp.zeros(3), u, h)
     jerk = np.diff(np.asarray(qdd), axis=0) / np.asarray(h)[:, None]
     np.testing.assert_allclose(g_s[..., 0], (jerk - J) * np.asarray(h)[:, None] / (J * 0.1), rtol=1e-10, atol=1e-12)
