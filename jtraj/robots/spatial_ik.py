@@ -9,11 +9,13 @@ angular rows of the Jacobian)::
     e_c  = e clipped to ``max_step`` (m) and ``max_rot_step`` (rad) in norm
     J    = [J_p; J_w]  (3 x n or 6 x n): J_p = d f / dq, J_w the angular velocity
            Jacobian, omega_i = vee(dR/dq_i R^T) (autodiff of ``robot.rotation``)
-    dq   = J^T (J J^T + damping^2 I)^{-1} e_c  +  (I - J^+ J) z,   z = -null_gain W (q - q_mid)
+    dq   = J^T (J J^T + lambda^2 I)^{-1} e_c  +  (I - J^+ J) z,   z = -null_gain W (q - q_mid)
+    lambda^2 = damping^2 min(1, |e_c|^2 / max_step^2)
     q   <- clip(q + s dq, q_min, q_max),   s: |s dq|_inf <= max_dq
 
 The damped step is well defined at and near singularities (where the plain
-pseudo-inverse blows up); the null-space term (redundant arms only: n greater than the
+pseudo-inverse blows up); its damping fades with the error, so that the last steps are
+Gauss-Newton steps, which converge quadratically where the Jacobian has full row rank; the null-space term (redundant arms only: n greater than the
 task's dimension, 3 or 6) moves the joints towards the middle of their range along
 the exact null space of J (J^+ by SVD), so it does not disturb the task at first order;
 W is :mod:`jtraj.robots.ik`'s Liegeois weighting. The projection onto the joint box
@@ -91,7 +93,7 @@ def angular_jacobian(robot: Robot, q) -> Array:
 
 
 def pose_ik(robot: Robot, p, rotation=None, q_init=None, *, max_iter: int = 300, tol: float = 1e-10,
-            rot_tol: float = 1e-10, damping: float = 0.02, null_gain: float = 0.5, max_step: float = 0.2,
+            rot_tol: float = 1e-10, damping: float = 0.05, null_gain: float = 0.5, max_step: float = 0.2,
             max_rot_step: float = 0.5, max_dq: float = 0.3) -> PoseIKResult:
     """Joint configuration q with ``robot.forward_kinematics(q) = p`` and, with a
     ``rotation``, ``robot.rotation(q) = rotation`` (see the module docstring).
@@ -103,7 +105,8 @@ def pose_ik(robot: Robot, p, rotation=None, q_init=None, *, max_iter: int = 300,
         p: (3,) target position [m]; rotation: (3, 3) target rotation or None.
         q_init: (n,) start; default :func:`jtraj.robots.ik.default_q_init`.
         max_iter: iteration bound (static); tol, rot_tol: residuals to reach [m], [rad].
-        damping: the damped least squares' lambda; null_gain: the null-space term's gain
+        damping: the damped least squares' lambda at a correction of ``max_step`` (it
+            fades with the error); null_gain: the null-space term's gain
             (redundant arms; 0 switches it off); max_step, max_rot_step: the largest
             task correction per iteration [m], [rad]; max_dq: the largest joint change
             per iteration (infinity norm).
@@ -170,7 +173,10 @@ def _pose_ik(robot, p, R_t, q0, max_iter, tol, rot_tol, damping, null_gain, max_
         e_p, e_o = errors(q)
         e = jnp.concatenate([clip(e_p, max_step), clip(e_o, max_rot_step)]) if pose else clip(e_p, max_step)
         J = jac(q)
-        dq = J.T @ jnp.linalg.solve(J @ J.T + damping**2 * jnp.eye(dim, dtype=q.dtype), e)
+        # the damping fades with the error (full at a correction of max_step), so that the
+        # last iterations are Gauss-Newton steps (quadratic convergence near a solution)
+        lam2 = damping**2 * jnp.minimum(1.0, jnp.sum(e**2) / max_step**2)
+        dq = J.T @ jnp.linalg.solve(J @ J.T + lam2 * jnp.eye(dim, dtype=q.dtype), e)
         if redundant and has_box:
             z = -null_gain * w * (q - mid)
             dq = dq + z - jnp.linalg.pinv(J) @ (J @ z)
