@@ -137,8 +137,8 @@ def test_pose_ik_on_urdf_arms_against_pinocchio(name):
 @pytest.mark.slow
 def test_from_task_pose_on_ur5_and_workspace_box():
     """Problem.from_task with positions and orientations on the UR5, the ends checked
-    with Pinocchio; then a 3-D workspace box (a floor under the tool) that the free
-    optimum crosses: the bounded solve keeps every sample's tool point above it."""
+    with Pinocchio; then a 3-D workspace box whose face cuts the free optimum's path:
+    the bounded solve keeps every sample's tool point (by Pinocchio) inside it."""
     pytest.importorskip("pinocchio")
     ur5 = robots.get("ur5")
     qa = np.array([0.0, -1.2, 1.4, -1.6, -1.5, 0.0])
@@ -151,14 +151,24 @@ def test_from_task_pose_on_ur5_and_workspace_box():
         assert np.linalg.norm(p2 - p) < 1e-9 and np.linalg.norm(R2 - R) < 1e-9
     free = jtraj.solve(prob)
     assert bool(free.converged), free.status_message
-    z_path = np.asarray(jax.vmap(ur5.forward_kinematics)(free.q))[:, 2]
-    floor = min(pa[2], pb[2]) - 0.02
-    assert z_path.min() < floor - 0.01  # the free motion dips below the floor
-    ws = np.array([[-2.0, -2.0, floor], [2.0, 2.0, 2.0]])
+    # the face of the box: halfway into the free path's largest excursion beyond the
+    # ends' range (an axis and a side along which the free motion bulges out)
+    path = np.asarray(jax.vmap(ur5.forward_kinematics)(free.q))
+    ends = np.stack([pa, pb])
+    over, under = path.max(axis=0) - ends.max(axis=0), ends.min(axis=0) - path.min(axis=0)
+    axis = int(np.argmax(np.maximum(over, under)))
+    upper = over[axis] >= under[axis]
+    bulge = max(over[axis], under[axis])
+    assert bulge > 0.01
+    ws = np.array([[-2.0, -2.0, -2.0], [2.0, 2.0, 2.0]])
+    if upper:
+        ws[1, axis] = ends[:, axis].max() + bulge / 2
+    else:
+        ws[0, axis] = ends[:, axis].min() - bulge / 2
     boxed_robot = robots.get("ur5", limits=dict(workspace=ws))
     boxed = jtraj.solve(jtraj.Problem(boxed_robot, prob.q_start, prob.q_goal, N=20,
                                       weights=jtraj.Weights(time=1.0, energy=0.1)))
     assert bool(boxed.converged), boxed.status_message
-    z_boxed = np.array([_pin_pose("ur5", ur5, q)[0][2] for q in np.asarray(boxed.q)])
-    assert z_boxed.min() >= floor - 1e-6
-    assert float(boxed.cost) >= float(free.cost)
+    tool = np.array([_pin_pose("ur5", ur5, q)[0] for q in np.asarray(boxed.q)])  # Pinocchio's tool points
+    assert np.all(tool >= ws[0] - 1e-6) and np.all(tool <= ws[1] + 1e-6)
+    assert float(boxed.cost) >= float(free.cost) * (1 - 1e-6)
