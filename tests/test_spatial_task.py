@@ -141,8 +141,10 @@ def test_from_task_pose_on_ur5_and_workspace_box():
     the bounded solve keeps every sample's tool point (by Pinocchio) inside it."""
     pytest.importorskip("pinocchio")
     ur5 = robots.get("ur5")
-    qa = np.array([0.0, -1.2, 1.4, -1.6, -1.5, 0.0])
-    qb = qa + np.array([0.6, 0.5, -0.4, 0.3, 0.3, 0.4])
+    # a swing of the base joint through 1.6 rad: the tool moves on an arc that bulges out
+    # of the box spanned by its ends
+    qa = np.array([-0.8, -1.2, 1.4, -1.6, -1.5, 0.0])
+    qb = qa + np.array([1.6, 0.2, -0.2, 0.2, 0.2, 0.3])
     (pa, Ra), (pb, Rb) = _pin_pose("ur5", ur5, qa), _pin_pose("ur5", ur5, qb)
     prob = jtraj.Problem.from_task(ur5, pa, pb, R_start=Ra, R_goal=Rb, N=20,
                                    weights=jtraj.Weights(time=1.0, energy=0.1))
