@@ -167,7 +167,7 @@ def test_from_task_pose_on_ur5_and_workspace_box():
         ws[1, axis] = ends[:, axis].max() + bulge / 2
     else:
         ws[0, axis] = ends[:, axis].min() - bulge / 2
-    boxed_robot = robots.get("ur5", limits=dict(workspace=ws))
+    boxed_robot = robots.get("ur5", workspace=ws)
     boxed = jtraj.solve(jtraj.Problem(boxed_robot, prob.q_start, prob.q_goal, N=20,
                                       weights=jtraj.Weights(time=1.0, energy=0.1)))
     assert bool(boxed.converged), boxed.status_message
