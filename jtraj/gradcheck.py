@@ -24,7 +24,8 @@ N only carries terminal terms), the decoupled model
     qd_{k+1} = qd_k + h_k v_k                           (2)
 
 with ``q_0, qd_0`` given, and an objective ``F = sum_{k=0}^{N} l_k(w_k) + G(h)``
-(``G`` the term that couples all samples: the PHR term of ``T <= T_max``). Adjoin the
+(``G`` the term that couples samples: the PHR terms of ``T <= T_max`` and of the jerk
+rows of a ``Problem(jerk=True)``, which depend on (v, h) directly). Adjoin the
 model with co-states ``p_{k+1} = (p_q,k+1, p_qd,k+1)``:
 
     F = sum_k l_k + G + sum_{k<N} p_q,k+1 . (q_k + h_k qd_k + h_k^2/2 v_k - q_{k+1})
@@ -138,11 +139,23 @@ def _stage_pair(problem, tr, w, sdk, eq_k, ineq_k, mu):
     return jnp.stack([cost, val])
 
 
-def _global_al(problem, h, rho_glob, mu):
-    """G(h): PHR term of the bound T = sum h <= T_max (normalised like the solver)."""
+def _global_al(problem, v, h, rho_glob, mu):
+    """G(v, h): PHR term of the bound T = sum h <= T_max and, with ``problem.jerk``, of
+    the jerk rows ``(+-(v_{k+1} - v_k) - J (h_k + h_{k+1}) / 2) / (J h_max) <= 0``, per
+    joint j and k = 0..N-2 in the order (k, j, sign) (normalised like the solver)."""
     finite = jnp.isfinite(problem.T_max)
     T_max = jnp.where(finite, problem.T_max, 1.0)
-    g = jnp.where(finite, jnp.sum(h) / T_max - 1.0, -1.0)[None]
+    rows = [jnp.where(finite, jnp.sum(h) / T_max - 1.0, -1.0)]
+    if problem.jerk:
+        lim = problem.robot.limits
+        N, n = v.shape
+        for k in range(N - 1):
+            for j in range(n):
+                J = lim.qddd_max[j]
+                reach = J * (h[k] + h[k + 1]) / 2
+                rows += [(v[k + 1, j] - v[k, j] - reach) / (J * lim.h_max),
+                         (v[k, j] - v[k + 1, j] - reach) / (J * lim.h_max)]
+    g = jnp.stack(rows)
     return (jnp.sum(jnp.maximum(0.0, rho_glob + mu * g) ** 2) - jnp.sum(rho_glob**2)) / (2 * mu)
 
 
@@ -206,7 +219,8 @@ def adjoint_gradients(problem, v, h, mult, mu, *, adjoint: AdjointFn = discrete_
         W, sd, mult.eq, mult.ineq)
     cost = adjoint(v, h, q, qd, split(dl[:, 0]))
     gv, gh = adjoint(v, h, q, qd, split(dl[:, 1]))
-    gh = gh + jax.grad(_global_al, argnums=1)(problem, h, mult.glob, mu)
+    gv_glob, gh_glob = jax.grad(_global_al, argnums=(1, 2))(problem, v, h, mult.glob, mu)
+    gv, gh = gv + gv_glob, gh + gh_glob
     return cost, (gv, gh)
 
 

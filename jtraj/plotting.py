@@ -42,6 +42,38 @@ def solution_arrays(solution) -> dict:
                 t=np.concatenate([[0.0], np.cumsum(h)]))
 
 
+def coordinate_units(robot) -> list[str]:
+    """The unit of each generalised coordinate, "rad" or "m": the robot's
+    ``coordinate_units`` where it declares them (``gough_stewart``, the planar parallel
+    robots), else from its ``joint_types`` (URDF arms: prismatic joints in m), else rad."""
+    units = getattr(robot, "coordinate_units", None)
+    if units is not None:
+        return list(units)
+    types = getattr(robot, "joint_types", None)
+    if types is not None:
+        return ["m" if t == "prismatic" else "rad" for t in types]
+    return ["rad"] * robot.n
+
+
+def effort_units(robot) -> list[str]:
+    """The unit of each actuator effort, "N m" or "N": the robot's ``effort_units``
+    where it declares them, else per coordinate (a force on a coordinate in m, a torque
+    on one in rad) when there is one actuator per coordinate, else N m."""
+    units = getattr(robot, "effort_units", None)
+    if units is not None:
+        return list(units)
+    tau_max = robot.limits.tau_max
+    m = robot.n if tau_max is None else int(np.shape(tau_max)[0])
+    if m == robot.n:
+        return ["N" if u == "m" else "N m" for u in coordinate_units(robot)]
+    return ["N m"] * m
+
+
+def _axis_unit(units, rate="") -> str:
+    """One axis label's unit for per-line units (e.g. "rad/s" or "rad/s, m/s")."""
+    return ", ".join(dict.fromkeys(f"{u}{rate}" for u in units))
+
+
 def _tip_path(robot, q):
     import jax
 
@@ -69,11 +101,13 @@ def _line(ax, t, y, **kw):
     ax.plot(t, y, **kw)
 
 
-def _signals_with_limits(ax, draw, sol, guess, key, bound, ylabel, title):
+def _signals_with_limits(ax, draw, sol, guess, key, bound, ylabel, title, units=None):
     """One panel: every joint's ``sol[key]`` (and the guess's, dashed grey-ish) drawn by
-    ``draw(ax, t, y, **style)``, with +-bound as dashed lines in the joint's colour."""
+    ``draw(ax, t, y, **style)``, with +-bound as dashed lines in the joint's colour;
+    ``units``: each line's unit, in its legend label."""
     for j in range(sol[key].shape[1]):
-        draw(ax, sol["t"], sol[key][:, j], color=f"C{j}", label=f"{key}{j + 1}", **_OPT)
+        label = f"{key}{j + 1}" + ("" if units is None else f" [{units[j]}]")
+        draw(ax, sol["t"], sol[key][:, j], color=f"C{j}", label=label, **_OPT)
         if guess is not None:
             draw(ax, guess["t"], guess[key][:, j], **{**_GUESS, "color": f"C{j}", "alpha": 0.6})
         if bound is not None:
@@ -197,10 +231,11 @@ def plot_solution(problem, solution, *, guess: bool = True, title: str | None = 
         axs[0, 0] = fig.add_subplot(2, 3, 1, projection="3d")
     plot_path(problem, solution, axs[0, 0], guess=g)
 
-    # q(t)
+    # q(t), in each coordinate's unit (rad or m) and the efforts' (N m or N)
+    cu, eu = coordinate_units(robot), effort_units(robot)
     ax = axs[0, 1]
     for j in range(sol["q"].shape[1]):
-        ax.plot(sol["t"], sol["q"][:, j], color=f"C{j}", label=f"q{j + 1}", **_OPT)
+        ax.plot(sol["t"], sol["q"][:, j], color=f"C{j}", label=f"q{j + 1} [{cu[j]}]", **_OPT)
         if g is not None:
             ax.plot(g["t"], g["q"][:, j], **{**_GUESS, "color": f"C{j}", "alpha": 0.6})
     if lim.q_min is not None:
@@ -209,19 +244,19 @@ def plot_solution(problem, solution, *, guess: bool = True, title: str | None = 
                 if np.isfinite(b):
                     ax.axhline(b, ls=":", color=f"C{j}", lw=0.8)
     ax.set_xlabel("t [s]")
-    ax.set_ylabel("q [rad]")
+    ax.set_ylabel(f"q [{_axis_unit(cu)}]")
     ax.set_title("joint positions (dashed: guess)")
     ax.legend(fontsize=7)
 
     # qd(t)
-    _signals_with_limits(axs[0, 2], _line, sol, g, "qd", lim.qd_max, "qd [rad/s]",
-                         "joint velocities and limits")
+    _signals_with_limits(axs[0, 2], _line, sol, g, "qd", lim.qd_max, f"qd [{_axis_unit(cu, '/s')}]",
+                         "joint velocities and limits", [f"{u}/s" for u in cu])
 
     # tau(t)
     dense = _efforts_between_samples(robot, solution)
-    _signals_with_limits(axs[1, 0], _stairs, sol, g, "tau", lim.tau_max, "tau [N m]",
+    _signals_with_limits(axs[1, 0], _stairs, sol, g, "tau", lim.tau_max, f"tau [{_axis_unit(eu)}]",
                          "actuator efforts and limits (dashed)" if dense is None else
-                         "efforts at the samples (steps), between them (thin)")
+                         "efforts at the samples (steps), between them (thin)", eu)
     if dense is not None:
         for j in range(dense[1].shape[1]):
             axs[1, 0].plot(dense[0], dense[1][:, j], color=f"C{j}", lw=0.7)

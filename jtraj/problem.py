@@ -205,6 +205,27 @@ def check_configurations(robot: Robot, configurations: dict, velocities: dict | 
 EFFORTS = ("samples", "intervals")
 
 
+def default_jerk(robot) -> bool:
+    """Whether a problem of ``robot`` gets jerk rows by default: where its limits include a
+    jerk bound ``qddd_max`` that the acceleration bound and the shortest period do not
+    already imply. With ``|v_k| <= qdd_max``, every row holds when
+    ``2 qdd_max <= qddd_max h_min`` (then ``|v_{k+1} - v_k| <= 2 qdd_max <= qddd_max
+    (h_k + h_{k+1}) / 2``): such rows never bind, and leaving them out keeps the
+    interior-point method with its stage-wise Newton steps. The ``panda``'s published
+    limits are such a case (``2 qdd_max / qddd_max`` = 4 ms against ``h_min`` = 5 ms).
+    Traced limits (a derivative with respect to them) keep the rows."""
+    lim = robot.limits
+    if lim.qddd_max is None:
+        return False
+    if lim.qdd_max is None:
+        return True
+    try:
+        qdd, qddd, h_min = (np.asarray(x, float) for x in (lim.qdd_max, lim.qddd_max, lim.h_min))
+    except (TypeError, jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return True
+    return not bool(np.all(2.0 * qdd <= qddd * h_min))
+
+
 class Problem(eqx.Module):
     """A point-to-point trajectory problem for the decoupled transcription.
 
@@ -227,6 +248,15 @@ class Problem(eqx.Module):
             bound holds at both ends of every interval (and between them within 2.4e-4
             relative on 64 benchmark pairs, 1.7e-3 on 96 dataset pairs with h_max 0.2 s),
             for 1.56-1.77x the solve time. Decoupled transcription only.
+        jerk: bound the change of acceleration between consecutive intervals by the
+            robot's ``limits.qddd_max`` (``|v_{k+1} - v_k| <= qddd_max (h_k + h_{k+1}) / 2``,
+            see :func:`jtraj.transcription.jerk_inequalities`). None (default): on where
+            the robot's limits include a jerk bound that they do not already imply
+            (:func:`default_jerk`), off elsewhere (``serial3`` and the thesis' other robots
+            have none; the ``panda``'s acceleration bounds and shortest period imply its
+            published jerk bounds). True: on wherever the limits include one. The rows couple consecutive stages:
+            such problems are solved by the augmented-Lagrangian method with dense Newton
+            systems (``method="auto"`` picks it; "ip" and the Riccati solve refuse them).
     """
 
     robot: Robot
@@ -239,10 +269,11 @@ class Problem(eqx.Module):
     T_max: Array
     N: int = eqx.field(static=True)
     efforts: str = eqx.field(static=True, default="samples")
+    jerk: bool = eqx.field(static=True, default=False)
 
     def __init__(self, robot: Robot, q_start, q_goal, *, N: int = 20, weights: Weights | None = None,
                  qd_start=0.0, qd_goal=0.0, via_points: Sequence = (), T_max: float | None = None,
-                 efforts: str = "samples", validate: bool = True):
+                 efforts: str = "samples", jerk: bool | None = None, validate: bool = True):
         if not isinstance(robot, Robot):
             raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
         if isinstance(N, jax.core.Tracer):
@@ -251,10 +282,19 @@ class Problem(eqx.Module):
             raise ValueError(f"N must be an integer >= 2, got {N!r}")
         if not isinstance(efforts, str) or efforts not in EFFORTS:
             raise ValueError(f"efforts must be one of {EFFORTS}, got {efforts!r}")
+        has_jerk = robot.limits.qddd_max is not None
+        if jerk is None:
+            jerk = default_jerk(robot)
+        elif not isinstance(jerk, (bool, np.bool_)):
+            raise ValueError(f"jerk must be True, False or None, got {jerk!r}")
+        elif jerk and not has_jerk:
+            raise ValueError(f"jerk=True needs a jerk bound in the robot's limits (limits.qddd_max); robot "
+                             f"{robot.name!r} has none")
         n = robot.n
         self.robot = robot
         self.N = int(N)
         self.efforts = efforts
+        self.jerk = bool(jerk)
         self.q_start = check_state(q_start, "q_start", n)
         self.q_goal = check_state(q_goal, "q_goal", n)
         self.qd_start = check_state(jnp.broadcast_to(jnp.asarray(qd_start, float), (n,))
@@ -327,14 +367,33 @@ class Problem(eqx.Module):
         return bad
 
     @staticmethod
-    def from_task(robot: Robot, p_start, p_goal, *, q_init=None, ik_method: str = "weighted",
-                  **kwargs) -> "Problem":
+    def from_task(robot: Robot, p_start, p_goal, *, R_start=None, R_goal=None, q_init=None,
+                  ik_method: str = "weighted", ik_starts: int = 8, **kwargs) -> "Problem":
         """Build a problem from task-space start and goal points using inverse kinematics.
 
-        Raises ``ValueError`` when a point is unreachable.
+        Planar robots: :func:`jtraj.robots.ik.ik` (``ik_method``). Spatial robots (a 3-D
+        task point and a ``rotation(q)``: URDF arms, ``gough_stewart``): positions, and
+        with ``R_start`` / ``R_goal`` (3, 3) full poses, by
+        :func:`jtraj.robots.spatial_ik.solve_pose` (damped least squares in the joint
+        box, a null-space term for redundant arms) from ``q_init`` (default the middle
+        of the joint box) and ``ik_starts - 1`` seeded starts; the goal's search starts
+        at the start's solution. ``kwargs`` go to :class:`Problem`.
+
+        Raises ``ValueError`` when a point or pose is unreachable, with the IK status and
+        its residuals in the message.
         """
-        q_start = ik_or_raise(robot, p_start, q_init, "p_start", ik_method)
-        q_goal = ik_or_raise(robot, p_goal, q_start, "p_goal", ik_method)
+        spatial = callable(getattr(robot, "rotation", None)) and jax.eval_shape(
+            robot.forward_kinematics, jax.ShapeDtypeStruct((robot.n,), jnp.result_type(float))).shape == (3,)
+        if not spatial:
+            for name, R in (("R_start", R_start), ("R_goal", R_goal)):
+                if R is not None:
+                    raise ValueError(f"{name} needs a spatial robot (a 3-D task point and a rotation(q) method); "
+                                     f"robot {robot.name!r} is not one")
+            q_start = ik_or_raise(robot, p_start, q_init, "p_start", ik_method)
+            q_goal = ik_or_raise(robot, p_goal, q_start, "p_goal", ik_method)
+        else:
+            q_start = pose_or_raise(robot, p_start, R_start, q_init, "p_start", ik_starts)
+            q_goal = pose_or_raise(robot, p_goal, R_goal, q_start, "p_goal", ik_starts)
         return Problem(robot, q_start, q_goal, **kwargs)
 
 
@@ -346,6 +405,23 @@ def ik_or_raise(robot, p, q_init, name, method="weighted"):
     if int(res.status) != 0:
         raise ValueError(f"{name} = {np.asarray(p).tolist()} is unreachable for robot "
                          f"{robot.name!r} (IK status {int(res.status)}, residual {float(res.error):.3g} m)")
+    return res.q
+
+
+def pose_or_raise(robot, p, R, q_init, name, starts=8):
+    """Spatial inverse kinematics of a position (``R`` None) or a pose, raising
+    ``ValueError`` naming ``name`` with the IK status and residuals."""
+    from .robots.ik import STATUS
+    from .robots.spatial_ik import solve_pose
+
+    res = solve_pose(robot, p, R, q_init, starts=starts)
+    status = int(res.status)
+    if status != 0:
+        what = "position" if R is None else "pose (position and rotation)"
+        rot = "" if R is None else f", orientation residual {float(res.rot_error):.3g} rad"
+        raise ValueError(f"{name} = {np.asarray(p).tolist()}: this {what} is unreachable for robot {robot.name!r} "
+                         f"within its joint limits (IK status {status}: {STATUS.get(status, '?')}; position "
+                         f"residual {float(res.error):.3g} m{rot}; {starts} starts tried)")
     return res.q
 
 

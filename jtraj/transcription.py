@@ -366,8 +366,42 @@ class Transcription:
         return eq, ineq
 
     def global_inequalities(self, problem: Problem, layout: Layout, z):
-        """Constraints that couple all samples (normalised): the bound on T."""
-        return self.time_inequalities(problem, jnp.sum(layout.unpack(z)[1]))
+        """Constraints that couple samples (normalised): the bound on T (row 0) and, with
+        ``problem.jerk``, the jerk rows of :func:`jerk_inequalities` (rows 1..)."""
+        u, h = layout.unpack(z)
+        g = self.time_inequalities(problem, jnp.sum(h))
+        if not problem.jerk:
+            return g
+        return jnp.concatenate([g, self.jerk_inequalities(problem, u, h)])
+
+    #: the transcriptions whose accelerations the jerk bound applies to (see
+    #: :meth:`jerk_inequalities`)
+    JERK = ("decoupled", "coupled", "collocation", "spline")
+
+    def check_jerk(self, problem: Problem) -> None:
+        """``ValueError`` where ``problem.jerk`` is on and this transcription has no jerk rows."""
+        if problem.jerk and self.name not in self.JERK:
+            raise ValueError(f"Problem(jerk=True) needs a transcription in {self.JERK} (piecewise-constant or "
+                             f"piecewise-linear accelerations); transcription {self.name!r} has none: pass jerk=False")
+
+    def jerk_inequalities(self, problem: Problem, u, h):
+        """The jerk rows of this transcription, normalised (see :func:`jerk_inequalities`).
+
+        decoupled: on the controls v_k (linear in z). coupled, collocation: on the
+        interval accelerations a_k (forward dynamics at the interval's start or midpoint,
+        constant over the interval, as in the decoupled case). spline: the cubic's
+        acceleration is continuous and piecewise linear, its jerk on interval k is
+        ``(qdd_{k+1} - qdd_k) / h_k`` exactly, so the rows are
+        ``|qdd_{k+1} - qdd_k| <= qddd_max h_k`` for k = 0..N-1 (the first and last
+        intervals included: the spline's own jerk is bounded everywhere)."""
+        lim = problem.robot.limits
+        if self.name == "decoupled":
+            return jerk_inequalities(u, h, lim)
+        q, qd, c = self._states_and_slot(problem, u, h)
+        if self.name == "spline":
+            return _jump_rows(c[1:] - c[:-1], h, lim)
+        a = jax.vmap(lambda q_, qd_, c_: self.accel_and_tau(problem, q_, qd_, c_)[0])(q[:-1], qd[:-1], c[:-1])
+        return jerk_inequalities(a, h, lim)
 
     def time_inequalities(self, problem: Problem, T):
         """The global inequalities as a function of the total time T (all of them depend
@@ -399,6 +433,35 @@ class Transcription:
         return StageData(is_interval=(k < N).astype(float), is_inner=(k >= 1).astype(float),
                          is_final=(k == N).astype(float), via_target=target,
                          via_tol=tol, is_via=is_via, **rot)
+
+
+def jerk_inequalities(v, h, limits):
+    """The jerk bound between consecutive intervals, normalised, (2 (N-1) n,)::
+
+        |v_{k+1} - v_k| <= qddd_max (h_k + h_{k+1}) / 2,   k = 0..N-2, per joint
+
+    The accelerations are constant over each interval, so the motion's jerk is a train
+    of impulses at the inner samples; the bound limits each impulse's weight, the jump
+    of acceleration, to what a jerk of ``qddd_max`` achieves over the time between the
+    two intervals' midpoints (the finite-difference jerk at sample k+1 is then within
+    ``qddd_max``). Written this way, and not as ``|v_{k+1} - v_k| / dt <= qddd_max``, the
+    rows are *linear* in (v, h): a polyhedron in z, with a constant Jacobian and no
+    curvature of its own. Each row is divided by ``qddd_max h_max`` (the bound at the
+    longest periods), so ``g <= tol`` lets the jump exceed its bound by at most
+    ``tol qddd_max h_max``. The jumps from rest into the first interval and out of the
+    last are not bounded (the boundary accelerations are not part of the problem).
+
+    ``v`` (N, n) accelerations, ``h`` (N,) periods; rows ordered (k, joint, sign)."""
+    return _jump_rows(v[1:] - v[:-1], 0.5 * (h[1:] + h[:-1]), limits)
+
+
+def _jump_rows(dv, dt, limits):
+    """``|dv| <= qddd_max dt`` row by row as ``(+-dv - qddd_max dt) / (qddd_max h_max) <= 0``:
+    dv (K, n) jumps of acceleration, dt (K,) the times they may take; (2 K n,)."""
+    J = jnp.asarray(limits.qddd_max, dv.dtype)
+    reach = dt[:, None] * J
+    scale = J * limits.h_max
+    return jnp.stack([(dv - reach) / scale, (-dv - reach) / scale], axis=-1).ravel()
 
 
 def sd_mask(mask, x):

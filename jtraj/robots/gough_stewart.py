@@ -127,6 +127,10 @@ class GoughStewart(Robot):
     rhod_max: float | Array = 0.5
     det_min: float | Array = 0.2
 
+    #: units of the coordinates (x, y, z, roll, pitch, yaw) and of the efforts (leg forces)
+    coordinate_units = ("m", "m", "m", "rad", "rad", "rad")
+    effort_units = ("N",) * 6
+
     @property
     def n(self) -> int:
         return 6

@@ -69,6 +69,10 @@ class Parallel3(Robot):
     rho_min: float | Array = 0.05
     rho_max: float | Array = 0.98
 
+    #: units of the coordinates and of the actuator efforts (plots)
+    coordinate_units = ("m", "m")
+    effort_units = ("N m",) * 3
+
     @property
     def n(self) -> int:
         return 2

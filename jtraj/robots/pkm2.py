@@ -110,6 +110,10 @@ class PKM2(Robot):
     eps1: float | Array = 0.05
     eps2: float | Array = 0.05
 
+    #: units of the coordinates and of the actuator efforts (plots)
+    coordinate_units = ("m", "m")
+    effort_units = ("N", "N")
+
     @property
     def n(self) -> int:
         return 2

@@ -181,6 +181,15 @@ class SpatialSerial(Robot):
         """Positional Jacobian dp/dq (3, n) of the task point."""
         return self.geometric_jacobian(q)[:3]
 
+    def manipulability(self, q: Vec) -> Array:
+        """Yoshikawa's ``sqrt(det(J J^T))`` of the tip's geometric Jacobian (6 x n) on an
+        arm of 6 or more joints, so that wrist singularities count, of the positional
+        Jacobian (3 x n) on a shorter arm (whose 6 x n Jacobian never has full row rank);
+        0 at a singularity. The solver's singularity term (``Weights(singularity=...)``)
+        is its inverse."""
+        J = self.geometric_jacobian(q) if self.n >= 6 else self.jacobian(q)
+        return jnp.sqrt(jnp.maximum(jnp.linalg.det(J @ J.T), 0.0))
+
     # ----- energies (the Lagrangian path) -------------------------------------------
     def kinetic_energy(self, q, qd):
         def poses(q_):

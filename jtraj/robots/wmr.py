@@ -65,6 +65,10 @@ class WMR(Robot):
     body_radius: float | Array
     obstacles: Array  # (k, 3): cx, cy, radius
 
+    #: units of the coordinates and of the actuator efforts (plots)
+    coordinate_units = ("m", "m", "rad")
+    effort_units = ("N m", "N m")
+
     @property
     def n(self) -> int:
         return 3

@@ -13,7 +13,7 @@ import numpy as np
 from .. import _kkt_native, _resources, _setup, implicit
 from .._compile import nested_jit
 from .._compile import solver_jit as _jit
-from ..problem import Problem, Weights
+from ..problem import Problem, Weights, default_jerk
 from ..transcription import Transcription
 from .core import initial_guess, placeholder_init, resolve_method
 from .lanes import cpu_lanes, solve_problems
@@ -67,7 +67,8 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     if warm not in ("full", "primal"):
         raise ValueError(f"warm must be 'full' or 'primal', got {warm!r}")
     warm = init is not None and warm == "full"
-    opts = resolve_method(options, transcription, problem.robot)
+    Transcription(transcription).check_jerk(problem)
+    opts = resolve_method(options, transcription, problem.robot, problem.jerk)
     # float64 only, the compilation cache on, a first compilation logged (jtraj._setup)
     key = _setup.before_solve(problem.robot, problem.N, batch=False, problem=problem, options=opts,
                               transcription=transcription, efforts=problem.efforts)
@@ -202,7 +203,11 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     T_max = xp.broadcast_to(xp.asarray(np.inf if T_max is None else T_max, float), (B,))
     Transcription(transcription)
     _check_efforts(efforts, transcription)
-    opts = resolve_method(options, transcription, robot)
+    jerk = default_jerk(robot)  # the problems' default (see Problem's jerk)
+    if jerk and transcription not in Transcription.JERK:
+        raise ValueError(f"robot {robot.name!r} has a jerk bound, which transcription {transcription!r} cannot "
+                         f"impose; solve Problem(..., jerk=False) one by one, or use one of {Transcription.JERK}")
+    opts = resolve_method(options, transcription, robot, jerk)
     weights = Weights() if weights is None else weights
     key = _setup.before_solve(robot, N, batch=True, weights=weights, options=opts, transcription=transcription,
                               efforts=efforts)

@@ -31,12 +31,15 @@ def initial_guess(problem: Problem, opts: SolverOptions, tr: Transcription):
     return tr.initial_controls(problem, v0, h0), h0
 
 
-def stagewise_directions(opts: SolverOptions, tr: Transcription) -> bool:
+def stagewise_directions(opts: SolverOptions, tr: Transcription, jerk: bool = False) -> bool:
     """Whether the Newton directions come from the stage-wise solve (see
-    ``SolverOptions.linear_solver``)."""
+    ``SolverOptions.linear_solver``; never with jerk rows, which couple stages)."""
     solver = opts.linear_solver
     if solver == "auto":
-        solver = "riccati" if jax.default_backend() == "cpu" else "dense"
+        solver = "riccati" if jax.default_backend() == "cpu" and not jerk else "dense"
+    if solver == "riccati" and jerk:
+        raise ValueError("options.linear_solver='riccati' does not handle Problem(jerk=True) (its rows couple "
+                         "consecutive stages); use linear_solver='auto' or 'dense', or jerk=False")
     return solver == "riccati" and tr.name == "decoupled"
 
 
@@ -45,7 +48,7 @@ def prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm
     placeholder and are flagged at the end."""
     layout = tr.layout(problem)
     nlp = NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem),
-              stagewise=stagewise_directions(opts, tr),
+              stagewise=stagewise_directions(opts, tr, problem.jerk),
               ineq_penalty=opts.inequality_penalty, pbm_init=opts.pbm_init, pbm_ratio=opts.pbm_ratio,
               ip_curvature=curvature.resolve(static_options(opts).ip_curvature, problem.robot))
     u0, h0 = init
@@ -142,6 +145,8 @@ def finish(nlp: NLP, s: ALState, opts: SolverOptions, valid, light=False) -> Sol
         viol["tau"] = jnp.maximum(viol.get("tau", 0.0), jnp.max(jnp.maximum(jnp.abs(tau) / lim.tau_max - 1, 0)))
     viol["h"] = jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0))
     viol["T"] = jnp.maximum(glob[0], 0.0)
+    if problem.jerk:  # the jerk rows (normalised, see jtraj.transcription.jerk_inequalities)
+        viol["jerk"] = jnp.max(jnp.maximum(glob[1:], 0.0))
     viol["goal"] = jnp.maximum(jnp.max(jnp.abs(q[-1] - problem.q_goal)), jnp.max(jnp.abs(qd[-1] - problem.qd_goal)))
     if problem.via_points:
         # the Euclidean distance beyond each via point's own tol, absolute (task units)
@@ -201,31 +206,36 @@ def placeholder_init(N: int, m_u: int):
     return np.zeros((N, m_u)), np.zeros(N)
 
 
-def resolve_method(opts: SolverOptions | None, transcription: str, robot) -> SolverOptions:
+def resolve_method(opts: SolverOptions | None, transcription: str, robot, jerk: bool = False) -> SolverOptions:
     """The options (the defaults for None) with ``method="auto"`` resolved (see
     :class:`jtraj.SolverOptions`) and an explicit "ip" checked. Cached: building a
     SolverOptions and checking it costs about 0.15 ms, which one warm solve (about 5 ms)
     paid twice."""
     if opts is not None and not isinstance(opts, SolverOptions):
         raise ValueError(f"options must be a jtraj.SolverOptions, got {type(opts).__name__}")
-    return _resolved(opts, transcription, getattr(robot, "path_equalities", None) is not None)
+    return _resolved(opts, transcription, getattr(robot, "path_equalities", None) is not None, bool(jerk))
 
 
 @functools.lru_cache(maxsize=64)
-def _resolved(opts: SolverOptions | None, transcription: str, path_equalities: bool) -> SolverOptions:
+def _resolved(opts: SolverOptions | None, transcription: str, path_equalities: bool,
+              jerk: bool = False) -> SolverOptions:
     opts = SolverOptions() if opts is None else opts
     if opts.method == "auto":
-        ip = transcription == "decoupled" and not path_equalities and opts.inequality_penalty == "phr"
+        ip = transcription == "decoupled" and not path_equalities and not jerk and opts.inequality_penalty == "phr"
         return dataclasses.replace(opts, method="ip" if ip else "al")
-    _check_method(opts, transcription, path_equalities)
+    _check_method(opts, transcription, path_equalities, jerk)
     return opts
 
 
-def _check_method(opts: SolverOptions, transcription: str, path_equalities: bool):
-    """``method="ip"`` needs the decoupled transcription and no equalities but the goal."""
+def _check_method(opts: SolverOptions, transcription: str, path_equalities: bool, jerk: bool = False):
+    """``method="ip"`` needs the decoupled transcription, no equalities but the goal and
+    no jerk rows (its global rows are functions of T alone)."""
     if opts.method != "ip":
         return
     if transcription != "decoupled":
         raise ValueError(f"options.method='ip' needs transcription='decoupled', got {transcription!r}")
     if path_equalities:
         raise ValueError("options.method='ip' does not handle a robot's path_equalities; use method='al'")
+    if jerk:
+        raise ValueError("options.method='ip' does not handle Problem(jerk=True) (its rows couple consecutive "
+                         "stages); use method='al' or 'auto', or jerk=False")

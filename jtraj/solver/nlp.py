@@ -118,7 +118,9 @@ class NLP(eqx.Module):
         return jax.grad(self.al_and_parts, has_aux=True)(z, mult, mu)
 
     def global_al(self, z, mult, mu):
-        return self.time_al(jnp.sum(self.layout.unpack(z)[1]), mult, mu)
+        # (the jerk rows, Problem(jerk=True), are global rows of z; the Riccati paths,
+        # which take the global rows as functions of T alone, are not used for them)
+        return self.ineq_term(self.tr.global_inequalities(self.problem, self.layout, z), mult.glob, mu)
 
     def al_value(self, z, mult, mu):
         return self.al_and_parts(z, mult, mu)[0]
