@@ -70,7 +70,7 @@ class IKResult(NamedTuple):
     iterations: Array
 
 
-def _check_array(x, name: str, shape: tuple[int, ...]):
+def check_array(x, name: str, shape: tuple[int, ...]):
     if is_concrete(x):
         try:
             arr = np.asarray(x, dtype=float)
@@ -135,9 +135,9 @@ def ik(robot: Robot, p, q_init=None, *, method: str = "weighted", max_iter: int 
     if is_concrete(null_gain) and not (np.isfinite(null_gain) and float(null_gain) >= 0):
         raise ValueError(f"null_gain must be a finite number >= 0, got {null_gain!r}")
     n = robot.n
-    q0 = default_q_init(robot) if q_init is None else _check_array(q_init, "q_init", (n,))
+    q0 = default_q_init(robot) if q_init is None else check_array(q_init, "q_init", (n,))
     d = jax.eval_shape(robot.forward_kinematics, jax.ShapeDtypeStruct((n,), q0.dtype)).shape[0]
-    p = _check_array(p, "p", (d,))
+    p = check_array(p, "p", (d,))
     hyper = [jnp.asarray(x, dtype=q0.dtype) for x in (tol, damping, null_gain, null_tol, max_step, max_dq)]
     return _ik(robot, p, q0, method, int(max_iter), *hyper)  # traced hyperparameters: one compile
 

@@ -42,7 +42,7 @@ from jaxtyping import Array
 
 from .._checks import is_concrete
 from ._base import Robot
-from .ik import NONFINITE, NOT_CONVERGED, STATUS, SUCCESS, _check_array, default_q_init
+from .ik import NONFINITE, NOT_CONVERGED, STATUS, SUCCESS, check_array, default_q_init
 
 
 class PoseIKResult(NamedTuple):
@@ -122,17 +122,17 @@ def pose_ik(robot: Robot, p, rotation=None, q_init=None, *, max_iter: int = 300,
     if is_concrete(null_gain) and not (np.isfinite(null_gain) and float(null_gain) >= 0):
         raise ValueError(f"null_gain must be a finite number >= 0, got {null_gain!r}")
     n = robot.n
-    q0 = default_q_init(robot) if q_init is None else _check_array(q_init, "q_init", (n,))
+    q0 = default_q_init(robot) if q_init is None else check_array(q_init, "q_init", (n,))
     d = jax.eval_shape(robot.forward_kinematics, jax.ShapeDtypeStruct((n,), q0.dtype)).shape[0]
     if d != 3:
         raise ValueError(f"pose_ik needs a robot with a 3-D task point; robot {robot.name!r} has d = {d} "
                          f"(use jtraj.robots.ik.ik)")
-    p = _check_array(p, "p", (3,))
+    p = check_array(p, "p", (3,))
     if rotation is not None:
         if not callable(getattr(robot, "rotation", None)):
             raise ValueError(f"rotation needs a robot with an orientation (a rotation(q) method); "
                              f"robot {robot.name!r} has none")
-        rotation = _check_array(rotation, "rotation", (3, 3))
+        rotation = check_array(rotation, "rotation", (3, 3))
         if is_concrete(rotation):
             Rn = np.asarray(rotation)
             if not (np.allclose(Rn.T @ Rn, np.eye(3), atol=1e-9) and np.linalg.det(Rn) > 0):
@@ -218,7 +218,7 @@ def solve_pose(robot: Robot, p, rotation=None, q_init=None, *, starts: int = 8, 
     if not isinstance(starts, (int, np.integer)) or isinstance(starts, bool) or starts < 1:
         raise ValueError(f"starts must be a positive integer, got {starts!r}")
     n = robot.n
-    first = default_q_init(robot) if q_init is None else _check_array(q_init, "q_init", (n,))
+    first = default_q_init(robot) if q_init is None else check_array(q_init, "q_init", (n,))
     lim = robot.limits
     lo = np.full(n, -np.pi) if lim.q_min is None else np.where(np.isfinite(lim.q_min), lim.q_min, -np.pi)
     hi = np.full(n, np.pi) if lim.q_max is None else np.where(np.isfinite(lim.q_max), lim.q_max, np.pi)
