@@ -26,8 +26,10 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "RESULTS.md"
 FIGURES = HERE / "figures"
 
-# in the order of issue 4; scripts that do not exist yet are reported as missing
-EXPERIMENTS = ["serial3", "serial3_vertical", "ibm7535", "pkm2", "parallel3", "wmr", "gough_stewart"]
+# in the order of issue 4, then the examples of differentiating through the solve;
+# scripts that do not exist yet are reported as missing
+EXPERIMENTS = ["serial3", "serial3_vertical", "ibm7535", "pkm2", "parallel3", "wmr", "gough_stewart",
+               "inverse_payload", "design_by_gradient"]
 
 _HEADER = """# jtraj: reproduction of the published experiments
 
