@@ -14,7 +14,6 @@ import jax
 import pytest
 
 from jtraj import _setup
-from jtraj import _testing
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -196,7 +195,8 @@ def test_no_silent_float32(tmp_path):
 
 
 def test_a_first_compilation_is_logged_once_then_loaded_from_the_cache(tmp_path, monkeypatch, caplog):
-    monkeypatch.setattr(_setup, "_state", {"cache": True, "seen": set(), "refused": set()})
+    state = {"cache": True, "seen": set(), "refused": set()}
+    monkeypatch.setattr(_setup, "_state", state)
     old = jax.config.jax_compilation_cache_dir
     jax.config.update("jax_compilation_cache_dir", str(tmp_path))
     try:
@@ -209,7 +209,7 @@ def test_a_first_compilation_is_logged_once_then_loaded_from_the_cache(tmp_path,
         assert len(msgs) == 1 and msgs[0].startswith("jtraj: compiling the solver for serial3 (n = 3), N = 20")
         assert str(tmp_path) in msgs[0]
         caplog.clear()
-        _testing.setup_state["seen"].clear()  # as a new process
+        state["seen"].clear()  # as a new process
         with caplog.at_level(logging.INFO, logger="jtraj"):
             _setup.announce(key, "serial3 (n = 3), N = 20")
             _setup.announce(key[:3] + (40,) + key[4:], "serial3 (n = 3), N = 40")  # another N compiles
