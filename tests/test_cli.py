@@ -32,6 +32,7 @@ def test_help_lists_commands(capsys):
         assert opt in out
 
 
+@pytest.mark.slow
 def test_solve_writes_consistent_json_and_png(tmp_path, capsys, monkeypatch):
     from jtraj import _testing
 

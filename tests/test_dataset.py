@@ -510,6 +510,7 @@ def test_sampling_period_bound_is_part_of_the_dataset(tmp_path):
             fake_spec(pairs=8, batch=8, h_max=bad)
 
 
+@pytest.mark.slow
 def test_real_solver_end_to_end(tmp_path):
     import jtraj
 

@@ -50,6 +50,7 @@ def _ip_model(nlp, st):
     return S.ipm_with_rhs(nlp, st, model, Jg, dgT, p, st.mu), Ex, p
 
 
+@pytest.mark.slow
 def test_shift_ladder_for_one_problem_takes_the_batch_choice():
     """In XLA (no native kernel), one problem factorises the unshifted matrix first and
     the shifted ones only where that fails (``S.ipm_ladder_directions_xla``, a cond); a
@@ -301,6 +302,7 @@ def test_closing_step_ends_the_wandering_near_the_optimum():
         SolverOptions(ip_project_tol=float("nan"))
 
 
+@pytest.mark.slow
 def test_damping_ends_the_short_steps_along_a_flat_cost():
     """Two dataset-family problems (serial3 with h_max = 0.2 s, pairs 49 and 78 of seed 0,
     N = 20) where, without the damping shift (``ip_damping=0``), a nearly flat direction
@@ -334,6 +336,7 @@ def test_damping_ends_the_short_steps_along_a_flat_cost():
         SolverOptions(ip_damping=-1.0)
 
 
+@pytest.mark.slow
 def test_ip_run_cut_short_hands_over_to_the_al_loop(batch):
     q0, q1, ref = batch
     robot = jtraj.robots.get("serial3")

@@ -60,6 +60,7 @@ def test_train_command_report_and_plot(tmp_path, data, monkeypatch):
         anfis.load(args.out, mapping="plan")
 
 
+@pytest.mark.slow
 def test_auto_radius_ensemble_weights_the_candidates_by_validation_error(tmp_path, data):
     model, rep, hist = trajectory.train_mapping(data, "nefotc", epochs=5)
     sel = rep["radius_selection"]
@@ -112,6 +113,7 @@ def test_auto_radius_ensemble_weights_the_candidates_by_validation_error(tmp_pat
     np.testing.assert_allclose(np.asarray(single.predict(X)), np.asarray(model.leading.predict(X)), rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_mirror_augmentation_adds_the_reflected_trajectories_where_the_robot_is_symmetric(data, monkeypatch):
     from jtraj.anfis import training
 
@@ -271,6 +273,7 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
         Planner(nefik)
 
 
+@pytest.mark.slow
 def test_closed_loop_planner_rolls_the_controller_out_through_the_dynamics(tmp_path, data):
     import jax.numpy as jnp
 

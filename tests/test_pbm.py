@@ -24,6 +24,7 @@ from jtraj.solver import SolverOptions
 from jtraj.transcription import Transcription
 
 
+@pytest.mark.slow
 def test_phi_is_the_log_barrier_continued_twice_differentiably():
     t = np.linspace(-5.0, 0.5, 23)
     np.testing.assert_allclose(np.asarray(S.pbm_phi(jnp.asarray(t))), -np.log1p(-t), rtol=1e-14, atol=1e-15)
@@ -43,6 +44,7 @@ def test_phi_is_the_log_barrier_continued_twice_differentiably():
     assert np.isfinite(float(S.pbm(g, jnp.ones(4), 1e6)))
 
 
+@pytest.mark.slow
 def test_multiplier_update_is_bounded_and_floored():
     problem = jtraj.Problem(jtraj.robots.get("serial3"), Q0, Q1, N=N, weights=W)
     tr = Transcription("decoupled")
@@ -79,6 +81,7 @@ def batch():
     return three_sample_batch(SolverOptions.pbm())
 
 
+@pytest.mark.slow
 def test_pbm_batch_converges_to_ipopts_optimum_and_flags_the_rest(batch):
     q0, q1, sol = batch
     status = np.asarray(sol.status)

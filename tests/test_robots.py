@@ -205,7 +205,7 @@ def test_energy_conservation(name):
 # the closed chains and the spatial arms compile for about a minute each on a slow 2-core
 # machine: slow (their dynamics stay in the default suite through the Pinocchio and
 # structure tests)
-@pytest.mark.parametrize("name", catalogue(slow=("parallel3", "pkm2", "gough_stewart", *SPATIAL)))
+@pytest.mark.parametrize("name", catalogue(slow=("parallel3", "pkm2", "gough_stewart", "ibm7535", "wmr", "serial3_vertical", *SPATIAL)))
 def test_transforms_on_every_function(name):
     """jit, vmap and grad (with respect to the state, the torques and the robot's
     parameters) work on every public function and give finite results (one compile)."""

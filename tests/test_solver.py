@@ -103,6 +103,7 @@ def test_cost_matches_ipopt(single):
     assert float(sol.cost) >= ref["cost"] * 0.99  # same problem: no spurious "better" optimum
 
 
+@pytest.mark.slow
 def test_warm_start_from_solution_is_immediate(single, single_al):
     problem, sol = single
     certified = single_al[1]
@@ -536,6 +537,7 @@ def test_options_differing_in_numbers_share_one_compilation(single_al):
     assert S.split_options(SolverOptions(kink_margin=0.0)).static != S.split_options(SolverOptions()).static
 
 
+@pytest.mark.slow
 def test_compacted_batch_restarts_like_single_solves(robot, batch):
     """The compacted batch restarts a run that ends uncertified on its lane (the lane
     driver's restart program) and runs it on: every problem must take exactly the
@@ -602,6 +604,7 @@ def test_stalled_subproblem_pair_reaches_ipopts_cost():
     assert float(plain.cost) > ref["cost"] * 1.003  # the failure this guards against
 
 
+@pytest.mark.slow
 def test_chord_polish_reaches_the_gauss_newton_polish(single):
     """The finish's feasibility polish takes chord steps (the constraints' Jacobian at its
     starting point only); the restart's recomputes it at every step (Gauss-Newton). From

@@ -134,6 +134,7 @@ def test_off_without_a_compilation_cache_or_when_asked(tmp_path, monkeypatch):
         jax.config.update("jax_compilation_cache_dir", old)
 
 
+@pytest.mark.slow
 def test_solve_batch_is_the_same_with_and_without_kept_programs(monkeypatch):
     """Datasets must not depend on whether a worker traced or loaded its programs."""
     from jtraj import _testing

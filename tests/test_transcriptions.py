@@ -81,6 +81,7 @@ def _check_common(problem, sol, name):
     return q, qd, tau, h
 
 
+@pytest.mark.slow
 def test_collocation_satisfies_midpoint_rule_with_pinocchio(problem, decoupled):
     V, pin, model, data = _pin()
     sol = jtraj.solve(problem, transcription="collocation")
