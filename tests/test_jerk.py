@@ -1,9 +1,7 @@
 """Jerk bounds (``Problem(jerk=...)``): the rows against their definition, the defaults,
 the refusals, and (slow) optima with and without the bound against CasADi + IPOPT on the
-same NLP with jerk rows (``benchmarks/peers/ipopt_arm.py``)."""
+same NLP with jerk rows (``jtraj_peers/ipopt_arm.py``)."""
 
-import os
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -14,7 +12,6 @@ import jtraj
 from jtraj.robots.serial import SERIAL3_LIMITS, serial_planar
 from jtraj.transcription import Transcription, jerk_inequalities
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 
 J = 3.0  # rad/s^3: tight enough to bind on the move below
 Q0, Q1 = np.array([0.0, 0.3, -0.2]), np.array([0.6, -0.2, 0.2])
@@ -132,8 +129,8 @@ def test_jerk_bound_binds_and_matches_ipopt():
     meets the bound (active, to 1e-6) and its cost is IPOPT's on the same NLP with jerk
     rows (both from their own default starts; 3.7e-5 apart measured)."""
     pytest.importorskip("casadi")
-    from peers import ipopt_arm as A
-    from peers import ipopt_peer as P
+    from jtraj_peers import ipopt_arm as A
+    from jtraj_peers import ipopt_peer as P
 
     robot = serial3_jerk()
     W = jtraj.Weights(**WEIGHTS)
