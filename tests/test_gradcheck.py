@@ -18,7 +18,7 @@ from jtraj import _testing
 
 # The serial arms compile in ~10 s; the closed-chain and mobile models take about a
 # minute each on 2 cores, so they run with -m slow (and in `jtraj gradcheck --robot all`).
-FAST = ("serial3", "serial3_vertical")
+FAST = ("serial3",)
 
 
 def _robot_params():

@@ -98,6 +98,7 @@ def test_pbm_batch_converges_to_ipopts_optimum_and_flags_the_rest(batch):
     assert int(sol.iterations[0]) < SolverOptions.pbm().pbm_fallback_iter
 
 
+@pytest.mark.slow
 def test_pbm_run_cut_short_falls_back_to_phr_and_reaches_the_same_optimum(batch):
     """A PBM run still uncertified after pbm_fallback_iter iterations restarts as PHR's
     own cold run from the same start (jtraj.solver.al.restart_state): cut to 8 iterations, the pair
@@ -114,6 +115,7 @@ def test_pbm_run_cut_short_falls_back_to_phr_and_reaches_the_same_optimum(batch)
         SolverOptions(pbm_fallback_iter=-1)
 
 
+@pytest.mark.slow
 def test_fallback_takes_phrs_own_subproblem_tolerance():
     """The PBM phase takes pbm_inner_tol_ratio, the PHR fallback and restart the plain
     inner_tol_ratio, so the fallback is PHR's own run (with one ratio, 0.1, for both, the

@@ -163,6 +163,7 @@ def test_problem_needing_more_time_than_n_h_max_stops_as_likely_infeasible(robot
     assert int(sol.iterations) < SolverOptions().max_iter
 
 
+@pytest.mark.slow
 def test_stalled_subproblems_end_early_and_infeasibility_is_still_detected(robot):
     """The infeasible problem above, with the stall exit of ``SolverOptions.stall_window``
     active from the first iteration (``stall_after=0``) and checked every 5 Newton

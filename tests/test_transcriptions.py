@@ -131,6 +131,7 @@ def test_shooting_replayed_by_an_adaptive_integrator(problem, decoupled):
     assert float(sol.T) == pytest.approx(float(decoupled.T), rel=0.05)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["collocation", pytest.param("spline", marks=pytest.mark.slow)])
 def test_warm_start_through_controls_of(problem, name):
     """Transcription.controls_of turns a Solution back into its controls: a warm start
