@@ -69,7 +69,7 @@ def test_structured_hessian_matches_differences_of_the_gradient(name, transcript
 
 
 @pytest.mark.parametrize("name, transcription", [
-    ("serial3_vertical", "decoupled"),
+    pytest.param("serial3_vertical", "decoupled", marks=pytest.mark.slow),
     # a minute or more each to compile on a 2-core machine beside another test worker
     pytest.param("ibm7535", "decoupled", marks=pytest.mark.slow),
     pytest.param("pkm2", "decoupled", marks=pytest.mark.slow),

@@ -185,6 +185,7 @@ def test_stalled_subproblems_end_early_and_infeasibility_is_still_detected(robot
         SolverOptions(stall_ratio=float("nan"))
 
 
+@pytest.mark.slow
 def test_a_penalty_stuck_at_its_cap_also_stops_as_likely_infeasible(robot):
     """The same infeasible problem with the penalty capped at 4x its start: it can never
     grow 16x, so only the second rule of ``SolverOptions.detect_infeasible`` (violation
