@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from .transcription import _sample_times, recursion_step
+from .transcription import sample_times, recursion_step
 
 __all__ = ["StageModel", "decoupled_step", "newton_directions", "small_cho_solve", "stage_model"]
 
@@ -113,7 +113,7 @@ def stage_model(W: Array, c: Array, Hk: Array, u_scale: Array, h_scale: Array,
     nx = 2 * n + 1
     dt = W.dtype
     sy = jnp.concatenate([u_scale, h_scale[None]]).astype(dt)  # (m,) d(physical)/dz per stage
-    t = _sample_times(W[:N, -1])
+    t = sample_times(W[:N, -1])
     X = jnp.concatenate([W[:, :2 * n], t[:, None]], axis=1)  # (N+1, nx) states
     U = W[:N, 2 * n:]  # (N, m) physical controls
     dphi, d2phi = (jnp.asarray(x, dt) for x in phi_t)

@@ -519,7 +519,7 @@ def decoupled_hessian(layout: Layout, W, c, Hk):
     return H[perm][:, perm]
 
 
-def _sample_times(h):
+def sample_times(h):
     """t_k = sum_{i<k} h_i, (N+1,), from the periods h (N,)."""
     return _prefix_sums(h)
 
@@ -527,7 +527,7 @@ def _sample_times(h):
 def _time_differences(h):
     """(t (N+1,), low (N+1, N): k > j, dt (N+1, N): t_k - t_j where k > j, else 0)."""
     N = h.shape[0]
-    t = _sample_times(h)
+    t = sample_times(h)
     low = jnp.arange(N + 1)[:, None] > jnp.arange(N)[None, :]
     return t, low, jnp.where(low, t[:, None] - t[None, :N], 0.0)
 
@@ -620,7 +620,7 @@ def _state_diagonal(layout: Layout, W, Hss):
     so the sums over k > j need only the suffix sums of Hss_k, t_k Hss_k, t_k^2 Hss_k."""
     N, n = layout.N, layout.m_u
     qd, u, h = W[:N, n:2 * n], W[:N, 2 * n:3 * n], W[:N, -1]
-    t = _sample_times(h)
+    t = sample_times(h)
     tk, tj = t[:, None, None], t[:N, None, None]
     T0, T1, T2 = _suffix_sums(Hss), _suffix_sums(tk * Hss), _suffix_sums(tk**2 * Hss)
     S0, S1, S2 = T0, T1 - tj * T0, T2 - 2 * tj * T1 + tj**2 * T0  # sums of dt^0, dt^1, dt^2 times Hss_k

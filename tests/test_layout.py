@@ -23,26 +23,8 @@ MAX_LINES = 800
 CLI = ("jtraj.cli", "jtraj.commands")
 TESTING = "jtraj._testing"
 
-#: private names still imported across modules, each owned by other work in progress
-#: (the ANFIS package and the LQ module's sample times). The list must stay exact: a
-#: pair that no longer occurs fails the test until it is removed here, and nothing new
-#: may be added without a reason.
-KNOWN_PRIVATE = {
-    ("jtraj.anfis.ensemble", "jtraj.anfis.model", "_ARRAYS"),
-    ("jtraj.anfis.ensemble", "jtraj.anfis.model", "_RuleSystem"),
-    ("jtraj.anfis.ensemble", "jtraj.anfis.model", "_query_method"),
-    ("jtraj.anfis.training", "jtraj.anfis.model", "_logit_clipped"),
-    ("jtraj.lq", "jtraj.transcription", "_sample_times"),
-}
 
 
-#: import cycles still there, in packages other work in progress owns: ``robots.urdf``
-#: imports ``robots.with_params`` back from its package; the ANFIS model, its ensemble
-#: and io import each other. Exact, as ``KNOWN_PRIVATE``.
-KNOWN_CYCLES = [
-    ["jtraj.anfis.ensemble", "jtraj.anfis.io", "jtraj.anfis.model"],
-    ["jtraj.robots", "jtraj.robots.urdf"],
-]
 
 
 def _modules(root: pathlib.Path = ROOT) -> dict[str, tuple[pathlib.Path, bool]]:
@@ -149,8 +131,7 @@ def graph():
 def test_no_import_cycle(graph):
     _, edges, _ = graph
     cycles = sorted(_cycles(edges))
-    assert [c for c in cycles if c not in KNOWN_CYCLES] == []
-    assert [c for c in KNOWN_CYCLES if c not in cycles] == [], "fixed: remove these from KNOWN_CYCLES"
+    assert cycles == []
 
 
 def test_the_library_never_imports_the_command_line(graph):
@@ -163,8 +144,7 @@ def test_the_library_never_imports_the_command_line(graph):
 def test_no_private_name_crosses_modules(graph):
     _, _, private = graph
     crossing = {p for p in private if p[0] != TESTING}
-    assert sorted(crossing - KNOWN_PRIVATE) == [], "import a public name (or go through jtraj._testing in tests)"
-    assert sorted(KNOWN_PRIVATE - crossing) == [], "fixed: remove these from KNOWN_PRIVATE"
+    assert sorted(crossing) == [], "import a public name (or go through jtraj._testing in tests)"
 
 
 def test_no_module_over_800_lines(graph):

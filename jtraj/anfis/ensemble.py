@@ -22,12 +22,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .model import _ARRAYS, Model, _query_method, _RuleSystem, compiled_query, log_firing, rule_outputs
+from .model import ARRAYS, Model, query_method, RuleSystem, compiled_query, log_firing, rule_outputs
 
 _SCALING = ("x_lo", "x_span", "y_lo", "y_span")
 
 
-class Ensemble(_RuleSystem):
+class Ensemble(RuleSystem):
     """``sum_k weights[k] * members[k].predict(X)``; the weights are positive and sum to 1.
 
     The members share the kind, order, output clipping and the data scaling (they were
@@ -91,7 +91,7 @@ class Ensemble(_RuleSystem):
         arrays, static = _arrays(self), (self.kind, self.order, self.clip_outputs, self.sizes)
         return lambda X: _forward(*arrays, X, *static)
 
-    @_query_method
+    @query_method
     def predict(self, X) -> Array:
         """As :meth:`Model.predict`: ``(d,)`` -> ``(m,)`` or ``(B, d)`` -> ``(B, m)``, jitted."""
         f = vars(self)  # the fields, without equinox's attribute hook (see Model.predict)
@@ -109,7 +109,7 @@ class Ensemble(_RuleSystem):
 
 def _arrays(e: Ensemble):
     f = vars(e)
-    return tuple(f[k] for k in _ARRAYS) + (f["weights"],)
+    return tuple(f[k] for k in ARRAYS) + (f["weights"],)
 
 
 def _forward(c, s, theta, x_lo, x_span, y_lo, y_span, weights, X, kind, order, clip, sizes):

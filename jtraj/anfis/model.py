@@ -47,6 +47,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._file import save
+
 KINDS = ("tsk", "tsukamoto")
 W_EPS = 1e-9
 
@@ -69,7 +71,7 @@ def features(c, s, u, kind: str, order: int) -> Float[Array, "B R k"]:
     lw = log_firing(c, s, u)
     beta = jax.nn.softmax(lw, axis=-1)
     if kind == "tsukamoto":
-        logit, _ = _logit_clipped(lw)
+        logit, _ = logit_clipped(lw)
         reg = jnp.stack([logit, jnp.ones_like(logit)], axis=-1)
         return beta[..., None] * reg
     if order == 1:
@@ -79,7 +81,7 @@ def features(c, s, u, kind: str, order: int) -> Float[Array, "B R k"]:
     return beta[:, :, None]
 
 
-def _logit_clipped(lw):
+def logit_clipped(lw):
     """logit(w) from log w, with w clipped to [W_EPS, 1 - W_EPS]; and the clip mask."""
     lo, hi = jnp.log(W_EPS), jnp.log1p(-W_EPS)
     lw_c = jnp.clip(lw, lo, hi)
@@ -89,7 +91,7 @@ def _logit_clipped(lw):
 def rule_outputs(lw, u, theta, kind: str, order: int) -> Float[Array, "B R m"]:
     """Per-rule consequent values f (B, R, m)."""
     if kind == "tsukamoto":
-        logit, _ = _logit_clipped(lw)
+        logit, _ = logit_clipped(lw)
         return logit[:, :, None] * theta[None, :, 0, :] + theta[None, :, 1, :]
     if order == 1:
         R, k, m = theta.shape
@@ -107,7 +109,7 @@ def forward(c, s, theta, u, kind: str, order: int) -> Float[Array, "B m"]:
     return jnp.einsum("br,brm->bm", beta, f)
 
 
-_ARRAYS = ("centers", "sigmas", "theta", "x_lo", "x_span", "y_lo", "y_span")
+ARRAYS = ("centers", "sigmas", "theta", "x_lo", "x_span", "y_lo", "y_span")
 
 
 @lru_cache(maxsize=256)
@@ -136,7 +138,7 @@ def _predict(c, s, theta, x_lo, x_span, y_lo, y_span, X, kind, order, single, sq
     return Y[..., 0] if squeeze else Y
 
 
-class _query_method:
+class query_method:
     """Decorator for the query methods of the model classes: accessed on an instance it
     returns a plain ``functools.partial``. Equinox turns every bound method of a Module
     into a ``BoundMethod`` module, built (and the model's leaves flattened and checked)
@@ -151,7 +153,7 @@ class _query_method:
         return self.f if obj is None else partial(self.f, obj)
 
 
-class _RuleSystem(eqx.Module):
+class RuleSystem(eqx.Module):
     """The rule arrays and accessors shared by :class:`Model` and
     :class:`~jtraj.anfis.Ensemble` (both also have a JSON ``info`` field)."""
 
@@ -192,12 +194,10 @@ class _RuleSystem(eqx.Module):
 
     def save(self, path) -> None:
         """Write the model to ``path`` (see :func:`jtraj.anfis.load`)."""
-        from .io import save
-
         save(path, self)
 
 
-class Model(_RuleSystem):
+class Model(RuleSystem):
     """A trained ANFIS (see the module docstring for the structure).
 
     Fields (unit-hypercube units): ``centers (R, d)``, ``sigmas (R, d)``,
@@ -222,7 +222,7 @@ class Model(_RuleSystem):
         return dataclasses.replace(self, clip_outputs=bool(clip))
 
     # ----- evaluation -----------------------------------------------------------------
-    @_query_method
+    @query_method
     def predict(self, X) -> Array:
         """Outputs for inputs X: ``(d,)`` -> ``(m,)`` or ``(B, d)`` -> ``(B, m)``
         (without the last axis when the model was fitted on 1-D targets).
@@ -236,7 +236,7 @@ class Model(_RuleSystem):
         if len(shape) not in (1, 2) or shape[-1] != f["centers"].shape[1]:
             raise ValueError(f"X must have shape ({self.n_inputs},) or (B, {self.n_inputs}), got {shape}")
         query = compiled_query(_predict, f["kind"], f["order"], len(shape) == 1, f["scalar_output"], f["clip_outputs"])
-        return query(*(f[k] for k in _ARRAYS), X)
+        return query(*(f[k] for k in ARRAYS), X)
 
     __call__ = predict
 

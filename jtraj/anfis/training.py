@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .clustering import radius_for_rules, subclust
-from .model import KINDS, Model, _logit_clipped, features, forward, log_firing, rule_outputs
+from .model import KINDS, Model, logit_clipped, features, forward, log_firing, rule_outputs
 
 
 @dataclass
@@ -126,7 +126,7 @@ def premise_jacobian(c, s, th, U, kind, order):
     v = jnp.einsum("br,brm->bm", beta, f)
     g = f - v[:, None, :]
     if kind == "tsukamoto":
-        _, inside = _logit_clipped(lw)
+        _, inside = logit_clipped(lw)
         dlogit = jnp.where(inside, 1.0 / (-jnp.expm1(jnp.minimum(lw, -1e-300))), 0.0)
         g = g + dlogit[:, :, None] * th[None, :, 0, :]
     dv_dl = beta[:, :, None] * g  # (B, R, m)

@@ -73,7 +73,6 @@ coordinates; h in [0.005, 0.1] s.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ._base import Limits
+from ._params import with_params
 from .spatial import SpatialSerial, spatial_serial
 
 #: acceleration bound [rad/s^2 or m/s^2] of every joint when the caller gives none
@@ -355,8 +356,6 @@ def from_urdf(source, *, base_link: str | None = None, tip_link: str | None = No
         joint_names=[j.name for j in chain], limits=lim,
         name=name if name is not None else (root.get("name") or "urdf"))
     if overrides:
-        from . import with_params
-
         robot = with_params(robot, **overrides)
     return robot
 
