@@ -114,14 +114,14 @@ def main(argv=None):
 
 
 def trajectory_models(args):
-    from jtraj.anfis import trajectory
+    from jtraj import mappings
 
-    data = trajectory.load_data(args.data)
+    data = mappings.load_data(args.data)
     for mapping in args.mappings.split(","):
         extra = mapping in ("nefotc", "nefumop")
         goal = args.goal_inputs if extra else False
         phase = args.phase if extra else False
-        _, r, _ = trajectory.train_mapping(data, mapping, n_rules=args.rules, epochs=args.epochs, ridge=args.ridge,
+        _, r, _ = mappings.train_mapping(data, mapping, n_rules=args.rules, epochs=args.epochs, ridge=args.ridge,
                                            goal=goal, phase=phase)
         print(f"{mapping} (inputs {', '.join(r['inputs'])}; augment {r['augment']}): {r['n_rules']} rules, "
               f"{r['epochs']} epochs, "

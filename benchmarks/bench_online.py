@@ -92,7 +92,7 @@ def main(argv=None):
 
     import jtraj
     from jtraj import anfis, dataset
-    from jtraj.anfis import trajectory
+    from jtraj import mappings
     from jtraj.dataset import sampling
     from jtraj.online import Planner
     from jtraj.repair import make_repair
@@ -109,13 +109,13 @@ def main(argv=None):
     weights = jtraj.Weights.parse(wtext)
     out = dict(robot=meta["robot"], N=N, weights=wtext, h_max=float(robot.limits.h_max))
 
-    X, Y, traj, _, _ = trajectory.view(data, "plan")
-    tr, te = trajectory.split(traj)
+    X, Y, traj, _, _ = mappings.view(data, "plan")
+    tr, te = mappings.split(traj)
     if args.model:
         model = anfis.load(args.model, mapping="plan")
     else:
         t0 = time.perf_counter()
-        model, rep, _ = trajectory.train_mapping(data, "plan", order=0)
+        model, rep, _ = mappings.train_mapping(data, "plan", order=0)
         out["training"] = dict(seconds=time.perf_counter() - t0, test_rmse=rep["test_rmse"],
                                linear_test_rmse=rep["linear_test_rmse"], knn_test_rmse=rep["knn_test_rmse"])
     planner = Planner(model, robot, weights=weights)

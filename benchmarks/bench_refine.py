@@ -8,7 +8,7 @@ Figures in docs/benchmarks.md (warm starts from a plan): ``--order 0 --pairs 100
 ``jtraj dataset --robot serial3 --pairs 300 --seed 2``.
 
 Issue #6 item 5. The planner model (mapping ``plan``) is trained here on the dataset's
-training split (``jtraj.anfis.trajectory.train_mapping``; ``--rules``, ``--epochs``,
+training split (``jtraj.mappings.train_mapping``; ``--rules``, ``--epochs``,
 ``--order``, ``--ridge``)
 unless ``--model`` is given. Held-out pairs: the test split of the dataset (the last
 10 % of its converged trajectories, never seen in training), topped up to ``--pairs``
@@ -84,7 +84,7 @@ def main(argv=None):
 
     import jtraj
     from jtraj import anfis, dataset
-    from jtraj.anfis import trajectory
+    from jtraj import mappings
     from jtraj.dataset import sampling
     from jtraj.online import Planner
 
@@ -96,14 +96,14 @@ def main(argv=None):
     weights = jtraj.Weights.parse(meta.get("weights_text", "time=1,energy=0.1"))
     options = jtraj.SolverOptions()
 
-    X, Y, traj, _, _ = trajectory.view(data, "plan")
-    tr, te = trajectory.split(traj)
+    X, Y, traj, _, _ = mappings.view(data, "plan")
+    tr, te = mappings.split(traj)
     if args.model:
         model = anfis.load(args.model, mapping="plan")
         print(f"planner: {args.model} ({model.n_rules} rules)")
     else:
         t0 = time.perf_counter()
-        model, rep, _ = trajectory.train_mapping(data, "plan", n_rules=args.rules, epochs=args.epochs,
+        model, rep, _ = mappings.train_mapping(data, "plan", n_rules=args.rules, epochs=args.epochs,
                                                       order=args.order, ridge=args.ridge)
         print(f"planner trained here: {rep['n_rules']} rules, {rep['epochs']} epochs, {time.perf_counter() - t0:.1f} s;"
               f" test RMSE {rep['test_rmse']:.4g} (linear {rep['linear_test_rmse']:.4g}, "
@@ -112,8 +112,8 @@ def main(argv=None):
     closed = None
     if args.closed:
         t0 = time.perf_counter()
-        ctl, rc, _ = trajectory.train_mapping(data, "nefotc")
-        per, rp, _ = trajectory.train_mapping(data, "nefumop")
+        ctl, rc, _ = mappings.train_mapping(data, "nefotc")
+        per, rp, _ = mappings.train_mapping(data, "nefumop")
         closed = Planner(ctl, robot, periods=per)
         print(f"closed-loop planner trained here: nefotc {rc['n_rules']} rules (ratio to linear "
               f"{rc['ratio_to_linear']:.3f}), nefumop {rp['n_rules']} rules ({rp['ratio_to_linear']:.3f}), "

@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 import jtraj  # noqa: E402
 from jtraj import dataset, plotting  # noqa: E402
 from jtraj.dataset import plot as dataset_plot  # noqa: E402
-from jtraj.anfis.trajectory import train_mapping, view  # noqa: E402
+from jtraj.mappings import train_mapping, view  # noqa: E402
 from jtraj.online import Planner  # noqa: E402
 
 OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "img")

@@ -1,7 +1,7 @@
 """jtraj: differentiable robot trajectory optimisation in JAX.
 
 ``import jtraj`` loads the solver and the robots; the subpackages ``jtraj.dataset``,
-``jtraj.anfis``, ``jtraj.online``, ``jtraj.gradcheck``, ``jtraj.plotting`` and
+``jtraj.anfis``, ``jtraj.mappings``, ``jtraj.online``, ``jtraj.gradcheck``, ``jtraj.plotting`` and
 ``jtraj.resample`` are imported on their first access (``jtraj.dataset.load(...)``
 works without ``import jtraj.dataset``), so that the import stays fast.
 
@@ -30,7 +30,7 @@ from .sensitivity import sensitivity  # noqa: E402
 from .implicit import valid_derivatives  # noqa: E402
 
 #: subpackages imported on first access (PEP 562)
-_LAZY = ("anfis", "dataset", "gradcheck", "online", "plotting", "resample")
+_LAZY = ("anfis", "dataset", "gradcheck", "mappings", "online", "plotting", "resample")
 
 __all__ = ["Problem", "ViaPoint", "Weights", "Solution", "SolverOptions", "Status", "solve", "solve_batch", "sensitivity",
            "valid_derivatives",

@@ -60,7 +60,7 @@ mass_matrix_mechanism = _Robot._mass_matrix_mechanism  # (robot, q): the mass ma
 
 #: internals of the lazily imported subpackages, resolved on first access (PEP 562) so
 #: that importing this module loads neither the ANFIS nor the gradient check
-_LAZY = {"auto_radii": ("jtraj.anfis.trajectory", "_auto_radii"), "gradcheck_rel": ("jtraj.gradcheck", "_rel")}
+_LAZY = {"auto_radii": ("jtraj.mappings", "_auto_radii"), "gradcheck_rel": ("jtraj.gradcheck", "_rel")}
 
 
 def __getattr__(name):

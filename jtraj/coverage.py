@@ -2,7 +2,7 @@
 
 A query is a start/goal pair ``x = (q_start, q_goal)`` (2n numbers), the input of a
 ``plan`` model. The training pairs are stored in the model's metadata
-(``train_pairs``, written by :func:`jtraj.anfis.trajectory.train_mapping`).
+(``train_pairs``, written by :func:`jtraj.mappings.train_mapping`).
 
 Coverage is measured on the features ``(q_start, q_goal - q_start)``, a linear change of
 the model's inputs in which the datasets' sampling laws are boxes (a start in a box, a

@@ -98,14 +98,14 @@ def _excess(x, bound):
 
 def model_inputs(meta: dict, robot, q, qd, q_goal, k, N: int):
     """The inputs of a ``nefotc`` or ``nefumop`` model (as
-    :func:`jtraj.anfis.trajectory.view` builds them, from the model's ``goal_inputs`` and
+    :func:`jtraj.mappings.view` builds them, from the model's ``goal_inputs`` and
     ``phase_input`` metadata) at the state ``(q, qd)`` of step ``k`` towards ``q_goal``."""
     if meta["mapping"] == "nefotc":
         x, xd, xg = q, qd, q_goal
     else:
         x, xd = jax.jvp(robot.forward_kinematics, (q,), (qd,))
         xg = robot.forward_kinematics(q_goal)
-    from jtraj.anfis.trajectory import goal_blocks
+    from jtraj.mappings import goal_blocks
 
     parts = goal_blocks(x, xd, xg, meta.get("goal_inputs"))
     if meta.get("phase_input"):
@@ -128,7 +128,7 @@ class Planner:
 
     Coverage (``coverage_distance``, ``coverage_box``, ``ood``; :mod:`jtraj.coverage`):
     with the training pairs in the model's metadata (models from
-    :func:`jtraj.anfis.trajectory.train_mapping`), the distance to the nearest one against
+    :func:`jtraj.mappings.train_mapping`), the distance to the nearest one against
     ``coverage_radius`` and the distance outside their box; otherwise, for a plan model,
     the distance outside the model's input box (``coverage_kind`` says which); a
     closed-loop model without training pairs has no coverage (``coverage_kind`` None,

@@ -215,10 +215,10 @@ def test_pin_to_one_cpu_restricts_the_process():
 @pytest.fixture(scope="module")
 def plan_model(tmp_path_factory):
     """A small plan model of serial3 at N = 10 (a synthetic dataset: no solve)."""
-    from jtraj.anfis import trajectory
+    from jtraj import mappings
 
-    data = trajectory.synthetic_dataset(P=40, N=10, seed=0)
-    model = trajectory.train_mapping(data, "plan", n_rules=4, epochs=5)[0]
+    data = mappings.synthetic_dataset(P=40, N=10, seed=0)
+    model = mappings.train_mapping(data, "plan", n_rules=4, epochs=5)[0]
     path = tmp_path_factory.mktemp("query") / "plan.anfis"
     model.save(path)
     return str(path), data

@@ -8,6 +8,9 @@ imported or compiled, so this file is cheap):
 * no module imports a private name (``from .x import _y``) of another module, nor
   reaches one through an imported module (``x._y``); :mod:`jtraj._testing`, the
   explicitly internal surface for tests and benchmarks, is the one module allowed to;
+* the generic ANFIS (``jtraj.anfis``) knows nothing of trajectories: it imports no
+  dataset, solver, planner or robot module (:mod:`jtraj.mappings` builds trajectory
+  models on top of it);
 * no module over 800 lines.
 """
 
@@ -22,9 +25,6 @@ ROOT = pathlib.Path(__file__).resolve().parents[1] / "jtraj"
 MAX_LINES = 800
 CLI = ("jtraj.cli", "jtraj.commands")
 TESTING = "jtraj._testing"
-
-
-
 
 
 def _modules(root: pathlib.Path = ROOT) -> dict[str, tuple[pathlib.Path, bool]]:
@@ -139,6 +139,12 @@ def test_the_library_never_imports_the_command_line(graph):
     upward = sorted((m, t) for m, ts in edges.items() if not m.startswith(CLI)
                     for t in ts if t.startswith(CLI))
     assert upward == []
+
+
+def test_the_anfis_is_generic(graph):
+    _, edges, _ = graph
+    generic = {t for m, ts in edges.items() if m.startswith("jtraj.anfis") for t in ts}
+    assert sorted(t for t in generic if not t.startswith("jtraj.anfis")) == []
 
 
 def test_no_private_name_crosses_modules(graph):

@@ -7,21 +7,21 @@ import numpy as np
 import pytest
 
 from jtraj import anfis
-from jtraj.anfis import trajectory
+from jtraj import mappings
 from jtraj import _testing
 
 
 @pytest.fixture(scope="module")
 def data():
-    return trajectory.synthetic_dataset(P=40, N=10, seed=0)
+    return mappings.synthetic_dataset(P=40, N=10, seed=0)
 
 
 def test_split_is_by_trajectory_and_last_ten_percent(data):
-    X, Y, traj, names_in, names_out = trajectory.view(data, "nefotc")
+    X, Y, traj, names_in, names_out = mappings.view(data, "nefotc")
     conv = np.nonzero(data["converged"])[0]
     assert X.shape == (conv.size * 10, 6) and Y.shape == (conv.size * 10, 3)
     assert names_in[:1] == ["q1"] and names_out == ["tau1", "tau2", "tau3"]
-    tr, te = trajectory.split(traj)
+    tr, te = mappings.split(traj)
     test_ids = np.unique(traj[te])
     np.testing.assert_array_equal(test_ids, conv[-round(0.1 * conv.size):])
     assert not set(np.unique(traj[tr])) & set(test_ids)
@@ -31,8 +31,8 @@ def test_baselines_exact_on_linear_data():
     rng = np.random.default_rng(0)
     X = rng.random((200, 3))
     Y = X @ np.array([[1.0], [2.0], [-1.0]]) + 0.5
-    np.testing.assert_allclose(trajectory.linear_baseline(X, Y, X[:5]), Y[:5], atol=1e-10)
-    np.testing.assert_allclose(trajectory.knn_baseline(X, Y, X[:5], k=1), Y[:5])
+    np.testing.assert_allclose(mappings.linear_baseline(X, Y, X[:5]), Y[:5], atol=1e-10)
+    np.testing.assert_allclose(mappings.knn_baseline(X, Y, X[:5], k=1), Y[:5])
 
 
 def test_train_command_report_and_plot(tmp_path, data, monkeypatch):
@@ -62,27 +62,27 @@ def test_train_command_report_and_plot(tmp_path, data, monkeypatch):
 
 @pytest.mark.slow
 def test_auto_radius_ensemble_weights_the_candidates_by_validation_error(tmp_path, data):
-    model, rep, hist = trajectory.train_mapping(data, "nefotc", epochs=5)
+    model, rep, hist = mappings.train_mapping(data, "nefotc", epochs=5)
     sel = rep["radius_selection"]
-    assert set(sel) == {str(r) for r in trajectory.RADIUS_CANDIDATES}
+    assert set(sel) == {str(r) for r in mappings.RADIUS_CANDIDATES}
     trained = {r: v for r, v in sel.items() if "skipped" not in v}
     assert isinstance(model, anfis.Ensemble) and rep["ensemble"] and len(model.members) == len(trained) >= 2
     # a larger radius never yields more rules
-    counts = [sel[str(r)]["n_rules"] for r in trajectory.RADIUS_CANDIDATES if str(r) in trained]
+    counts = [sel[str(r)]["n_rules"] for r in mappings.RADIUS_CANDIDATES if str(r) in trained]
     assert len(counts) >= 2 and counts == sorted(counts, reverse=True)
     assert [m.n_rules for m in model.members] == counts and rep["n_rules"] == sum(counts)
     # weights 1 / MSE^2 of the validation split, normalised
-    va = np.array([trained[str(r)]["validation_rmse"] for r in trajectory.RADIUS_CANDIDATES if str(r) in trained])
+    va = np.array([trained[str(r)]["validation_rmse"] for r in mappings.RADIUS_CANDIDATES if str(r) in trained])
     w = va**-4 / np.sum(va**-4)
     np.testing.assert_allclose(np.asarray(model.weights), w, rtol=1e-12)
-    order = [str(r) for r in trajectory.RADIUS_CANDIDATES if str(r) in trained]
+    order = [str(r) for r in mappings.RADIUS_CANDIDATES if str(r) in trained]
     np.testing.assert_allclose([trained[r]["weight"] for r in order], w, rtol=1e-12)
     # the report's radius, history and the leading member are those of the lowest validation RMSE
     best = min(trained, key=lambda r: trained[r]["validation_rmse"])
     assert rep["radius"] == pytest.approx(float(best)) and model.leading.n_rules == sel[best]["n_rules"]
     assert min(hist.val_rmse) == pytest.approx(sel[best]["validation_rmse"])
     # predictions: the weighted average of the members', one sample or a batch, jitted or not
-    X = trajectory.view(data, "nefotc", goal="relative", phase=True)[0][:7]
+    X = mappings.view(data, "nefotc", goal="relative", phase=True)[0][:7]
     ref = sum(wk * np.asarray(m.predict(X)) for wk, m in zip(w, model.members))
     np.testing.assert_allclose(np.asarray(model.predict(X)), ref, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(np.asarray(model.predict(X[3])), ref[3], rtol=1e-12, atol=1e-12)
@@ -102,13 +102,13 @@ def test_auto_radius_ensemble_weights_the_candidates_by_validation_error(tmp_pat
     assert isinstance(tagged, anfis.Ensemble) and tagged.metadata["note"] == "x" and "note" not in model.metadata
     assert model.astype(np.float32).predict(X).dtype == np.float32
     # members trained on other data (another scaling) are refused; weights must be positive
-    other = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, phase=True, test_fraction=0.3)[0]
+    other = mappings.train_mapping(data, "nefotc", n_rules=2, epochs=1, phase=True, test_fraction=0.3)[0]
     with pytest.raises(ValueError, match="scaling"):
         anfis.Ensemble.from_models([model.leading, other], [1.0, 1.0])
     with pytest.raises(ValueError, match="positive"):
         anfis.Ensemble.from_models(model.members, np.r_[-1.0, np.ones(len(counts) - 1)])
     # ensemble=False: the single model of lowest validation RMSE
-    single, rep1, _ = trajectory.train_mapping(data, "nefotc", epochs=5, ensemble=False)
+    single, rep1, _ = mappings.train_mapping(data, "nefotc", epochs=5, ensemble=False)
     assert isinstance(single, anfis.Model) and not rep1["ensemble"] and rep1["n_rules"] == sel[best]["n_rules"]
     np.testing.assert_allclose(np.asarray(single.predict(X)), np.asarray(model.leading.predict(X)), rtol=1e-12)
 
@@ -118,8 +118,8 @@ def test_mirror_augmentation_adds_the_reflected_trajectories_where_the_robot_is_
     from jtraj.anfis import training
 
     # serial3 (horizontal, no gravity): odd inverse dynamics, symmetric limits
-    assert trajectory.mirror_symmetry(data) is None
-    m = trajectory.mirrored(data)
+    assert mappings.mirror_symmetry(data) is None
+    m = mappings.mirrored(data)
     for k in ("q", "qd", "v", "tau", "q_start", "q_goal"):
         np.testing.assert_array_equal(m[k], -np.asarray(data[k]))
     np.testing.assert_array_equal(m["h"], data["h"])
@@ -127,8 +127,8 @@ def test_mirror_augmentation_adds_the_reflected_trajectories_where_the_robot_is_
     real_train = training.train
     monkeypatch.setattr(training, "train", lambda X, Y, **kw: seen.append((X, Y, kw["validation"]))
                         or real_train(X, Y, **kw))
-    _, plain, _ = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, augment="none")
-    _, aug, _ = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1)  # "auto"
+    _, plain, _ = mappings.train_mapping(data, "nefotc", n_rules=2, epochs=1, augment="none")
+    _, aug, _ = mappings.train_mapping(data, "nefotc", n_rules=2, epochs=1)  # "auto"
     assert plain["augment"] == "none" and aug["augment"] == "mirror" and "augment_note" not in aug
     (X0, Y0, (V0, W0)), (X1, Y1, (V1, W1)) = seen
     n = len(X0)
@@ -145,40 +145,40 @@ def test_mirror_augmentation_adds_the_reflected_trajectories_where_the_robot_is_
     monkeypatch.setattr(trajectory, "_auto_radii", lambda X, Y, traj, o, sel: counted.append(
         (len(X), np.unique(traj).size)) or [1.4])
     for a in ("none", "mirror"):
-        trajectory.train_mapping(data, "nefotc", epochs=1, augment=a)
+        mappings.train_mapping(data, "nefotc", epochs=1, augment=a)
     assert counted[1] == (2 * counted[0][0], 2 * counted[0][1])
     # the test split and the baselines are the same
     for k in ("n_samples_test", "n_samples_train", "linear_test_rmse", "knn_test_rmse"):
         assert aug[k] == plain[k]
     # "auto" leaves large training sets alone; "mirror" still mirrors them
     monkeypatch.setattr(trajectory, "MIRROR_AUTO_BELOW", 5)
-    _, big, _ = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1)
+    _, big, _ = mappings.train_mapping(data, "nefotc", n_rules=2, epochs=1)
     assert big["augment"] == "none" and "training trajectories" in big["augment_note"]
-    assert trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, augment="mirror")[1]["augment"] == "mirror"
+    assert mappings.train_mapping(data, "nefotc", n_rules=2, epochs=1, augment="mirror")[1]["augment"] == "mirror"
     monkeypatch.undo()
-    _, ik, _ = trajectory.train_mapping(data, "nefik", n_rules=2, epochs=1)  # not mirrored by "auto"
+    _, ik, _ = mappings.train_mapping(data, "nefik", n_rules=2, epochs=1)  # not mirrored by "auto"
     assert ik["augment"] == "none" and "mappings" in ik["augment_note"]
     # a robot under gravity is not symmetric: "auto" skips, "mirror" refuses
-    vertical = trajectory.synthetic_dataset(P=20, N=10, seed=1, robot="serial3_vertical")
-    assert "not odd" in trajectory.mirror_symmetry(vertical)
-    _, rep, _ = trajectory.train_mapping(vertical, "nefotc", n_rules=2, epochs=1)
+    vertical = mappings.synthetic_dataset(P=20, N=10, seed=1, robot="serial3_vertical")
+    assert "not odd" in mappings.mirror_symmetry(vertical)
+    _, rep, _ = mappings.train_mapping(vertical, "nefotc", n_rules=2, epochs=1)
     assert rep["augment"] == "none" and "not odd" in rep["augment_note"]
     with pytest.raises(ValueError, match="augment='mirror': the inverse dynamics are not odd"):
-        trajectory.train_mapping(vertical, "nefotc", n_rules=2, epochs=1, augment="mirror")
+        mappings.train_mapping(vertical, "nefotc", n_rules=2, epochs=1, augment="mirror")
     with pytest.raises(ValueError, match="augment must be one of"):
-        trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, augment="flip")
+        mappings.train_mapping(data, "nefotc", n_rules=2, epochs=1, augment="flip")
     # so do a singularity term in the cost and a joint box not symmetric about 0
     singular = dict(data, metadata=dict(data["metadata"], weights_text="time=1,energy=0.1,singularity=0.01"))
-    assert "singularity" in trajectory.mirror_symmetry(singular)
+    assert "singularity" in mappings.mirror_symmetry(singular)
     zero = dict(data, metadata=dict(data["metadata"], weights_text="time=1,singularity=0"))
-    assert trajectory.mirror_symmetry(zero) is None
+    assert mappings.mirror_symmetry(zero) is None
     from jtraj import robots
     from jtraj.dataset import views
 
     boxed = robots.get("serial3")
     boxed = boxed.replace(limits=type(boxed.limits).make(3, q_min=-1.0, q_max=2.0, tau_max=boxed.limits.tau_max))
     monkeypatch.setattr(views, "robot_of", lambda d: boxed)
-    assert "joint box is not symmetric" in trajectory.mirror_symmetry(data)
+    assert "joint box is not symmetric" in mappings.mirror_symmetry(data)
 
 
 def test_auto_radius_skips_radii_with_more_rules_than_the_data_carry(monkeypatch):
@@ -187,12 +187,12 @@ def test_auto_radius_skips_radii_with_more_rules_than_the_data_carry(monkeypatch
     rng = np.random.default_rng(0)
     X, Y = rng.random((400, 3)), rng.random((400, 1))  # no structure: small radii give many rules
     traj = np.arange(400) // 4  # 100 trajectories -> at most 25 rules
-    counts = {r: subclust(np.c_[X, Y], r).centers.shape[0] for r in trajectory.RADIUS_CANDIDATES}
+    counts = {r: subclust(np.c_[X, Y], r).centers.shape[0] for r in mappings.RADIUS_CANDIDATES}
     assert counts[0.4] > 25 >= counts[1.4]
     sel = {}
     kept = _testing.auto_radii(X, Y, traj, {}, sel)
-    assert kept == [r for r in trajectory.RADIUS_CANDIDATES if counts[r] <= 25]
-    assert set(sel) == {str(r) for r in trajectory.RADIUS_CANDIDATES if counts[r] > 25}
+    assert kept == [r for r in mappings.RADIUS_CANDIDATES if counts[r] <= 25]
+    assert set(sel) == {str(r) for r in mappings.RADIUS_CANDIDATES if counts[r] > 25}
     assert all(v["skipped"] == "more than 25 rules" for v in sel.values())
     # when no radius is within the cap, the largest (fewest rules) is kept
     monkeypatch.setattr(trajectory, "RADIUS_CANDIDATES", (0.4, 0.6))
@@ -220,7 +220,7 @@ def test_train_command_rejects_a_bad_radius():
 def test_planner_one_call_with_feasibility(tmp_path, data):
     from jtraj.online import Planner
 
-    model, rep, _ = trajectory.train_mapping(data, "plan", n_rules=4, epochs=5)
+    model, rep, _ = mappings.train_mapping(data, "plan", n_rules=4, epochs=5)
     planner = Planner(model, correct=False)  # the raw prediction (tests/test_online_plan.py: the repair)
     qs, qg = data["q_start"][0], data["q_goal"][0]
     p = planner.plan(qs, qg)
@@ -258,17 +258,17 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
     np.testing.assert_allclose(np.asarray(Planner(twin, correct=False).plan(qs, qg).q), np.asarray(p.q), rtol=1e-12,
                                atol=1e-12)
     path = tmp_path / "otc.anfis"
-    trajectory.train_mapping(data, "nefotc", n_rules=3, epochs=1)[0].save(path)
+    mappings.train_mapping(data, "nefotc", n_rules=3, epochs=1)[0].save(path)
     with pytest.raises(ValueError, match="periods="):
         Planner(str(path))  # a nefotc model needs the periods of a nefumop model
     with pytest.raises(ValueError, match="periods= is for a nefotc model"):
         Planner(model, periods=str(path))
     with pytest.raises(ValueError, match="periods must be a nefumop model"):
         Planner(str(path), periods=model)
-    thesis = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, goal=False, phase=False)[0]
+    thesis = mappings.train_mapping(data, "nefotc", n_rules=2, epochs=1, goal=False, phase=False)[0]
     with pytest.raises(ValueError, match="no goal inputs"):
         Planner(thesis, periods=model)
-    nefik = trajectory.train_mapping(data, "nefik", n_rules=2, epochs=1)[0]
+    nefik = mappings.train_mapping(data, "nefik", n_rules=2, epochs=1)[0]
     with pytest.raises(ValueError, match="mapping 'plan', or 'nefotc'"):
         Planner(nefik)
 
@@ -282,13 +282,13 @@ def test_closed_loop_planner_rolls_the_controller_out_through_the_dynamics(tmp_p
 
     limits = {"h_max": 0.2}  # as a jtraj dataset records its limits: the planner's robot takes h_max
     d = dict(data, metadata=dict(data["metadata"], limits=limits))
-    ctl = trajectory.train_mapping(d, "nefotc", n_rules=3, epochs=2)[0]
-    per = trajectory.train_mapping(d, "nefumop", n_rules=3, epochs=2)[0]
+    ctl = mappings.train_mapping(d, "nefotc", n_rules=3, epochs=2)[0]
+    per = mappings.train_mapping(d, "nefumop", n_rules=3, epochs=2)[0]
     assert ctl.metadata["h_max"] == per.metadata["h_max"] == 0.2
     # the planner's inputs are the training view's rows (same goal offset and phase)
     robot = robots.get("serial3")
     for m, mapping in ((ctl, "nefotc"), (per, "nefumop")):
-        X, _, traj, _, _ = trajectory.view(d, mapping, goal=m.metadata["goal_inputs"], phase=True)
+        X, _, traj, _, _ = mappings.view(d, mapping, goal=m.metadata["goal_inputs"], phase=True)
         i, k = int(traj[13]), 13 % 10
         mine = model_inputs(m.metadata, robot, jnp.asarray(d["q"][i, k]), jnp.asarray(d["qd"][i, k]),
                             jnp.asarray(d["q_goal"][i]), k, 10)
@@ -338,33 +338,33 @@ def test_closed_loop_planner_rolls_the_controller_out_through_the_dynamics(tmp_p
 
 
 def test_goal_inputs_append_offset_to_goal(data):
-    X, Y, traj, names_in, _ = trajectory.view(data, "nefotc", goal=True)
-    X0, Y0, traj0, _, _ = trajectory.view(data, "nefotc")
+    X, Y, traj, names_in, _ = mappings.view(data, "nefotc", goal=True)
+    X0, Y0, traj0, _, _ = mappings.view(data, "nefotc")
     assert names_in[6:] == ["dq_goal1", "dq_goal2", "dq_goal3"]
     np.testing.assert_array_equal(X[:, :6], X0)
     np.testing.assert_array_equal(Y, Y0)
     np.testing.assert_allclose(X[:, 6:], data["q_goal"][traj] - X0[:, :3])
-    Xu, _, _, names_u, _ = trajectory.view(data, "nefumop", goal=True)
+    Xu, _, _, names_u, _ = mappings.view(data, "nefumop", goal=True)
     assert Xu.shape[1] == 6 and names_u[4:] == ["dx_goal", "dy_goal"]
-    Xr, _, _, names_r, _ = trajectory.view(data, "nefotc", goal="relative")
+    Xr, _, _, names_r, _ = mappings.view(data, "nefotc", goal="relative")
     assert names_r == ["dq_goal1", "dq_goal2", "dq_goal3", "qd1", "qd2", "qd3"]
     np.testing.assert_array_equal(Xr, np.c_[X[:, 6:], X[:, 3:6]])
     with pytest.raises(ValueError, match="goal inputs"):
-        trajectory.view(data, "plan", goal=True)
+        mappings.view(data, "plan", goal=True)
 
 
 def test_model_records_dataset_weights_and_goal_inputs(data):
     d = dict(data, metadata=dict(data["metadata"], weights_text="time=1,energy=0.1"))
-    model, rep, _ = trajectory.train_mapping(d, "nefotc", n_rules=3, epochs=1, goal=True, phase=False)
+    model, rep, _ = mappings.train_mapping(d, "nefotc", n_rules=3, epochs=1, goal=True, phase=False)
     assert model.metadata["weights"] == "time=1,energy=0.1" and model.metadata["goal_inputs"] == "append"
     assert rep["goal_inputs"] == "append" and not rep["phase_input"] and model.n_inputs == 9
-    model, rep, _ = trajectory.train_mapping(d, "nefotc", n_rules=3, epochs=1, goal="relative", phase=False)
+    model, rep, _ = mappings.train_mapping(d, "nefotc", n_rules=3, epochs=1, goal="relative", phase=False)
     assert model.metadata["goal_inputs"] == "relative" and model.n_inputs == 6
 
 
 def test_phase_input_is_the_samples_place_in_its_trajectory(data):
-    X0, Y0, traj, names0, _ = trajectory.view(data, "nefotc")
-    X, Y, traj1, names, _ = trajectory.view(data, "nefotc", phase=True)
+    X0, Y0, traj, names0, _ = mappings.view(data, "nefotc")
+    X, Y, traj1, names, _ = mappings.view(data, "nefotc", phase=True)
     N = data["h"].shape[1]
     assert names == names0 + ["phase"]
     np.testing.assert_array_equal(X[:, :-1], X0)
@@ -374,26 +374,26 @@ def test_phase_input_is_the_samples_place_in_its_trajectory(data):
     np.testing.assert_allclose(X[:, -1], (np.arange(len(X)) % N) / N)
     assert np.all(np.diff(X[traj == traj[0], -1]) > 0)
     with pytest.raises(ValueError, match="phase"):
-        trajectory.view(data, "nefik", phase=True)
+        mappings.view(data, "nefik", phase=True)
 
 
 def test_defaults_add_goal_offset_and_phase_with_the_thesis_baseline(data):
-    model, rep, _ = trajectory.train_mapping(data, "nefotc", n_rules=3, epochs=2)
+    model, rep, _ = mappings.train_mapping(data, "nefotc", n_rules=3, epochs=2)
     assert rep["inputs"] == ["dq_goal1", "dq_goal2", "dq_goal3", "qd1", "qd2", "qd3", "phase"]
     assert rep["goal_inputs"] == "relative" and rep["phase_input"] and model.metadata["phase_input"]
     # the thesis' (q, qd) -> tau linear baseline, fitted on the same split
-    X0, Y0, traj, _, _ = trajectory.view(data, "nefotc")
-    tr, te = trajectory.split(traj)
-    ref = np.sqrt(np.mean((trajectory.linear_baseline(X0[tr], Y0[tr], X0[te]) - Y0[te]) ** 2))
+    X0, Y0, traj, _, _ = mappings.view(data, "nefotc")
+    tr, te = mappings.split(traj)
+    ref = np.sqrt(np.mean((mappings.linear_baseline(X0[tr], Y0[tr], X0[te]) - Y0[te]) ** 2))
     assert rep["thesis_linear_test_rmse"] == pytest.approx(ref, rel=1e-12)
     assert rep["ratio_to_thesis_linear"] == pytest.approx(rep["test_rmse"] / ref, rel=1e-12)
     # nefumop: position, velocity, goal offset and phase; the thesis' inputs when asked
-    _, rep_u, _ = trajectory.train_mapping(data, "nefumop", n_rules=2, epochs=1)
+    _, rep_u, _ = mappings.train_mapping(data, "nefumop", n_rules=2, epochs=1)
     assert rep_u["inputs"] == ["x", "y", "xd", "yd", "dx_goal", "dy_goal", "phase"]
-    _, rep_u, _ = trajectory.train_mapping(data, "nefumop", n_rules=2, epochs=1, goal=False, phase=False)
+    _, rep_u, _ = mappings.train_mapping(data, "nefumop", n_rules=2, epochs=1, goal=False, phase=False)
     assert rep_u["inputs"] == ["x", "y", "xd", "yd"] and "thesis_linear_test_rmse" not in rep_u
     # nefik and plan have no extra inputs
-    assert trajectory.default_inputs("nefik") == (False, False) == trajectory.default_inputs("plan")
+    assert mappings.default_inputs("nefik") == (False, False) == mappings.default_inputs("plan")
     import argparse
 
     from jtraj.commands import train as cmd
@@ -402,7 +402,7 @@ def test_defaults_add_goal_offset_and_phase_with_the_thesis_baseline(data):
     cmd.configure(parser)
     a = parser.parse_args(["--data", "d", "--out", "m", "--goal-inputs", "none", "--no-phase"])
     assert a.goal_inputs == "none" and a.phase is False
-    _, rep_t, _ = trajectory.train_mapping(data, "nefotc", n_rules=2, epochs=1, goal=a.goal_inputs, phase=a.phase)
+    _, rep_t, _ = mappings.train_mapping(data, "nefotc", n_rules=2, epochs=1, goal=a.goal_inputs, phase=a.phase)
     assert rep_t["inputs"] == ["q1", "q2", "q3", "qd1", "qd2", "qd3"] and rep_t["goal_inputs"] is False
     assert "thesis_linear_test_rmse" not in rep_t
     a = parser.parse_args(["--data", "d", "--out", "m"])
@@ -413,7 +413,7 @@ def test_views_of_a_partial_dataset_use_row_positions(data):
     # a partial dataset's "index" holds the pair indices of its finished chunks
     part = {k: (v if k == "metadata" else np.asarray(v)[20:]) for k, v in data.items()}
     part["index"] = np.arange(20, 40)
-    X, _, traj, _, _ = trajectory.view(part, "nefotc", goal="relative", phase=True)
+    X, _, traj, _, _ = mappings.view(part, "nefotc", goal="relative", phase=True)
     assert traj.min() >= 0 and traj.max() < 20
-    Xf, _, trajf, _, _ = trajectory.view(data, "nefotc", goal="relative", phase=True)
+    Xf, _, trajf, _, _ = mappings.view(data, "nefotc", goal="relative", phase=True)
     np.testing.assert_array_equal(X, Xf[trajf >= 20])

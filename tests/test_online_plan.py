@@ -212,11 +212,11 @@ def test_coverage_radius_and_distances_by_brute_force():
 
 @pytest.fixture(scope="module")
 def planner_and_data():
-    from jtraj.anfis import trajectory
+    from jtraj import mappings
     from jtraj.online import Planner
 
-    data = trajectory.synthetic_dataset(P=24, N=10, seed=0)
-    model = trajectory.train_mapping(data, "plan", n_rules=2, epochs=2)[0]
+    data = mappings.synthetic_dataset(P=24, N=10, seed=0)
+    model = mappings.train_mapping(data, "plan", n_rules=2, epochs=2)[0]
     # the synthetic trajectories take 3 s over 10 periods: a period bound that admits them
     return Planner(model, robots.get("serial3", h_max=1.5), weights=W), data
 
@@ -300,11 +300,11 @@ def test_a_feasible_plan_never_beats_the_exact_optimum_and_its_cost_is_the_solve
     (up to the solver's tolerances); the plan's cost function equals the solver's at the
     optimum; query(refine=True) reports the gap between them."""
     from jtraj import Problem, solve
-    from jtraj.anfis import trajectory
+    from jtraj import mappings
     from jtraj.online import Planner
 
-    data = trajectory.synthetic_dataset(P=24, N=20, seed=0)
-    model = trajectory.train_mapping(data, "plan", n_rules=2, epochs=1)[0]
+    data = mappings.synthetic_dataset(P=24, N=20, seed=0)
+    model = mappings.train_mapping(data, "plan", n_rules=2, epochs=1)[0]
     rb = robots.get("serial3", h_max=0.2)  # the synthetic trajectories are slow: room to slow the plans
     planner = Planner(model, rb, weights=W)
     rng = np.random.default_rng(6)

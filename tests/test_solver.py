@@ -83,7 +83,7 @@ def test_single_solve_converges_and_verifies_independently(single):
 def test_mirrored_pair_has_the_mirrored_optimum(robot, single):
     # serial3's inverse dynamics are odd and its limits symmetric: the reflection q -> -q
     # maps its optimal trajectories onto optimal ones (what jtraj train's mirror
-    # augmentation relies on, see jtraj.anfis.trajectory.mirror_symmetry)
+    # augmentation relies on, see jtraj.mappings.mirror_symmetry)
     _, sol = single
     mir = jtraj.solve(jtraj.Problem(robot, -Q0, -Q1, N=N, weights=W))
     assert mir.converged, mir.status_message

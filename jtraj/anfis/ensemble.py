@@ -1,6 +1,6 @@
 """A weighted average of ANFIS models trained on the same data.
 
-:func:`jtraj.anfis.trajectory.train_mapping` with ``radius="auto"`` trains one model per
+:func:`jtraj.mappings.train_mapping` with ``radius="auto"`` trains one model per
 candidate clustering radius and, by default, keeps all of them, weighted by
 1 / (validation mean squared error)^2. On small trajectory datasets the validation split
 is a handful of trajectories, so picking the single best radius on it is noisy;

@@ -81,7 +81,7 @@ def run(args) -> int:
     import json
     import os
 
-    from jtraj.anfis import trajectory
+    from jtraj import mappings
 
     from jtraj.commands import check_output_file
 
@@ -89,7 +89,7 @@ def run(args) -> int:
         raise ValueError(f"--data {args.data!r} does not exist")
     for option in ("out", "json", "plot"):
         check_output_file(getattr(args, option), f"--{option}")
-    model, report, hist = trajectory.train_mapping(
+    model, report, hist = mappings.train_mapping(
         args.data, args.mapping, n_rules=args.rules, radius=args.radius, epochs=args.epochs, kind=args.kind,
         order=args.order, ridge=args.ridge, progress=not args.no_progress,
         goal=getattr(args, "goal_inputs", None), phase=getattr(args, "phase", None),

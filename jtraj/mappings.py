@@ -313,7 +313,7 @@ def default_inputs(mapping: str):
 def _auto_radii(X, Y, traj, options, selection):
     """The radii of ``RADIUS_CANDIDATES`` within the rule cap (skipped ones are recorded
     in ``selection``); the largest radius if none is."""
-    from .clustering import subclust
+    from jtraj.anfis.clustering import subclust
 
     cap = max(2, min(MAX_AUTO_RULES, np.unique(traj).size // TRAJECTORIES_PER_RULE))
     kw = {k: options[k] for k in ("squash", "accept", "reject") if k in options}
@@ -367,9 +367,8 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     ``augment`` (``"mirror"`` or ``"none"``), ``augment_note`` (why not, with ``"auto"``).
     """
     from jtraj import coverage
-
-    from .ensemble import Ensemble
-    from .training import train
+    from jtraj.anfis.ensemble import Ensemble
+    from jtraj.anfis.training import train
 
     if mapping == "plan" and n_rules is None:
         # radius 0.5 in the joint (6 + N (n + 1))-dimensional clustering space accepts
