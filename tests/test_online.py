@@ -38,7 +38,7 @@ def test_baselines_exact_on_linear_data():
 def test_train_command_report_and_plot(tmp_path, data, monkeypatch):
     from jtraj.commands import train as cmd
 
-    monkeypatch.setattr(trajectory, "load_data", lambda d: data)
+    monkeypatch.setattr(mappings, "load_data", lambda d: data)
     import os
 
     (tmp_path / "ds").mkdir()
@@ -142,7 +142,7 @@ def test_mirror_augmentation_adds_the_reflected_trajectories_where_the_robot_is_
     np.testing.assert_array_equal(W1, np.r_[W0, -W0])
     # the rule cap of radius "auto" counts the mirror images as trajectories of their own
     counted = []
-    monkeypatch.setattr(trajectory, "_auto_radii", lambda X, Y, traj, o, sel: counted.append(
+    monkeypatch.setattr(mappings, "_auto_radii", lambda X, Y, traj, o, sel: counted.append(
         (len(X), np.unique(traj).size)) or [1.4])
     for a in ("none", "mirror"):
         mappings.train_mapping(data, "nefotc", epochs=1, augment=a)
@@ -151,7 +151,7 @@ def test_mirror_augmentation_adds_the_reflected_trajectories_where_the_robot_is_
     for k in ("n_samples_test", "n_samples_train", "linear_test_rmse", "knn_test_rmse"):
         assert aug[k] == plain[k]
     # "auto" leaves large training sets alone; "mirror" still mirrors them
-    monkeypatch.setattr(trajectory, "MIRROR_AUTO_BELOW", 5)
+    monkeypatch.setattr(mappings, "MIRROR_AUTO_BELOW", 5)
     _, big, _ = mappings.train_mapping(data, "nefotc", n_rules=2, epochs=1)
     assert big["augment"] == "none" and "training trajectories" in big["augment_note"]
     assert mappings.train_mapping(data, "nefotc", n_rules=2, epochs=1, augment="mirror")[1]["augment"] == "mirror"
@@ -195,13 +195,13 @@ def test_auto_radius_skips_radii_with_more_rules_than_the_data_carry(monkeypatch
     assert set(sel) == {str(r) for r in mappings.RADIUS_CANDIDATES if counts[r] > 25}
     assert all(v["skipped"] == "more than 25 rules" for v in sel.values())
     # when no radius is within the cap, the largest (fewest rules) is kept
-    monkeypatch.setattr(trajectory, "RADIUS_CANDIDATES", (0.4, 0.6))
-    monkeypatch.setattr(trajectory, "MAX_AUTO_RULES", counts[0.6] - 1)
+    monkeypatch.setattr(mappings, "RADIUS_CANDIDATES", (0.4, 0.6))
+    monkeypatch.setattr(mappings, "MAX_AUTO_RULES", counts[0.6] - 1)
     assert _testing.auto_radii(X, Y, traj, {}, {}) == [0.6]
-    monkeypatch.setattr(trajectory, "RADIUS_CANDIDATES", (0.4, 0.6, 0.9, 1.4))
+    monkeypatch.setattr(mappings, "RADIUS_CANDIDATES", (0.4, 0.6, 0.9, 1.4))
     # the absolute cap
-    monkeypatch.setattr(trajectory, "TRAJECTORIES_PER_RULE", 1)
-    monkeypatch.setattr(trajectory, "MAX_AUTO_RULES", counts[0.9])
+    monkeypatch.setattr(mappings, "TRAJECTORIES_PER_RULE", 1)
+    monkeypatch.setattr(mappings, "MAX_AUTO_RULES", counts[0.9])
     assert 0.4 not in _testing.auto_radii(X, Y, traj, {}, {})
 
 
