@@ -53,8 +53,7 @@ from .solver.ipm import _with_rhs as ipm_with_rhs
 from ._kkt_native import _compiler as native_compiler
 from ._setup import _state as setup_state
 from .robots import Robot as _Robot
-from .transcription import _prefix_sums as prefix_sums
-from .transcription import _suffix_sums as suffix_sums
+from .transcription import prefix_sums, suffix_sums
 
 mass_matrix_mechanism = _Robot._mass_matrix_mechanism  # (robot, q): the mass matrix of the mechanism alone
 

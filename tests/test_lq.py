@@ -9,7 +9,8 @@ import pytest
 import jtraj
 from jtraj import lq
 from jtraj._testing import NLP, SolverOptions, init_multipliers, initial_guess
-from jtraj.transcription import Transcription, _decoupled_pieces, decoupled_hessian, decoupled_hessian_bounds
+from jtraj.transcription import Transcription, decoupled_hessian, decoupled_hessian_bounds
+from jtraj.transcription.hessian import decoupled_pieces
 
 Q0 = jnp.array([0.0, 0.5, 0.5])
 Q1 = jnp.array([1.2, -0.4, 0.9])
@@ -107,7 +108,7 @@ def _dense_row_bounds(layout, W, c, Hk, free):
     ``(sum_k |J_k|^T |Hk| |J_k| + |C|) 1_free``: an independent reference."""
     N, n = layout.N, layout.m_u
     ns, m = 2 * n, n + 1
-    A, sy, Chv, Chh, perm = _decoupled_pieces(layout, W, c)
+    A, sy, Chv, Chh, perm = decoupled_pieces(layout, W, c)
     fy = free[np.argsort(perm)].astype(W.dtype)  # y's order: (v_0, h_0, v_1, ...)
     k, a = np.arange(N)[:, None], np.arange(m)[None, :]
     ctrl = jnp.zeros((N + 1, m, N * m), W.dtype).at[k, a, k * m + a].set(sy[k * m + a])  # selectors of u_k

@@ -13,7 +13,7 @@ from jtraj import transcription as T
 from jtraj import _testing
 
 
-@pytest.mark.parametrize("N", [5, T._TRI_MAX, T._TRI_MAX + 1, 150])
+@pytest.mark.parametrize("N", [5, T.recursion.TRI_MAX, T.recursion.TRI_MAX + 1, 150])
 def test_prefix_and_suffix_sums_match_numpy(N):
     rng = np.random.default_rng(N)
     X = rng.standard_normal((N, 3, 2))

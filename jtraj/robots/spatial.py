@@ -62,7 +62,7 @@ def _mm(A, B):
 def _prefix(X, reverse=False):
     """Inclusive prefix sums over the bodies (axis 0) of X (n, 3), or suffix sums with
     ``reverse``, as a constant 0/1 triangle times X, elementwise (the form of
-    :func:`jtraj.transcription._prefix_sums`)."""
+    :func:`jtraj.transcription.prefix_sums`)."""
     n = X.shape[0]
     tri = np.tri(n) if not reverse else np.tri(n).T
     return jnp.sum(jnp.asarray(tri, X.dtype)[:, :, None] * X[None], axis=1)
