@@ -214,7 +214,8 @@ def main():
         "below the linear AR map on the same inputs. Jang's pair of RMSEs after 500 epochs is quoted as "
         "accounts of the paper give it; they differ on which of the two is the training and which the "
         "checking value; "
-        f"{below} of our three models' check RMSEs are below both. Our series is integrated here, not read from Jang's "
+        f"{'all' if below == 3 else below} of our three models' check RMSEs are below both. Our series is "
+        "integrated here, not read from Jang's "
         "file, so the last digit can differ for that reason alone. `figures/mackey_glass.png`: series and grid-model "
         "prediction, the errors of the model and of the AR map, and the grid memberships before and after "
         "training.", "",

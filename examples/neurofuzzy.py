@@ -416,7 +416,8 @@ def report(robot, q0, qg, data, n_conv, solve_s, res, interleaved, warm, noisy, 
                                   "relative test RMSE", "test RMSE")),
               "", f"The error scales about linearly with the spread; at +- {min(narrow)} rad the relative "
               f"training RMSE is {relative(narrow[min(narrow)]['train'], narrow[min(narrow)]['range']):.1e}, the "
-              "order of the published 3.77e-3 if the thesis' data were scaled, from a set of nearly identical trajectories. "
+              "order of the published 3.77e-3 if the thesis' data were scaled, from a set of nearly identical "
+              "trajectories. "
               "(3) The split: the thesis' test RMSE is below its train RMSE "
               "(1.29e-3 < 3.77e-3; 2.39e-4 < 4.57e-3, 19x). Measured here, test / train relative RMSE is "
               f"{ratio['nefotc']:.2f} (NeFOTC) and {ratio['nefumop']:.2f} (NeFuMOP) on held-out trajectories and "

@@ -1,15 +1,15 @@
 """Reduced runs of examples/mackey_glass.py and examples/neurofuzzy.py.
 
 * Mackey-Glass (Jang 1993 set-up), Jang's grid structure (2 memberships per input, 16
-  rules), 5 Levenberg-Marquardt epochs: check RMSE <= 0.003 (Jang publishes 0.0015-0.0016
-  after 500 epochs; we measure about 0.0013 after 10), at least 20x below the linear AR
-  map fitted by least squares on the same inputs (about 0.096), and the premise epochs
-  lower the check RMSE of the least-squares start.
+  rules), 5 Levenberg-Marquardt epochs: check RMSE <= 0.003 (measured 0.0019; Jang
+  publishes 0.0015-0.0016 after 500 epochs), at least 20x below the linear AR map fitted
+  by least squares on the same inputs (measured 0.096), and the premise epochs lower the
+  check RMSE of the least-squares start (measured 0.0023).
 * NeFIK (task point -> joint angles, 6 rules, 10 epochs) on serial3 joint-space lines
   with the third angle tied to the second (no optimisation; the tip then determines the
-  angles): on held-out lines its relative RMSE is below half the affine least-squares
-  map's, and the forward kinematics of its prediction lands within 1 cm (median) of the
-  test tip points.
+  angles): on held-out lines its relative RMSE is below 0.2x the affine least-squares
+  map's (measured 0.0033 against 0.069), and the forward kinematics of its prediction
+  lands within 5 mm (median) of the test tip points (measured 1.4 mm).
 """
 
 import sys
@@ -63,10 +63,10 @@ def test_nefik_on_held_out_trajectories(nefik_lines):
     robot, X, Y, tr, te = nefik_lines
     r = ex.fit_eval(X, Y, tr, te, n_rules=6, epochs=10)
     assert r["rules"] == 6
-    assert ex.relative(r["test"], r["range"]) < 0.5 * ex.relative(r["linear"], r["range"])
+    assert ex.relative(r["test"], r["range"]) < 0.2 * ex.relative(r["linear"], r["range"])
     tip = np.asarray(jax.vmap(robot.forward_kinematics)(jnp.asarray(r["pred_test"])))
     err = np.linalg.norm(tip - X[te], axis=1)
-    assert np.median(err) < 0.01, np.median(err)
+    assert np.median(err) < 0.005, np.median(err)
     # without noise the "noisy" test inputs are the clean ones
     np.testing.assert_allclose(r["test"], r["test_noisy"], rtol=1e-12)
 
