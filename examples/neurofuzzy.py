@@ -27,6 +27,7 @@ import numpy as np  # noqa: E402
 
 import jtraj  # noqa: E402
 from jtraj import anfis, robots  # noqa: E402
+from jtraj.anfis.clustering import subclust  # noqa: E402
 from jtraj.anfis.trajectory import linear_baseline, split, train_mapping, view  # noqa: E402
 
 N = 20  # samples per trajectory, as the thesis
@@ -43,6 +44,9 @@ P_GOAL = (1.35, 1.30)  # thesis' goal tip point (annex A) [m]
 NOISE = (0.005, 0.05)  # input noise: 0.5 % (Table 6.4) and 5 % (Table 5.4) of each input's range
 # the thesis' settings (SCIENCE.md section 5): rules and epochs; None where not published
 SETUPS = {"nefik": (6, 10), "nefotc": (9, 10), "nefumop": (None, 20)}
+# the thesis' consequents (monotone logistic) and its clustering settings (SCIENCE.md section 5)
+THESIS_KIND = dict(kind="tsukamoto")
+THESIS_CLUSTERING = dict(radius=0.9, squash=0.5, accept=1.0, reject=0.8)
 PUBLISHED = {  # [K] Tables 5.3, 6.3 and the text: (train RMSE, test RMSE, training seconds)
     "nefik": ("1e-4 (< 10 epochs)", "-", "84"),
     "nefotc": ("3.77e-3", "1.29e-3", "117"),
@@ -92,7 +96,7 @@ def rmse(a, b, axis=None):
     return np.sqrt(np.mean((np.asarray(a) - np.asarray(b)) ** 2, axis=axis))
 
 
-def fit_eval(X, Y, tr, te, n_rules, epochs, noise=0.0, seed=0):
+def fit_eval(X, Y, tr, te, n_rules, epochs, noise=0.0, seed=0, **options):
     """Train on rows ``tr`` (inputs optionally disturbed by Gaussian noise of standard
     deviation ``noise`` x each input's range), no early stopping (fixed epochs, as the
     thesis); RMSE on the training rows (as trained) and on the test rows (clean, and
@@ -102,7 +106,7 @@ def fit_eval(X, Y, tr, te, n_rules, epochs, noise=0.0, seed=0):
     span = Xtr.max(0) - Xtr.min(0)
     Xtr_fit = Xtr + noise * span * rng.standard_normal(Xtr.shape)
     Xte_noisy = Xte + noise * span * rng.standard_normal(Xte.shape)
-    kw = dict(epochs=epochs, validation=0.0, ridge=1e-6)
+    kw = dict(epochs=epochs, validation=0.0, ridge=1e-6, **options)
     kw.update(n_rules=n_rules) if n_rules else kw.update(radius=0.5)
     t0 = time.perf_counter()
     model, hist = anfis.train(Xtr_fit, Ytr, **kw)
@@ -116,14 +120,19 @@ def fit_eval(X, Y, tr, te, n_rules, epochs, noise=0.0, seed=0):
                 linear=rmse(lin, Yte, 0), range=Y.max(0) - Y.min(0), pred_test=p_te)
 
 
-def thesis_models(data, seed=0):
+def thesis_models(data, seed=0, **options):
     """The three thesis mappings on the thesis' inputs, split 90 / 10 by trajectory."""
     out = {}
     for mapping, (rules, epochs) in SETUPS.items():
         X, Y, traj, names_in, names_out = view(data, mapping)
         tr, te = split(traj, 0.1)
-        r = fit_eval(X, Y, tr, te, rules, epochs, seed=seed)
+        r = fit_eval(X, Y, tr, te, rules, epochs, seed=seed, **options)
         r.update(X=X, Y=Y, tr=tr, te=te, traj=traj, names_in=names_in, names_out=names_out)
+        # rules that the thesis' own clustering settings give on these training samples
+        XY = np.c_[X[tr], Y[tr]]
+        r["thesis_clustering_rules"] = int(subclust(XY, **THESIS_CLUSTERING).centers.shape[0])
+        small = dict(THESIS_CLUSTERING, radius=0.01)
+        r["thesis_clustering_rules_small"] = int(subclust(XY, **small).centers.shape[0])
         out[mapping] = r
     return out
 
@@ -222,6 +231,7 @@ def main():
 
     # --- the thesis' three mappings, thesis inputs
     res = thesis_models(data)
+    tsuk = thesis_models(data, **THESIS_KIND)
     # NeFOTC on narrower sets of pairs (same compiled solve: the batch keeps its shape)
     narrow = {}
     for k, spread in enumerate(SPREADS):
@@ -325,12 +335,12 @@ def main():
 
     write_section("neurofuzzy", report(robot, q0, qg, data, n_conv, solve_s, res, interleaved, warm, noisy,
                                        tip_err, new, plans, raw, feasible, recheck, exact_cost, plan_cost,
-                                       otc_rep, mop_rep, planner_s, plan_ms, null_share, narrow))
+                                       otc_rep, mop_rep, planner_s, plan_ms, null_share, narrow, tsuk))
 
 
 # ----------------------------------------------------------------------------- report
 def report(robot, q0, qg, data, n_conv, solve_s, res, interleaved, warm, noisy, tip_err, new, plans, raw,
-           feasible, recheck, exact_cost, plan_cost, otc_rep, mop_rep, planner_s, plan_ms, null_share, narrow):
+           feasible, recheck, exact_cost, plan_cost, otc_rep, mop_rep, planner_s, plan_ms, null_share, narrow, tsuk):
     lim = robot.limits
     T = data["T"][data["converged"]]
     h_at_max = float(np.mean(data["h"][data["converged"]] >= float(lim.h_max) * (1 - 1e-3)))
@@ -348,7 +358,7 @@ def report(robot, q0, qg, data, n_conv, solve_s, res, interleaved, warm, noisy, 
         f"Split 90 / 10 by trajectory (of the {n_conv} converged trajectories the last "
         f"{len(np.unique(res['nefotc']['traj'][res['nefotc']['te']]))} are the test set, never seen in training), "
         "training by jtraj's hybrid rule (least squares + Levenberg-Marquardt), Gaussian memberships from "
-        "subtractive clustering, first-order Sugeno consequents, fixed epochs (no early stopping). "
+        "subtractive clustering, fixed epochs (no early stopping). "
         "RMSE per output in its own unit; 'relative' pools the outputs divided by their ranges in the data.",
         "",
         "### Tables 5.3 and 6.3: accuracy and training time", "",
@@ -358,15 +368,16 @@ def report(robot, q0, qg, data, n_conv, solve_s, res, interleaved, warm, noisy, 
     for m, r in res.items():
         names = r["names_out"]
         pub = PUBLISHED[m]
-        rows.append((
-            f"{m}: {', '.join(r['names_in'])} -> {', '.join(names)}",
-            f"{r['rules']} / {r['epochs']}" + ("" if SETUPS[m][0] else " (radius 0.5)"),
-            fmt_outputs(r["train"], names), fmt_outputs(r["test"], names),
-            f"{relative(r['train'], r['range']):.2e} / {relative(r['test'], r['range']):.2e}",
-            f"{pooled(r['test']) / pooled(r['linear']):.2f}",
-            f"{r['seconds']:.1f} ({warm[m]:.1f} warm)",
-            f"{pub[0]} / {pub[1]}, {pub[2]} s",
-        ))
+        for label, rr, secs in (("Sugeno", r, f"{r['seconds']:.1f} ({warm[m]:.1f} warm)"),
+                                ("Tsukamoto", tsuk[m], f"{tsuk[m]['seconds']:.1f}")):
+            rows.append((
+                f"{m}, {label}: {', '.join(r['names_in'])} -> {', '.join(names)}",
+                f"{rr['rules']} / {rr['epochs']}" + ("" if SETUPS[m][0] else " (radius 0.5)"),
+                fmt_outputs(rr["train"], names), fmt_outputs(rr["test"], names),
+                f"{relative(rr['train'], rr['range']):.2e} / {relative(rr['test'], rr['range']):.2e}",
+                f"{pooled(rr['test']) / pooled(rr['linear']):.2f}", secs,
+                f"{pub[0]} / {pub[1]}, {pub[2]} s" if label == "Tsukamoto" else "",
+            ))
     for m, rep in (("nefotc", otc_rep), ("nefumop", mop_rep)):
         names, rng_ = res[m]["names_out"], res[m]["range"]
         tr_ = [rep["train_rmse_per_output"][n] for n in names]
@@ -379,7 +390,17 @@ def report(robot, q0, qg, data, n_conv, solve_s, res, interleaved, warm, noisy, 
     lines.append(table(rows, header=("model", "rules / epochs", "train RMSE", "test RMSE",
                                      "relative train / test", "test RMSE / linear map's",
                                      "training s (compile incl.)", "published train / test, time")))
-    lines += ["", "The last two rows add the goal offset and the phase k/N to the inputs (jtraj's defaults, "
+    n_thesis = ", ".join(f"{m} {r['thesis_clustering_rules']}" for m, r in res.items())
+    n_small = ", ".join(f"{m} {r['thesis_clustering_rules_small']}" for m, r in res.items())
+    lines += ["", "'Sugeno': first-order Sugeno consequents; 'Tsukamoto': the thesis' monotone logistic "
+              "consequents. Both cluster with jtraj's default ratios (squash 1.25, accept 0.5, reject 0.15), "
+              "the radius set by bisection to give the published number of rules (NeFuMOP's is not published: "
+              "radius 0.5). The thesis' own clustering settings (radius 0.9, squash 0.5, accept 1.0, reject "
+              f"0.8) give {n_thesis} rules on these training samples, not the published 6 and 9: with accept 1.0 "
+              "and reject 0.8 the clustering stops at the first candidate whose potential falls to 0.8 of the "
+              "first centre's, and above that a candidate must still pass the distance test; radius 0.01 "
+              f"gives {n_small}. The last two rows add the goal offset and the phase k/N "
+              "to the inputs (jtraj's defaults, "
               "`jtraj.anfis.trajectory.train_mapping`, with early stopping on the last 10 % of the training "
               "trajectories): over pairs with different goals the same (q, qd) is driven towards different "
               "goals, so the thesis' mappings are not functions of their inputs, and on them 9 rules get little "
