@@ -22,7 +22,6 @@ Run: python examples/mackey_glass.py
 from __future__ import annotations
 
 import itertools
-import json
 import math
 import sys
 import time
@@ -35,13 +34,10 @@ T_START = time.perf_counter()
 setup()
 
 import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jtraj import anfis  # noqa: E402
 from jtraj.anfis import datasets  # noqa: E402
-from jtraj.anfis.model import Model  # noqa: E402
-from jtraj.anfis.training import _lm_system, _lm_trial  # noqa: E402
 
 EPOCHS = 200  # Levenberg-Marquardt epochs (each one a damped Gauss-Newton step)
 GRADIENT_EPOCHS = 500  # Jang's count, with MATLAB's step-size rule
@@ -68,45 +64,17 @@ def grid_model(Xtr, ytr, epochs: int, ridge: float = 1e-10):
     """Jang's structure: 2 memberships per input on a grid (2^4 = 16 rules), centres at
     the ends of each input's training range, widths crossing at membership 0.5 midway;
     consequents by least squares, then ``epochs`` Levenberg-Marquardt premise steps of
-    jtraj's hybrid rule (each rule's premises are its own copy, so they may drift apart
-    during training). Returns (initial model, trained model, training RMSE per epoch)."""
+    jtraj's hybrid rule (``anfis.train(..., premises=...)``; each rule's premises are its
+    own copy, so they may drift apart during training). Returns (initial model, trained
+    model, training RMSE per epoch)."""
     X = np.asarray(Xtr, float)
-    Y = np.asarray(ytr, float).reshape(len(X), -1)
-    d = X.shape[1]
-    x_lo, x_span = X.min(0), X.max(0) - X.min(0)
-    y_lo, y_span = Y.min(0), Y.max(0) - Y.min(0)
-    U, V = jnp.asarray((X - x_lo) / x_span), jnp.asarray((Y - y_lo) / y_span)
-    c = jnp.asarray(np.array(list(itertools.product((0.0, 1.0), repeat=d))))
-    s0 = 0.5 / math.sqrt(2.0 * math.log(2.0))  # exp(-(0.5)^2 / (2 s^2)) = 0.5
-    s = jnp.full(c.shape, s0)
-    floor = jnp.full(c.shape, 0.4 * s0)  # jtraj's default width floor (training.py)
-    ysp = jnp.asarray(y_span)
-    data = (U, V, U, V, ysp, jnp.asarray(ridge))
-    P = 2 * c.size
-
-    def make(c, s, th):
-        return Model(c, s, th, jnp.asarray(x_lo), jnp.asarray(x_span), jnp.asarray(y_lo), jnp.asarray(y_span),
-                     kind="tsk", order=1, scalar_output=np.ndim(ytr) == 1,
-                     info=json.dumps({"structure": "grid 2 x 4"}))
-
-    # g = 0: evaluate the initial premises (least-squares consequents)
-    c, s, th, mse, tr, _ = _lm_trial(c, s, jnp.eye(P), jnp.zeros(P), jnp.ones(P), 1.0, floor, *data,
-                                     kind="tsk", order=1)
-    initial, history = make(c, s, th), [float(tr)]
-    mu, mse = 1e-3, float(mse)
-    for _ in range(epochs):
-        H, g, scale = _lm_system(c, s, th, U, V, kind="tsk", order=1)
-        for _ in range(10):
-            c2, s2, th2, mse2, tr2, _ = _lm_trial(c, s, H, g, scale, mu, floor, *data, kind="tsk", order=1)
-            if math.isfinite(float(mse2)) and float(mse2) < mse:
-                break
-            mu *= 4.0
-        else:
-            break  # no decreasing step: converged
-        mu = max(mu / 3.0, 1e-12)
-        c, s, th, mse = c2, s2, th2, float(mse2)
-        history.append(float(tr2))
-    return initial, make(c, s, th), history
+    lo, span = X.min(0), X.max(0) - X.min(0)
+    corners = np.array(list(itertools.product((0.0, 1.0), repeat=X.shape[1])))
+    centers = lo + corners * span
+    sigmas = 0.5 / math.sqrt(2.0 * math.log(2.0)) * span  # exp(-(span / 2)^2 / (2 s^2)) = 0.5
+    model, hist = anfis.train(Xtr, ytr, premises=(centers, sigmas), epochs=epochs, validation=0.0,
+                              patience=epochs + 1, ridge=ridge, metadata={"structure": "grid 2 x 4"})
+    return hist.initial, model, hist.train_rmse
 
 
 def run(epochs: int = EPOCHS, gradient_epochs: int = GRADIENT_EPOCHS):

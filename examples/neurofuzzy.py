@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 import jtraj  # noqa: E402
 from jtraj import anfis, robots  # noqa: E402
 from jtraj.anfis.clustering import subclust  # noqa: E402
-from jtraj.anfis.trajectory import linear_baseline, split, train_mapping, view  # noqa: E402
+from jtraj.mappings import linear_baseline, split, train_mapping, view  # noqa: E402
 
 N = 20  # samples per trajectory, as the thesis
 PAIRS = 100  # trajectories in the training set (thesis: 100 x 20 = 2000 samples)
@@ -401,7 +401,7 @@ def report(robot, q0, qg, data, n_conv, solve_s, res, interleaved, warm, noisy, 
               "first centre's, and above that a candidate must still pass the distance test; radius 0.01 "
               f"gives {n_small}. The last two rows add the goal offset and the phase k/N "
               "to the inputs (jtraj's defaults, "
-              "`jtraj.anfis.trajectory.train_mapping`, with early stopping on the last 10 % of the training "
+              "`jtraj.mappings.train_mapping`, with early stopping on the last 10 % of the training "
               "trajectories): over pairs with different goals the same (q, qd) is driven towards different "
               "goals, so the thesis' mappings are not functions of their inputs, and on them 9 rules get little "
               "below the affine least-squares map (column 'test RMSE / linear map's'). These two models plan "

@@ -276,3 +276,20 @@ def test_bad_input():
     model = anfis.fit(X, y, radius=0.8, epochs=0)
     with pytest.raises(ValueError, match="shape"):
         model.predict(jnp.zeros((4, 3)))
+
+
+def test_train_from_given_premises_and_their_bad_shapes():
+    """``premises=`` replaces the clustering: the model keeps the given centres (in input
+    units) before training, and a wrong shape is refused naming the argument."""
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-1.0, 2.0, (60, 2))
+    Y = np.sin(X[:, :1]) + X[:, 1:] ** 2
+    centers = np.array([[-1.0, -1.0], [2.0, -1.0], [-1.0, 2.0], [2.0, 2.0]])
+    model, hist = anfis.train(X, Y, premises=(centers, 1.0), epochs=0, validation=0.0)
+    assert model.n_rules == 4
+    np.testing.assert_allclose(np.asarray(model.centers) * np.asarray(model.x_span) + np.asarray(model.x_lo),
+                               centers, atol=1e-12)
+    with pytest.raises(ValueError, match="premises' centers"):
+        anfis.train(X, Y, premises=(centers[:, :1], 1.0), epochs=0)
+    with pytest.raises(ValueError, match="positive sigmas"):
+        anfis.train(X, Y, premises=(centers, 0.0), epochs=0)

@@ -44,7 +44,7 @@ def nefik_lines():
     q2 (q3 = 0.6 q2), so that the tip point determines the joint angles: (robot, X, Y,
     train rows, test rows), the test rows the last 4 lines."""
     from jtraj import robots
-    from jtraj.anfis.trajectory import split
+    from jtraj.mappings import split
 
     robot = robots.get("serial3")
     rng = np.random.default_rng(3)

@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .clustering import radius_for_rules, subclust
+from .clustering import radius_for_rules, subclust, unit_scaling
 from .model import KINDS, Model, logit_clipped, features, forward, log_firing, rule_outputs
 
 
@@ -188,11 +188,42 @@ def _grad_trial(c, s, th, ss, floor, U, V, Uv, Vv, y_span, ridge, kind, order):
 
 
 # ----------------------------------------------------------------------------- fit
+@dataclass
+class _Premises:
+    """Given premises in the shape clustering returns them (unit-hypercube coordinates)."""
+
+    centers: np.ndarray  # (R, d + m): the inputs' part is used
+    lo: np.ndarray
+    span: np.ndarray
+    widths: np.ndarray  # (R, d) Gaussian widths, unit-hypercube units
+
+
+def _given_premises(premises, XY, d: int) -> _Premises:
+    """``premises = (centers (R, d), sigmas (R, d) or (d,))`` in input units, scaled as
+    clustering scales its centres (the training data's range onto [0, 1])."""
+    try:
+        centers, sigmas = (np.asarray(a, dtype=float) for a in premises)
+    except (TypeError, ValueError) as err:
+        raise ValueError("premises must be a pair (centers (R, d), sigmas (R, d))") from err
+    if centers.ndim != 2 or centers.shape[1] != d or centers.shape[0] < 1:
+        raise ValueError(f"premises' centers must have shape (R, {d}), got {centers.shape}")
+    try:
+        sigmas = np.broadcast_to(sigmas, centers.shape)
+    except ValueError as err:
+        raise ValueError(f"premises' sigmas must broadcast to {centers.shape}, got {sigmas.shape}") from err
+    if not (np.isfinite(centers).all() and np.isfinite(sigmas).all() and (sigmas > 0).all()):
+        raise ValueError("premises must be finite, with positive sigmas")
+    lo, span = unit_scaling(XY)
+    full = np.concatenate([centers, np.broadcast_to(lo[d:], (centers.shape[0], XY.shape[1] - d))], axis=1)
+    return _Premises(centers=full, lo=lo, span=span, widths=sigmas / span[:d])
+
+
 def train(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25, accept: float = 0.5,
           reject: float = 0.15, kind: str = "tsk", order: int = 1, epochs: int = 100,
           validation=0.1, seed: int = 0, method: str = "lm", ridge: float = 1e-10,
           sigma_floor: float = 0.4, patience: int = 20, step_size: float = 0.01,
-          metadata: dict | None = None, progress=False, clip_outputs: bool = False) -> tuple[Model, History]:
+          metadata: dict | None = None, progress=False, clip_outputs: bool = False,
+          premises=None) -> tuple[Model, History]:
     """Fit an ANFIS and return ``(model, history)``; see :func:`fit` for arguments."""
     t0 = time.perf_counter()
     if kind not in KINDS:
@@ -226,10 +257,12 @@ def train(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25,
     if n_rules is not None and int(n_rules) > Xt.shape[0]:
         raise ValueError(f"fewer training samples ({Xt.shape[0]}) than rules (n_rules = {int(n_rules)})")
 
-    # --- clustering (genfis2: joint input-output space)
+    # --- clustering (genfis2: joint input-output space), or the given premises
     d = Xt.shape[1]
     XY = np.concatenate([Xt, Yt], axis=1)
-    if n_rules is None:
+    if premises is not None:
+        cl, used_radius = _given_premises(premises, XY, d), float("nan")
+    elif n_rules is None:
         cl = subclust(XY, radius, squash=squash, accept=accept, reject=reject)
         used_radius = radius
         if cl.centers.shape[0] == 0:
@@ -252,7 +285,7 @@ def train(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25,
     c = A((cl.centers[:, :d] - x_lo) / x_span)
     if not 0.0 <= sigma_floor <= 1.0:
         raise ValueError(f"sigma_floor must be a fraction in [0, 1] of the initial width, got {sigma_floor!r}")
-    s0 = np.broadcast_to(cl.radius[:d] / math.sqrt(8.0), (R, d))
+    s0 = cl.widths if isinstance(cl, _Premises) else np.broadcast_to(cl.radius[:d] / math.sqrt(8.0), (R, d))
     s = A(s0)
     floor = A(np.maximum(sigma_floor * s0, 1e-6))
     ridge_a, ysp = A(ridge), A(y_span)
@@ -261,7 +294,8 @@ def train(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25,
     c, s, th, mse, tr0, va0 = _lm_trial(c, s, jnp.eye(P_prem, dtype=dtype), jnp.zeros(P_prem, dtype),
                                         jnp.ones(P_prem, dtype), A(1.0), floor, *data, kind=kind, order=order)
 
-    info = dict(format="jtraj.anfis", kind=kind, order=order, n_rules=R, radius=float(np.mean(used_radius)),
+    info = dict(format="jtraj.anfis", kind=kind, order=order, n_rules=R,
+                radius=None if premises is not None else float(np.mean(used_radius)),
                 squash=squash, accept=accept, reject=reject, method=method, ridge=ridge, sigma_floor=sigma_floor,
                 n_train=int(Xt.shape[0]), n_validation=0 if Xv is None else int(Xv.shape[0]), seed=seed)
     if metadata:
@@ -362,7 +396,10 @@ def fit(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25, a
     1e-10), ``sigma_floor`` (0.4, relative to the initial width), ``patience`` (20), ``step_size`` (0.01, gradient
     method), ``metadata`` (dict stored in the model), ``progress`` (tqdm bar),
     ``clip_outputs`` (False; predictions clipped into the training targets' range, see
-    :class:`Model`; training itself is unaffected).
+    :class:`Model`; training itself is unaffected), ``premises`` (None; a pair
+    ``(centers (R, d), sigmas (R, d) or (d,))`` in input units replaces the clustering:
+    a grid partition as in Jang's ANFIS, or a model's premises to train further; the
+    radius options are then ignored).
 
     Raises ValueError for mismatched lengths, NaN/inf in the data, fewer samples than
     rules, or a radius that yields no rule.
