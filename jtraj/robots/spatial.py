@@ -223,7 +223,7 @@ class SpatialSerial(Robot):
         r = p - jnp.concatenate([self.base_translation[None], p[:-1]])
         da = (jnp.cross(wd_prev, r) + jnp.cross(w_prev, jnp.cross(w_prev, r))
               + pri * (2.0 * jnp.cross(w_prev, zqd) + zqdd))
-        a = _prefix(da) - g
+        a = _prefix(da) - g[None]
         rc = _mv(R, self.com)  # body origin -> centre of mass
         ac = a + jnp.cross(wd, rc) + jnp.cross(w, jnp.cross(w, rc))
         # body wrenches; moments about the world origin, accumulated from the tip
