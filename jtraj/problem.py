@@ -359,7 +359,8 @@ class Problem(eqx.Module):
         lim = self.robot.limits
         bad = ~admissible_configuration(self.robot, self.q_start) | ~admissible_configuration(self.robot, self.q_goal)
         if lim.qd_max is not None:
-            bad |= jnp.any(jnp.abs(jnp.stack([self.qd_start, self.qd_goal])) > lim.qd_max * (1 + FACE_TOL))
+            bound = lim.qd_max * (1 + FACE_TOL)
+            bad |= jnp.any(jnp.abs(self.qd_start) > bound) | jnp.any(jnp.abs(self.qd_goal) > bound)
         rest = jnp.all(self.qd_start == 0) & jnp.all(self.qd_goal == 0)
         T_need = jnp.where(rest, minimum_time_bound(self), 0.0)
         bad |= T_need > self.N * lim.h_max * (1 + 1e-9)

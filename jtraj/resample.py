@@ -191,4 +191,5 @@ def intersample_effort(solution, robot, *, per_interval: int = 16) -> Array:
     if robot.limits.tau_max is None:
         raise ValueError("robot has no tau_max: the effort ratio is undefined")
     samples = _resample(robot, single, q, qd, v, h, times=interval_times(h[0] if single else h, per_interval))
-    return jnp.max(jnp.abs(samples.tau) / robot.limits.tau_max, axis=(-2, -1))
+    tau_max = jnp.reshape(robot.limits.tau_max, (1,) * (samples.tau.ndim - 1) + (-1,))
+    return jnp.max(jnp.abs(samples.tau) / tau_max, axis=(-2, -1))

@@ -32,11 +32,9 @@ if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
-# implicit rank promotion (adding an (n,) array to an (N, n) one, say): JTRAJ_TEST_RANK_PROMOTION=raise
-# makes it an error in the tests. The default stays "allow" while the robots, transcription,
-# problem and lq modules still promote (tests/test_rank_promotion.py lists where and fails
-# on any new place)
-jax.config.update("jax_numpy_rank_promotion", os.environ.get("JTRAJ_TEST_RANK_PROMOTION", "allow"))
+# implicit rank promotion (adding an (n,) array to an (N, n) one, say) is an error in the
+# tests: broadcasts are written out (JTRAJ_TEST_RANK_PROMOTION=allow or warn to relax)
+jax.config.update("jax_numpy_rank_promotion", os.environ.get("JTRAJ_TEST_RANK_PROMOTION", "raise"))
 jax.config.update("jax_compilation_cache_dir", os.environ["JTRAJ_TEST_CACHE"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # as the CLI
 

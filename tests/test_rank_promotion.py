@@ -1,9 +1,8 @@
 """Implicit rank promotion (an (n,) array meeting an (N, n) one without a named axis) in
 the solver's program: traced, not compiled, under ``jax_numpy_rank_promotion="warn"``,
-every jtraj function where a promotion happens is collected and compared with the exact
-list of those not yet written out. A new place fails the test; a fixed one fails it too
-until it leaves the list, so that the list only shrinks and the suite can then run with
-``JTRAJ_TEST_RANK_PROMOTION=raise`` (see conftest.py)."""
+every jtraj function where a promotion happens is collected; there must be none. The
+whole suite runs with promotions raising (conftest.py); this test names every place at
+once, where a raising test stops at the first."""
 
 import os
 import traceback
@@ -17,18 +16,6 @@ from jtraj import _testing
 from jtraj.transcription import Transcription
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(jtraj.__file__)))
-
-#: (file, function) pairs that still promote ranks, in modules other work owns (JAX
-#: reports a promotion once per shape, so fixing these may bring others to light)
-KNOWN = {
-    ("jtraj/problem.py", "infeasible_on_its_face"),
-    ("jtraj/robots/serial.py", "rigid_body_forces"),
-    ("jtraj/transcription.py", "integrate"),
-    ("jtraj/transcription.py", "pack"),
-    ("jtraj/transcription.py", "rows"),
-    ("jtraj/transcription.py", "unpack"),
-}
-
 
 def _promotions(fn, *args):
     """The (file, function) of every jtraj frame where tracing ``fn(*args)`` promotes a
@@ -58,6 +45,4 @@ def test_the_solvers_program_promotes_no_new_rank():
     init = _testing.placeholder_init(problem.N, Transcription("decoupled").control_dim(problem))
     found = _promotions(lambda p, i: _testing.solve_jit.__wrapped__(p, opts, "decoupled", i, np.bool_(False),
                                                                     np.bool_(True)), problem, init)
-    new, fixed = sorted(found - KNOWN), sorted(KNOWN - found)
-    assert new == [], f"write the broadcast out (x[None, :], ...) in {new}"
-    assert fixed == [], f"fixed: remove {fixed} from KNOWN"
+    assert sorted(found) == [], "write the broadcast out (x[None, :], ...)"

@@ -138,7 +138,7 @@ def test_dynamics_structure(name):
         tau = robot.inverse_dynamics(q, qd, qdd)
         fk = jax.vmap(robot.forward_kinematics)
         dq = eps * jnp.eye(robot.n)
-        J_fd = ((fk(q + dq) - fk(q - dq)) / (2 * eps)).T
+        J_fd = ((fk(q[None] + dq) - fk(q[None] - dq)) / (2 * eps)).T
         return (M, robot.coriolis_matrix(q, qd), Mdot, robot.coriolis(q, qd), tau,
                 robot.forward_dynamics(q, qd, tau), robot.jacobian(q), J_fd)
 

@@ -118,7 +118,7 @@ def _forward(c, s, theta, x_lo, x_span, y_lo, y_span, weights, X, kind, order, c
     output clipped as its own, then weighted. (A loop over the members cost about their
     number times one model's query: the XLA CPU runtime's per-operation cost dominates
     such small queries.)"""
-    u = (jnp.asarray(X, weights.dtype) - x_lo) / x_span
+    u = (jnp.asarray(X, weights.dtype) - x_lo[None]) / x_span[None]
     lw = log_firing(c, s, u)  # (B, R)
     member = np.repeat(np.arange(len(sizes)), sizes)
     mask = member[None, :] == np.arange(len(sizes))[:, None]  # (K, R)
@@ -126,7 +126,7 @@ def _forward(c, s, theta, x_lo, x_span, y_lo, y_span, weights, X, kind, order, c
     v = jnp.einsum("bkr,brm->bkm", beta, rule_outputs(lw, u, theta, kind, order))
     if clip:
         v = jnp.clip(v, 0.0, 1.0)
-    return jnp.einsum("k,bkm->bm", weights, v) * y_span + y_lo
+    return jnp.einsum("k,bkm->bm", weights, v) * y_span[None] + y_lo[None]
 
 
 def _predict(c, s, theta, x_lo, x_span, y_lo, y_span, weights, X, kind, order, clip, sizes, single, squeeze):

@@ -128,11 +128,11 @@ def _predict(c, s, theta, x_lo, x_span, y_lo, y_span, X, kind, order, single, sq
     X = jnp.asarray(X, c.dtype)
     if single:
         X = X[None, :]
-    u = (X - x_lo) / x_span
+    u = (X - x_lo[None]) / x_span[None]
     v = forward(c, s, theta, u, kind, order)
     if clip:
         v = jnp.clip(v, 0.0, 1.0)
-    Y = v * y_span + y_lo
+    Y = v * y_span[None] + y_lo[None]
     if single:
         Y = Y[0]
     return Y[..., 0] if squeeze else Y
@@ -248,15 +248,15 @@ class Model(RuleSystem):
         kind, order, clip = self.kind, self.order, self.clip_outputs
 
         def f(X):
-            u = (X - xl) / xs
+            u = (X - xl[None]) / xs[None]
             v = forward(c, s, th, u, kind, order)
-            return (jnp.clip(v, 0.0, 1.0) if clip else v) * ys + yl
+            return (jnp.clip(v, 0.0, 1.0) if clip else v) * ys[None] + yl[None]
         return f
 
     def firing(self, X) -> Array:
         """Normalised firing strengths beta (B, R) for inputs X (B, d) in data units."""
         X = jnp.atleast_2d(jnp.asarray(X, dtype=self.centers.dtype))
-        return jax.nn.softmax(log_firing(self.centers, self.sigmas, (X - self.x_lo) / self.x_span), axis=-1)
+        return jax.nn.softmax(log_firing(self.centers, self.sigmas, (X - self.x_lo[None]) / self.x_span[None]), axis=-1)
 
     def memberships(self) -> tuple[np.ndarray, np.ndarray]:
         """(centres, sigmas) of the Gaussian memberships in data units, each (R, d)."""

@@ -131,8 +131,8 @@ def premise_jacobian(c, s, th, U, kind, order):
         g = g + dlogit[:, :, None] * th[None, :, 0, :]
     dv_dl = beta[:, :, None] * g  # (B, R, m)
     diff = U[:, None, :] - c[None, :, :]  # (B, R, d)
-    dl_dc = diff / s**2
-    dl_ds = diff**2 / s**3
+    dl_dc = diff / s[None] ** 2
+    dl_ds = diff**2 / s[None] ** 3
     B, R, m = dv_dl.shape
     d = c.shape[1]
     Jc = jnp.einsum("brm,bri->bmri", dv_dl, dl_dc).reshape(B * m, R * d)
@@ -150,9 +150,9 @@ def _evaluate(c, s, U, V, Uv, Vv, y_span, ridge, kind, order):
     units) and the train / validation RMSE in target units."""
     th = consequents(c, s, U, V, kind, order, ridge)
     r = forward(c, s, th, U, kind, order) - V
-    rv = (forward(c, s, th, Uv, kind, order) - Vv) * y_span
+    rv = (forward(c, s, th, Uv, kind, order) - Vv) * y_span[None]
     mse = jnp.mean(r * r)
-    return th, mse, jnp.sqrt(jnp.mean((r * y_span) ** 2)), jnp.sqrt(jnp.mean(rv * rv))
+    return th, mse, jnp.sqrt(jnp.mean((r * y_span[None]) ** 2)), jnp.sqrt(jnp.mean(rv * rv))
 
 
 @partial(jax.jit, static_argnames=("kind", "order"))

@@ -220,7 +220,7 @@ class GoughStewart(Robot):
         uu = u[:, :, None] * u[:, None, :]
         transverse = (self.piston_mass * (rho - self.piston_com) ** 2 + self.cyl_mass * self.cyl_com**2
                       + self.cyl_inertia + self.piston_inertia) / rho**2
-        K = self.piston_mass * uu + transverse[:, None, None] * (jnp.eye(3) - uu)
+        K = self.piston_mass * uu + transverse[:, None, None] * (jnp.eye(3)[None] - uu)
         return M + jnp.einsum("kai,kab,kbj->ij", G, K, G)
 
     def kinetic_energy(self, q: Vec, qd: Vec) -> Array:

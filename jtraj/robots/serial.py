@@ -87,7 +87,7 @@ class SerialPlanar(Robot):
         # acceleration of a point at distance s along link i, relative to joint i
         rel = lambda s: s[:, None] * (a[:, None] * e_perp - (w**2)[:, None] * e)  # noqa: E731
         step = rel(self.lengths)
-        base = jnp.array([0.0, 1.0]) * self.gravity_accel  # gravity as base acceleration
+        base = jnp.array([[0.0, 1.0]]) * self.gravity_accel  # gravity as base acceleration (1, 2)
         a_joint = base + jnp.concatenate([jnp.zeros((1, 2)), jnp.cumsum(step, axis=0)[:-1]])
         a_com = a_joint + rel(self.com)
         f_link = self.masses[:, None] * a_com  # net force on each link

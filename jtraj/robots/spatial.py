@@ -161,8 +161,8 @@ class SpatialSerial(Robot):
         body ``k`` (m = n) or with the last body (m = 1)."""
         rev = self._revolute_mask()
         n = self.n
-        lin = rev[:, None] * jnp.cross(z[None], points[:, None] - p[None]) + (1 - rev)[:, None] * z[None]
-        ang = rev[:, None] * jnp.broadcast_to(z[None], lin.shape)
+        lin = rev[None, :, None] * jnp.cross(z[None], points[:, None] - p[None]) + (1 - rev)[None, :, None] * z[None]
+        ang = rev[None, :, None] * jnp.broadcast_to(z[None], lin.shape)
         if points.shape[0] == n:  # body k moves with joints 0..k only
             lower = (jnp.arange(n)[:, None] >= jnp.arange(n)[None, :]).astype(lin.dtype)[..., None]
             lin, ang = lin * lower, ang * lower
@@ -223,7 +223,7 @@ class SpatialSerial(Robot):
         r = p - jnp.concatenate([self.base_translation[None], p[:-1]])
         da = (jnp.cross(wd_prev, r) + jnp.cross(w_prev, jnp.cross(w_prev, r))
               + pri * (2.0 * jnp.cross(w_prev, zqd) + zqdd))
-        a = _prefix(da) - g
+        a = _prefix(da) - g[None]
         rc = _mv(R, self.com)  # body origin -> centre of mass
         ac = a + jnp.cross(wd, rc) + jnp.cross(w, jnp.cross(w, rc))
         # body wrenches; moments about the world origin, accumulated from the tip

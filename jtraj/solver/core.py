@@ -140,9 +140,9 @@ def finish(nlp: NLP, s: ALState, opts: SolverOptions, valid, light=False) -> Sol
     # bounds kept by projection, reported for completeness (relative)
     lim = problem.robot.limits
     if lim.qdd_max is not None:
-        viol["qdd"] = jnp.maximum(viol.get("qdd", 0.0), jnp.max(jnp.maximum(jnp.abs(a) / lim.qdd_max - 1, 0)))
+        viol["qdd"] = jnp.maximum(viol.get("qdd", 0.0), jnp.max(jnp.maximum(jnp.abs(a) / lim.qdd_max[None] - 1, 0)))
     if lim.tau_max is not None:
-        viol["tau"] = jnp.maximum(viol.get("tau", 0.0), jnp.max(jnp.maximum(jnp.abs(tau) / lim.tau_max - 1, 0)))
+        viol["tau"] = jnp.maximum(viol.get("tau", 0.0), jnp.max(jnp.maximum(jnp.abs(tau) / lim.tau_max[None] - 1, 0)))
     viol["h"] = jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0))
     viol["T"] = jnp.maximum(glob[0], 0.0)
     if problem.jerk:  # the jerk rows (normalised, see jtraj.transcription.jerk_inequalities)
@@ -184,7 +184,7 @@ def finish(nlp: NLP, s: ALState, opts: SolverOptions, valid, light=False) -> Sol
                   jnp.where(certified & verified, Status.CONVERGED,
                             jnp.where(s.done, Status.VERIFICATION_FAILED,
                                       jnp.where(verified, Status.FEASIBLE_NOT_OPTIMAL, unfinished)))))
-    scale = 1.0 if lim.tau_max is None else lim.tau_max
+    scale = 1.0 if lim.tau_max is None else lim.tau_max[None]
     energy = jnp.sum(h * jnp.sum((tau / scale) ** 2, axis=1))
     return Solution(q=q, qd=qd, v=a, tau=tau, h=h, T=jnp.sum(h), cost=cost, cost_terms=terms, energy=energy,
                     max_violation=viol, converged=status == Status.CONVERGED, status=status.astype(jnp.int32),

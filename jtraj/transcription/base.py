@@ -57,12 +57,12 @@ class Layout(eqx.Module):
         return self.N * (self.m_u + 1)
 
     def unpack(self, z):
-        u = z[: self.N * self.m_u].reshape(self.N, self.m_u) * self.u_scale
+        u = z[: self.N * self.m_u].reshape(self.N, self.m_u) * self.u_scale[None]
         h = z[self.N * self.m_u:] * self.h_scale
         return u, h
 
     def pack(self, u, h):
-        return jnp.concatenate([(u / self.u_scale).ravel(), h / self.h_scale])
+        return jnp.concatenate([(u / self.u_scale[None]).ravel(), h / self.h_scale])
 
 
 def sd_mask(mask, x):

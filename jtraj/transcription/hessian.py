@@ -142,7 +142,7 @@ def decoupled_hessian_bounds(layout: Layout, W, c, Hk):
     N, n = layout.N, layout.m_u
     ns = 2 * n
     qd, u, h = W[:N, n:ns], W[:N, ns:ns + n], W[:N, -1]
-    sv, sh = layout.u_scale, layout.h_scale
+    sv, sh = layout.u_scale[None], layout.h_scale  # (1, n): the v-scales by stage rows
     t, low, dt = time_differences(h)
     Hss, Hcc = Hk[:, :ns, :ns], Hk[:N, ns:, ns:]
     Cq, cv_diag, Chh = costate_terms(c, u, dt)
