@@ -135,7 +135,7 @@ def stagewise_kkt(problem, tr, nlp, act, z, kkt_jvp, rows_of) -> StagewiseKKT:
     Jw = jax.vmap(jax.jacfwd(stage_rows))(W, nlp.sd)  # (N+1, rows, nw)
     # the penalty's scale: the stage control blocks of the Lagrangian's Hessian in z
     sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]]).astype(dt)
-    ctrl = jnp.abs(jnp.diagonal(Hk[:N, 2 * n:, 2 * n:], axis1=1, axis2=2)) * sy**2
+    ctrl = jnp.abs(jnp.diagonal(Hk[:N, 2 * n:, 2 * n:], axis1=1, axis2=2)) * sy[None] ** 2
     rho = RHO * jnp.maximum(1.0, jnp.max(ctrl))
     Hk = Hk + rho * jnp.einsum("kri,kr,krj->kij", Jw, stage_mask, Jw)
 

@@ -93,7 +93,7 @@ def _load(model):
 def _excess(x, bound):
     if bound is None:
         return jnp.zeros(())
-    return jnp.max(jnp.maximum(jnp.abs(x) / bound - 1.0, 0.0))
+    return jnp.max(jnp.maximum(jnp.abs(x) / jnp.broadcast_to(bound, x.shape) - 1.0, 0.0))
 
 
 def model_inputs(meta: dict, robot, q, qd, q_goal, k, N: int):

@@ -69,9 +69,9 @@ def rollout(q0, qd0, v, h):
     """(q, qd), each (N+1, n): the decoupled recursion by cumulative sums (on a CPU
     about 5x faster under ``vmap`` than :func:`jtraj.transcription.integrate`'s prefix
     sums, which suit the solver's derivatives)."""
-    qd = qd0 + jnp.concatenate([jnp.zeros((1,) + v.shape[1:], v.dtype), jnp.cumsum(h[:, None] * v, axis=0)])
+    qd = qd0[None] + jnp.concatenate([jnp.zeros((1,) + v.shape[1:], v.dtype), jnp.cumsum(h[:, None] * v, axis=0)])
     dq = h[:, None] * qd[:-1] + 0.5 * (h**2)[:, None] * v
-    return jnp.concatenate([q0[None], q0 + jnp.cumsum(dq, axis=0)]), qd
+    return jnp.concatenate([q0[None], q0[None] + jnp.cumsum(dq, axis=0)]), qd
 
 
 def _quad(x, M):
@@ -93,7 +93,7 @@ def goal_projection(q0, qd0, q_goal, qd_goal, v, h):
     T = jnp.sum(h)
     target = jnp.stack([qd_goal - qd0, q_goal - q0 - T * qd0])  # (2, n)
     r = target - A @ v
-    Winv_At = (A / h).T  # (N, 2): W^{-1} A^T with W = diag(h)
+    Winv_At = (A / h[None]).T  # (N, 2): W^{-1} A^T with W = diag(h)
     G = A @ Winv_At  # symmetric positive definite 2x2: inverted in closed form
     Ginv = jnp.array([[G[1, 1], -G[0, 1]], [-G[1, 0], G[0, 0]]]) / (G[0, 0] * G[1, 1] - G[0, 1] * G[1, 0])
     return v + Winv_At @ (Ginv @ r)
@@ -113,7 +113,7 @@ def effort_step(robot, U, q0, qd0, q_goal, qd_goal, v, h, rho):
     tau, J = jax.vmap(lambda a, b, c: (robot.inverse_dynamics(a, b, c),
                                        jax.jacfwd(robot.inverse_dynamics, argnums=2)(a, b, c)))(q[:-1], qd[:-1], v)
     c = tau - jnp.einsum("kij,kj->ki", J, v)
-    H = h[:, None, None] * (jnp.einsum("kji,jl,klm->kim", J, U, J) + rho * jnp.eye(n))  # halved Hessian
+    H = h[:, None, None] * (jnp.einsum("kji,jl,klm->kim", J, U, J) + rho * jnp.eye(n)[None])  # halved Hessian
     g = h[:, None] * (jnp.einsum("kji,jl,kl->ki", J, U, c) - rho * v)
     Hinv = jnp.linalg.inv(H)
     # v_k = -Hinv_k (g_k + sum_r A[r, k] lam_r); A v = target gives S lam = -A Hinv g - target
@@ -142,7 +142,7 @@ def _ratio(x, bound):
     """Largest |x| / bound (0 without a bound)."""
     if bound is None:
         return jnp.zeros(())
-    return jnp.max(jnp.abs(x) / bound)
+    return jnp.max(jnp.abs(x) / jnp.broadcast_to(bound, x.shape))
 
 
 def cost_of(robot, weights, q, qd, tau, h):
