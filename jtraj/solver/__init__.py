@@ -27,9 +27,9 @@ from .core import initial_guess
 from .methods import (IPM, PBM_SETTINGS, AugmentedLagrangian, Auto, Curvature, Guess, InequalityPenalty,
                       LinearSolver, Schedule)
 from .nlp import Multipliers
-from .options import SolverOptions, from_options
+from .options import SolverOptions, as_solver, from_options
 from .results import Solution, Status
 
 __all__ = ["IPM", "PBM_SETTINGS", "AugmentedLagrangian", "Auto", "Curvature", "Guess", "InequalityPenalty",
-           "LinearSolver", "Multipliers", "Schedule", "Solution", "SolverOptions", "Status", "from_options",
+           "LinearSolver", "Multipliers", "Schedule", "Solution", "SolverOptions", "Status", "as_solver", "from_options",
            "initial_guess", "solve", "solve_batch"]

@@ -13,7 +13,7 @@ import numpy as np
 from .. import _tracecache
 from .._compile import SOLVER_XLA_OPTIONS, cpu_jit, supported_options
 from .._compile import solver_jit as _jit
-from .methods import PBM_SETTINGS, check_flat, flat, flat_traced, from_flat
+from .methods import PBM_SETTINGS, SOLVERS, check_flat, flat, flat_traced, from_flat
 
 
 # ----------------------------------------------------------------------------------------
@@ -256,7 +256,24 @@ def from_options(options: SolverOptions):
     ``jtraj.solve(p, solver=from_options(o))`` solves as ``jtraj.solve(p, options=o)``."""
     if not isinstance(options, SolverOptions):
         raise ValueError(f"options must be a jtraj.SolverOptions, got {type(options).__name__}")
+    return _from_options_cached(options)
+
+
+@functools.lru_cache(maxsize=64)
+def _from_options_cached(options: SolverOptions):
     return from_flat({f.name: getattr(options, f.name) for f in dataclasses.fields(options)})
+
+
+def as_solver(value, name: str = "options"):
+    """A solver object from what the functions that still take ``options`` accept: None
+    (the default solver), a solver object, or a :class:`SolverOptions`
+    (:func:`from_options`); ``ValueError`` naming ``name`` otherwise."""
+    if value is None or isinstance(value, SOLVERS):
+        return value
+    if isinstance(value, SolverOptions):
+        return from_options(value)
+    raise ValueError(f"{name} must be jtraj.Auto, jtraj.IPM, jtraj.AugmentedLagrangian or a jtraj.SolverOptions, "
+                     f"got {type(value).__name__}")
 
 
 def static_options(opts):
