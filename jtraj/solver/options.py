@@ -225,11 +225,23 @@ class TracedOptions:
 def to_options(solver) -> SolverOptions:
     """The flat :class:`SolverOptions` a solver object (:mod:`jtraj.solver.methods`)
     maps onto: the compiled programs read these, so a solver object and the options it
-    maps onto run the same programs. Cached per (equal) solver object."""
+    maps onto run the same programs. Cached: the same object first by identity (hashing
+    a solver costs about as much as hashing a SolverOptions, see :func:`split_options`),
+    then per equal object."""
+    hit = _TO_OPTIONS_BY_ID.get(id(solver))
+    if hit is not None and hit[0] is solver:
+        return hit[1]
     try:
-        return _to_options_cached(solver)
+        opts = _to_options_cached(solver)
     except TypeError:  # an unhashable field value (an array): not cached
         return SolverOptions(**_plain(flat(solver)))
+    if len(_TO_OPTIONS_BY_ID) >= 64:
+        _TO_OPTIONS_BY_ID.pop(next(iter(_TO_OPTIONS_BY_ID)))
+    _TO_OPTIONS_BY_ID[id(solver)] = (solver, opts)  # (holding solver keeps its id unique)
+    return opts
+
+
+_TO_OPTIONS_BY_ID: dict[int, tuple] = {}
 
 
 @functools.lru_cache(maxsize=64)
