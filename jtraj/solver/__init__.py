@@ -31,5 +31,5 @@ from .options import SolverOptions, as_solver, from_options
 from .results import Solution, Status
 
 __all__ = ["IPM", "PBM_SETTINGS", "AugmentedLagrangian", "Auto", "Curvature", "Guess", "InequalityPenalty",
-           "LinearSolver", "Multipliers", "Schedule", "Solution", "SolverOptions", "Status", "as_solver", "from_options",
-           "initial_guess", "solve", "solve_batch"]
+           "LinearSolver", "Multipliers", "Schedule", "Solution", "SolverOptions", "Status", "as_solver",
+           "from_options", "initial_guess", "solve", "solve_batch"]
