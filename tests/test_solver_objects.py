@@ -20,7 +20,7 @@ import pytest
 import jtraj
 from jtraj import _testing as S
 from jtraj.solver import (IPM, AugmentedLagrangian, Auto, Curvature, InequalityPenalty, Schedule, SolverOptions,
-                          from_options)
+                          as_solver, from_options)
 from jtraj.solver.options import to_options
 
 N = 10
@@ -80,6 +80,16 @@ def test_objects_map_onto_the_options():
                  SolverOptions.pbm(), SolverOptions(method="ip", ip_max_iter=40, ip_dual_tol=1e-3, verify_tol=1e-7)):
         assert to_options(from_options(opts)) == opts
     assert type(from_options(SolverOptions(method="ip"))) is IPM
+    # what the functions that still take options= accept
+    assert as_solver(None) is None and as_solver(Auto()) == Auto()
+    assert as_solver(SolverOptions(method="al", max_iter=80)) == AugmentedLagrangian(max_iter=80)
+    with pytest.raises(ValueError, match="options"):
+        as_solver({"method": "al"})
+    # concrete 0-d arrays are numbers; traced ones are refused
+    assert to_options(IPM(dual_tol=np.float64(1e-3), fallback=AugmentedLagrangian(max_iter=np.asarray(80)))) \
+        == SolverOptions(method="ip", ip_dual_tol=1e-3, max_iter=80)
+    with pytest.raises(ValueError, match="concrete"):
+        jax.jit(lambda t: to_options(Auto(IPM(damping=t))).ip_damping)(0.01)
     # enumerations or their strings: the same plain strings reach the programs
     a = AugmentedLagrangian(schedule=Schedule.THESIS, inequality_penalty=InequalityPenalty.PBM)
     assert a == AugmentedLagrangian(schedule="thesis", inequality_penalty="pbm")

@@ -7,7 +7,10 @@ The fields say how they reach the compiled solver. An ordinary field (a pytree l
 differ only in such numbers share one compilation (a sweep over tolerances compiles
 once). A field marked ``eqx.field(static=True)`` is *static*: it shapes the program, and
 another value compiles another program. Traced fields marked ``off_at_zero`` also
-switch a part of the loop off at 0, so whether they are 0 is static.
+switch a part of the loop off at 0, so whether they are 0 is static. A solve reads the
+values when it starts: they are Python numbers (or concrete 0-d arrays), never traced
+values (a solver passed through ``jax.jit`` as an argument is refused; ``eqx.filter_jit``
+keeps its numbers static).
 :mod:`jtraj.solver.options` reads this marking (:func:`traced_fields`); nothing lists
 the traced options by hand.
 
@@ -22,6 +25,7 @@ import dataclasses
 import enum
 
 import equinox as eqx
+import jax
 import numpy as np
 
 
@@ -162,6 +166,10 @@ def _validate(solver, renames: dict | None = None):
     """:func:`check_flat` of the solver's own fields (``renames``: field -> flat name),
     the error naming the class's field."""
     renames = renames or {}
+    for f in dataclasses.fields(solver):
+        if isinstance(getattr(solver, f.name), jax.core.Tracer):
+            raise ValueError(f"{type(solver).__name__}.{f.name} must be a concrete number (a solver's options are "
+                             f"fixed when a solve starts), got a traced value")
     values = {renames.get(f.name, f.name): getattr(solver, f.name) for f in dataclasses.fields(solver)
               if f.name != "fallback"}
     try:
