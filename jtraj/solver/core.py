@@ -233,11 +233,11 @@ def _check_method(opts: SolverOptions, transcription: str, path_equalities: bool
     if opts.method != "ip":
         return
     if transcription != "decoupled":
-        raise ValueError(f"solver jtraj.IPM (method='ip') needs transcription='decoupled', got {transcription!r}; "
+        raise ValueError(f"solver jtraj.IPM: method='ip' needs transcription='decoupled', got {transcription!r}; "
                          f"use jtraj.Auto or jtraj.AugmentedLagrangian")
     if path_equalities:
-        raise ValueError("solver jtraj.IPM (method='ip') does not handle a robot's path_equalities; use jtraj.Auto "
+        raise ValueError("solver jtraj.IPM: method='ip' does not handle a robot's path_equalities; use jtraj.Auto "
                          "or jtraj.AugmentedLagrangian")
     if jerk:
-        raise ValueError("solver jtraj.IPM (method='ip') does not handle Problem(jerk=True) (its rows couple "
+        raise ValueError("solver jtraj.IPM: method='ip' does not handle Problem(jerk=True) (its rows couple "
                          "consecutive stages); use jtraj.Auto or jtraj.AugmentedLagrangian, or jerk=False")
