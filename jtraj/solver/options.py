@@ -254,7 +254,7 @@ def _plain(values: dict) -> dict:
     value raises (the options are fixed when the solver is compiled)."""
     out = {}
     for name, value in values.items():
-        if isinstance(value, (jax.Array, np.ndarray)):
+        if isinstance(value, (jax.Array, np.ndarray, np.generic)):
             if isinstance(value, jax.core.Tracer) or np.ndim(value) != 0:
                 raise ValueError(f"solver option {name} must be a concrete number, got {value!r}")
             value = np.asarray(value).item()
