@@ -25,14 +25,15 @@ _setup.ensure_cache()
 from . import robots  # noqa: E402
 from ._cpu import pin_to_one_cpu  # noqa: E402
 from .problem import Problem, ViaPoint, Weights  # noqa: E402
-from .solver import Solution, SolverOptions, Status, solve, solve_batch  # noqa: E402
+from .solver import IPM, AugmentedLagrangian, Auto, Solution, SolverOptions, Status, solve, solve_batch  # noqa: E402
 from .sensitivity import sensitivity  # noqa: E402
 from .implicit import valid_derivatives  # noqa: E402
 
 #: subpackages imported on first access (PEP 562)
 _LAZY = ("anfis", "dataset", "gradcheck", "mappings", "online", "plotting", "resample")
 
-__all__ = ["Problem", "ViaPoint", "Weights", "Solution", "SolverOptions", "Status", "solve", "solve_batch", "sensitivity",
+__all__ = ["Problem", "ViaPoint", "Weights", "Solution", "Auto", "IPM", "AugmentedLagrangian", "SolverOptions", "Status",
+           "solve", "solve_batch", "sensitivity",
            "valid_derivatives",
            "pin_to_one_cpu", "robots", "__version__", *_LAZY]
 

@@ -354,7 +354,8 @@ class Planner:
         at each new interval's midpoint), which keeps the plan's total time.
 
         ``weights`` of the refined problem default to the planner's (the training
-        dataset's). Returns :meth:`report`'s dict with ``seconds`` (the plan's wall time,
+        dataset's); ``options`` is its solver (:class:`jtraj.Auto` by default,
+        :class:`jtraj.IPM`, :class:`jtraj.AugmentedLagrangian` or a :class:`jtraj.SolverOptions`). Returns :meth:`report`'s dict with ``seconds`` (the plan's wall time,
         Python included); with ``refine`` it adds the solver's status, iterations, time,
         cost, the plan's ``gap`` to the refined optimum (``(cost - refined_cost) /
         refined_cost``, where the refined solve converged with the plan's weights and N),
@@ -384,6 +385,7 @@ class Planner:
                 {"q": p.q, "qd": p.qd, "v": p.v, "h": p.h}, self.robot))
         if refine:
             import jtraj
+            from jtraj.solver import as_solver
 
             same_cost = weights is None
             prob = jtraj.Problem(self.robot, np.asarray(q_start, float), np.asarray(q_goal, float), N=N,
@@ -394,9 +396,9 @@ class Planner:
             for label, init in (("cycloidal", None), ("refined", _resampled(p.v, p.h, N, self.robot.limits))):
                 t1 = time.perf_counter()
                 if init is None:
-                    sol = jtraj.solve(prob, options=options)
+                    sol = jtraj.solve(prob, solver=as_solver(options))
                 else:
-                    sol = jtraj.solve(prob, init=init, options=options, warm=warm)
+                    sol = jtraj.solve(prob, init=init, solver=as_solver(options), warm=warm)
                     out["refined_warm"] = warm
                 jax.block_until_ready(sol)
                 dt = time.perf_counter() - t1

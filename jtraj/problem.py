@@ -205,6 +205,16 @@ def check_configurations(robot: Robot, configurations: dict, velocities: dict | 
 EFFORTS = ("samples", "intervals")
 
 
+def _per_sample(x, name: str, n: int, shape: tuple) -> Array:
+    """A boundary velocity broadcast to ``shape`` ((n,) or (B, n)): a scalar, (n,) or ``shape``."""
+    if jnp.ndim(x) == 0:
+        return check_state(jnp.broadcast_to(jnp.asarray(x, float), shape), name, n)
+    x = check_state(x, name, n)
+    if x.shape not in ((n,), shape):
+        raise ValueError(f"{name} must be a scalar, ({n},) or {shape}, got shape {x.shape}")
+    return x if x.shape == shape else jnp.broadcast_to(x, shape)
+
+
 def default_jerk(robot) -> bool:
     """Whether a problem of ``robot`` gets jerk rows by default: where its limits include a
     jerk bound ``qddd_max`` that the acceleration bound and the shortest period do not
@@ -231,12 +241,15 @@ class Problem(eqx.Module):
 
     Args:
         robot: a :class:`jtraj.robots.Robot`.
-        q_start, q_goal: (n,) start and goal configurations.
+        q_start, q_goal: (n,) start and goal configurations; (B, n) for a batch of B
+            problems (:func:`jtraj.solve_batch`), whose boundary velocities and ``T_max``
+            are then broadcast to (B, n) and (B,). A batch's shapes and values are checked
+            here; a sample infeasible on its face is flagged ``INVALID_INPUT`` by the solve.
         N: number of sampling intervals (>= 2).
         weights: :class:`Weights` of the cost.
-        qd_start, qd_goal: (n,) start and goal velocities (default 0).
+        qd_start, qd_goal: (n,) start and goal velocities (default 0); a batch also takes (B, n).
         via_points: sequence of :class:`ViaPoint` (or (d,) points).
-        T_max: optional upper bound on the total time T = sum h_k [s].
+        T_max: optional upper bound on the total time T = sum h_k [s]; a batch also takes (B,).
         efforts: where the torque bound is imposed. "samples" (default, the thesis):
             ``|tau_k| <= tau_max`` at the sampling instants, ``tau_k = ID(q_k, qd_k,
             v_k)``. Between the samples the executed constant-acceleration motion asks
@@ -296,30 +309,46 @@ class Problem(eqx.Module):
         self.efforts = efforts
         self.jerk = bool(jerk)
         self.q_start = check_state(q_start, "q_start", n)
+        if self.q_start.ndim > 2:
+            raise ValueError(f"q_start must have shape ({n},) or (B, {n}) (a batch), got shape {self.q_start.shape}")
+        shape = self.q_start.shape  # (n,), or (B, n) for a batch
         self.q_goal = check_state(q_goal, "q_goal", n)
-        self.qd_start = check_state(jnp.broadcast_to(jnp.asarray(qd_start, float), (n,))
-                                    if jnp.ndim(qd_start) == 0 else qd_start, "qd_start", n)
-        self.qd_goal = check_state(jnp.broadcast_to(jnp.asarray(qd_goal, float), (n,))
-                                   if jnp.ndim(qd_goal) == 0 else qd_goal, "qd_goal", n)
+        if self.q_goal.shape != shape:
+            raise ValueError(f"q_goal must have shape {shape} like q_start, got shape {self.q_goal.shape}")
+        self.qd_start = _per_sample(qd_start, "qd_start", n, shape)
+        self.qd_goal = _per_sample(qd_goal, "qd_goal", n, shape)
         self.weights = Weights() if weights is None else weights
         if not isinstance(self.weights, Weights):
             raise ValueError(f"weights must be a jtraj.Weights, got {type(weights).__name__}")
         if via_points:  # (the task space's dimension, by tracing the kinematics: ~3 ms)
-            d = jax.eval_shape(robot.forward_kinematics, self.q_start).shape[0]
+            q = jax.ShapeDtypeStruct((n,), self.q_start.dtype)
+            d = jax.eval_shape(robot.forward_kinematics, q).shape[0]
             self.via_points = tuple(_as_via(p, i, d, robot) for i, p in enumerate(via_points))
         else:
             self.via_points = ()
         if T_max is None:
-            self.T_max = jnp.asarray(jnp.inf)
+            self.T_max = jnp.asarray(jnp.inf) if len(shape) == 1 else jnp.full(shape[:-1], jnp.inf)
         else:
-            if is_concrete(T_max) and not (float(T_max) > 0):
+            if jnp.shape(T_max) not in ((), shape[:-1]):
+                raise ValueError(f"T_max must be a scalar{' or have shape ' + str(shape[:-1]) if shape[:-1] else ''}"
+                                 f", got shape {jnp.shape(T_max)}")
+            if is_concrete(T_max) and not np.all(np.asarray(T_max, dtype=float) > 0):
                 raise ValueError(f"T_max must be > 0 or None, got {T_max!r}")
             self.T_max = jnp.asarray(T_max, dtype=float)
+            if self.T_max.shape != shape[:-1]:
+                self.T_max = jnp.broadcast_to(self.T_max, shape[:-1])
         # the host-side checks need concrete values: skipped where any is traced (a
-        # solve then flags such a problem INVALID_INPUT instead, see infeasible_on_its_face)
-        if validate and all(is_concrete(x) for x in jax.tree.leaves(
+        # solve then flags such a problem INVALID_INPUT instead, see infeasible_on_its_face),
+        # and for a batch (jtraj.solve_batch flags its samples the same way)
+        if validate and len(shape) == 1 and all(is_concrete(x) for x in jax.tree.leaves(
                 (robot, self.q_start, self.q_goal, self.qd_start, self.qd_goal, self.T_max))):
             self._check_feasible()
+
+    @property
+    def batch_size(self) -> int | None:
+        """B for a batch of problems (``q_start`` of shape (B, n), :func:`jtraj.solve_batch`),
+        None for one problem."""
+        return None if self.q_start.ndim == 1 else int(self.q_start.shape[0])
 
     def via_samples(self) -> tuple[int, ...]:
         """The sample index k at which each via point must be passed."""

@@ -27,7 +27,7 @@ from . import implicit
 from ._compile import solver_jit
 from .problem import Problem
 from .robots import Limits, parameter_names
-from .solver import SolverOptions, Status
+from .solver import SolverOptions, Status, as_solver
 from .solver.al import run_al as _run
 from .solver.core import finish as _finish
 from .solver.nlp import NLP as _NLP
@@ -116,7 +116,7 @@ def _with_param(problem: Problem, name: str, theta):
 # the sensitivity
 
 
-def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, options: SolverOptions | None = None,
+def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, options=None,
                 transcription: str = "decoupled", details: bool = False) -> dict:
     """Derivatives of the optimal cost and the optimal time with respect to a robot
     parameter, by implicit differentiation of the KKT conditions at the optimum
@@ -128,7 +128,8 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, options
             ``"lengths"``, ``"inertias"``, ...) or a limit field (``"tau_max"``, ...).
         solution: optional converged :class:`jtraj.Solution` of ``problem`` (same
             transcription); it warm-starts the solve.
-        options: :class:`jtraj.SolverOptions` of that solve.
+        options: the solver of that solve: :class:`jtraj.Auto` (None: the default),
+            :class:`jtraj.IPM`, :class:`jtraj.AugmentedLagrangian` or a :class:`jtraj.SolverOptions`.
         transcription: "decoupled" (default) or another transcription.
         details: also return the chain-rule cost derivative (``"cost_chain"``, through
             the implicit tangent; ``"cost"`` is the envelope theorem's, see
@@ -156,7 +157,7 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, options
         raise ValueError(f"the given solution did not converge (status {Status(int(solution.status)).name}); "
                          "sensitivities need a converged KKT point")
     init = None if solution is None else (tr.controls_of(solution), solution.h)
-    sol = solve(problem, options=options, transcription=tr.name, init=init)
+    sol = solve(problem, solver=as_solver(options), transcription=tr.name, init=init)
     if not bool(sol.converged):
         raise ValueError(f"the solve did not converge (status {Status(int(sol.status)).name}: "
                          f"{Status(int(sol.status)).message}); sensitivities need a converged KKT point")
@@ -164,7 +165,7 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, options
     warm = (tr.controls_of(sol), sol.h)
 
     def optimum(theta):
-        s = solve(_with_param(problem, wrt, theta), options=options, transcription=tr.name, init=warm)
+        s = solve(_with_param(problem, wrt, theta), solver=as_solver(options), transcription=tr.name, init=warm)
         return {"cost": s.cost, "T": s.T}
 
     jac = jax.jacrev(optimum)(theta0)

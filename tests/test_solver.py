@@ -658,3 +658,32 @@ def test_polish_releases_rows_when_holding_them_leaves_a_violation():
     state = eqx.filter_jit(lambda n, s: S.run_with_restart(n, s, opts))(nlp, state)
     held = eqx.filter_jit(lambda n, z: S.violation(*n.constraints(S.polish(n, z))))(nlp, state.z)
     assert float(held) > opts.verify_tol
+
+
+def _identical(a, b):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_solver_objects_solve_as_the_options_they_replace(single, single_al):
+    """``jtraj.Auto()`` and ``jtraj.AugmentedLagrangian()`` map onto the default options and
+    ``method="al"``: the same compiled programs, bit-identical solutions
+    (tests/test_solver_objects.py checks the map itself)."""
+    problem, sol = single
+    _identical(jtraj.solve(problem, solver=jtraj.Auto()), sol)
+    problem, sol = single_al
+    _identical(jtraj.solve(problem, solver=jtraj.AugmentedLagrangian()), sol)
+
+
+def test_batched_problem_equals_the_array_form(robot, batch):
+    """``solve_batch(Problem(robot, (B, n), (B, n)))`` is the array form's solve; a sample
+    infeasible on its face is accepted by the batch's Problem and flagged by the solve.
+    The batch fixture's shapes (its non-finite goal made finite), so its programs."""
+    q0, q1, _ = batch
+    q1 = q1.copy()
+    q1[3] = q0[3] + 0.05
+    problem = jtraj.Problem(robot, q0, q1, N=N, weights=W)
+    assert problem.batch_size == 5 and problem.qd_goal.shape == (5, 3) and problem.T_max.shape == (5,)
+    a = jtraj.solve_batch(problem)
+    _identical(a, jtraj.solve_batch(robot, q0, q1, N=N, weights=W))
+    assert int(a.status[4]) == Status.INVALID_INPUT and bool(a.converged[3])

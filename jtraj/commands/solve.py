@@ -297,18 +297,19 @@ def run(args) -> int:
 
     import jtraj
     from jtraj.commands import check_output_file
+    from jtraj.solver import from_options
 
     check_output_file(args.json, "--json")
     check_output_file(args.plot, "--plot")
     robot, problem = build_problem(args)
-    options = (jtraj.SolverOptions.pbm(method=args.method) if args.inequalities == "pbm"
-               else jtraj.SolverOptions(method=args.method))
+    solver = from_options(jtraj.SolverOptions.pbm(method=args.method) if args.inequalities == "pbm"
+                          else jtraj.SolverOptions(method=args.method))
     t0 = time.perf_counter()
-    sol = jtraj.solve(problem, transcription=args.transcription, options=options)
+    sol = jtraj.solve(problem, transcription=args.transcription, solver=solver)
     jax.block_until_ready(sol)
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
-    sol = jtraj.solve(problem, transcription=args.transcription, options=options)
+    sol = jtraj.solve(problem, transcription=args.transcription, solver=solver)
     jax.block_until_ready(sol)
     solve_s = time.perf_counter() - t0
     d = solution_dict(args, problem, sol, solve_s, max(first - solve_s, 0.0))

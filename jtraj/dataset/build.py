@@ -215,8 +215,9 @@ def compute_chunk(spec: Spec, c: int) -> dict:
     qs_p = np.concatenate([qs, np.repeat(qs[-1:], pad, 0)]) if pad else qs
     qg_p = np.concatenate([qg, np.full((pad, qg.shape[1]), np.nan)]) if pad else qg
     extra = {} if spec.efforts == "samples" else {"efforts": spec.efforts}
-    sol = spec.solve_fn()(robot, qs_p, qg_p, N=spec.N, weights=spec.weights_obj(), options=spec.options_obj(),
-                          **extra)
+    from ..solver import from_options
+    sol = spec.solve_fn()(robot, qs_p, qg_p, N=spec.N, weights=spec.weights_obj(),
+                          solver=from_options(spec.options_obj()), **extra)
     import jax
 
     sol = jax.device_get(sol)

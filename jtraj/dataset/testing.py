@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 
-def fake_solve_batch(robot, q_start, q_goal, *, N=20, weights=None, options=None):
+def fake_solve_batch(robot, q_start, q_goal, *, N=20, weights=None, solver=None):
     delay = float(os.environ.get("JTRAJ_FAKE_SOLVER_DELAY", "0") or 0)
     if delay:
         time.sleep(delay)
@@ -39,9 +39,9 @@ def fake_solve_batch(robot, q_start, q_goal, *, N=20, weights=None, options=None
             "outer_iterations": np.full(B, 2, np.int32)}
 
 
-def fake_solve_batch_cpus(robot, q_start, q_goal, *, N=20, weights=None, options=None):
+def fake_solve_batch_cpus(robot, q_start, q_goal, *, N=20, weights=None, solver=None):
     """:func:`fake_solve_batch` whose ``iterations`` is the number of CPUs the solving
     process may run on (tests of where chunks are solved: one, for identical rounding)."""
-    out = fake_solve_batch(robot, q_start, q_goal, N=N, weights=weights, options=options)
+    out = fake_solve_batch(robot, q_start, q_goal, N=N, weights=weights, solver=solver)
     out["iterations"] = np.full(len(out["T"]), len(os.sched_getaffinity(0)), np.int32)
     return out

@@ -298,15 +298,24 @@ def run_with_restart(nlp: NLP, state: ALState, opts: SolverOptions) -> ALState:
     if not isinstance(opts, TracedOptions) and _max_restarts(opts) == 0:
         return al_loop(nlp, state, opts)
 
-    def run(carry):
-        s, k = carry
+    def run(c: _Runs) -> _Runs:
         # a real branch for one problem; under vmap both sides run on the first pass
         # (the restart is a no-op where it is not needed)
-        s = jax.lax.cond(k > 0, lambda t: restart_state(nlp, t, opts), lambda t: t, s)
-        return al_loop(nlp, s, opts), k + 1
+        s = jax.lax.cond(c.runs > 0, lambda t: restart_state(nlp, t, opts), lambda t: t, c.state)
+        return _Runs(al_loop(nlp, s, opts), c.runs + 1)
 
-    s, _ = jax.lax.while_loop(lambda c: (c[1] == 0) | needs_restart(c[0], opts), run, (state, jnp.asarray(0)))
-    return s
+    def going(c: _Runs):
+        return (c.runs == 0) | needs_restart(c.state, opts)
+
+    return jax.lax.while_loop(going, run, _Runs(state, jnp.asarray(0))).state
+
+
+class _Runs(NamedTuple):
+    """The carry of :func:`run_with_restart`'s loop over runs."""
+
+    state: ALState
+    #: runs so far (the first, then the restarts)
+    runs: Array
 
 
 def next_inner_tol(opts: SolverOptions, omega, viol, pbm_on=False):

@@ -3,6 +3,7 @@ with their input checks."""
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import equinox as eqx
@@ -17,14 +18,16 @@ from ..problem import Problem, Weights, default_jerk
 from ..transcription import Transcription
 from .core import initial_guess, placeholder_init, resolve_method
 from .lanes import cpu_lanes, solve_problems
-from .options import SolverOptions, options_jit
+from .methods import IPM, SOLVERS, AugmentedLagrangian, Auto
+from .options import SolverOptions, options_jit, to_options
 from .results import Solution
 
 
-def solve(problem: Problem, *, options: SolverOptions | None = None, transcription: str = "decoupled",
-          init: tuple[Any, Any] | None = None, warm: str = "full", on_failure: str = "nan") -> Solution:
-    """Solve one trajectory problem; compiled once per robot type, shape and the options'
-    structure (see :class:`jtraj.SolverOptions`).
+def solve(problem: Problem, *, solver: Auto | IPM | AugmentedLagrangian | None = None,
+          transcription: str = "decoupled", init: tuple[Any, Any] | None = None, warm: str = "full",
+          on_failure: str = "nan", options: SolverOptions | None = None) -> Solution:
+    """Solve one trajectory problem; compiled once per robot type, shape and the solver's
+    static fields (see :mod:`jtraj.solver.methods`).
 
     On a CPU one problem runs about 1.6x faster in a process pinned to one core
     (:func:`jtraj.pin_to_one_cpu` before JAX's first computation; the CLI does it).
@@ -35,8 +38,9 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     persistent compilation cache, on since ``import jtraj``, keeps it (:mod:`jtraj._setup`).
 
     Args:
-        problem: a :class:`jtraj.Problem`.
-        options: :class:`jtraj.SolverOptions` (defaults documented there).
+        problem: a :class:`jtraj.Problem` (one problem; a batch goes to :func:`solve_batch`).
+        solver: :class:`jtraj.Auto` (default), :class:`jtraj.IPM` or
+            :class:`jtraj.AugmentedLagrangian`, holding the method's options.
         transcription: "decoupled" (thesis ALD, default), "coupled", or Chettibi's
             "collocation", "shooting", "spline" (see :class:`jtraj.transcription.Transcription`).
         init: optional warm start (u (N, m_u), h (N,)) in the transcription's controls
@@ -47,11 +51,12 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
             loop, starts the penalty at ``penalty_max / 100``: right for a point near an
             optimum (a previous solution, a perturbed problem); "primal" keeps the cold
             start's multipliers and penalty: right for a rough guess (a learned plan).
-            The interior-point method (``options.method``) starts its barrier at ``init``
-            either way.
+            The interior-point method starts its barrier at ``init`` either way.
         on_failure: what derivatives of a solve that did not converge are (see
             :mod:`jtraj.implicit`): "nan" (default) or "raise" (a run-time error when
             the solve is differentiated, inside ``jit`` too).
+        options: deprecated, a :class:`jtraj.SolverOptions`; pass
+            ``solver=jtraj.solver.from_options(options)`` instead.
 
     ``jax.grad``, ``jax.jvp``, ``jax.jacobian``, ``jax.vmap`` and ``jax.jit`` work
     through it: with traced array leaves in ``problem`` the derivatives of the
@@ -63,12 +68,15 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
         raise ValueError(f"on_failure must be 'nan' or 'raise', got {on_failure!r}")
     if not isinstance(problem, Problem):
         raise ValueError(f"problem must be a jtraj.Problem, got {type(problem).__name__}")
+    if problem.batch_size is not None:
+        raise ValueError(f"problem is a batch of {problem.batch_size} problems (q_start has shape "
+                         f"{problem.q_start.shape}); solve it with jtraj.solve_batch")
     _check_efforts(problem.efforts, transcription)
     if warm not in ("full", "primal"):
         raise ValueError(f"warm must be 'full' or 'primal', got {warm!r}")
     warm = init is not None and warm == "full"
     Transcription(transcription).check_jerk(problem)
-    opts = resolve_method(options, transcription, problem.robot, problem.jerk)
+    opts = resolve_method(solver_options(solver, options), transcription, problem.robot, problem.jerk)
     # float64 only, the compilation cache on, a first compilation logged (jtraj._setup)
     key = _setup.before_solve(problem.robot, problem.N, batch=False, problem=problem, options=opts,
                               transcription=transcription, efforts=problem.efforts)
@@ -86,6 +94,26 @@ def solve(problem: Problem, *, options: SolverOptions | None = None, transcripti
     sol = _staged.solve(problem, opts, transcription, init, np.bool_(warm), np.bool_(guess))
     _setup.compiled(key)
     return sol
+
+
+def solver_options(solver, options) -> SolverOptions | None:
+    """The flat options the compiled programs read: those ``solver`` maps onto
+    (:func:`jtraj.solver.options.to_options`), ``options`` (deprecated, with a warning)
+    or None for the defaults."""
+    if options is not None:
+        if solver is not None:
+            raise ValueError("pass solver= or the deprecated options=, not both")
+        warnings.warn("options=SolverOptions(...) is deprecated and goes in the next release: pass "
+                      "solver=jtraj.Auto(), jtraj.IPM(...) or jtraj.AugmentedLagrangian(...) "
+                      "(jtraj.solver.from_options(options) gives the solver of given options)",
+                      DeprecationWarning, stacklevel=3)
+        return options
+    if solver is None:
+        return None
+    if not isinstance(solver, SOLVERS):
+        raise ValueError(f"solver must be jtraj.Auto, jtraj.IPM or jtraj.AugmentedLagrangian, "
+                         f"got {type(solver).__name__}")
+    return to_options(solver)
 
 
 def _check_efforts(efforts, transcription):
@@ -129,19 +157,28 @@ def _problems_jit(robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, 
         robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts)
 
 
-def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None = None,
-                qd_start=None, qd_goal=None, T_max=None, options: SolverOptions | None = None,
+def solve_batch(problem, q_start=None, q_goal=None, *, N: int | None = None, weights: Weights | None = None,
+                qd_start=None, qd_goal=None, T_max=None, solver: Auto | IPM | AugmentedLagrangian | None = None,
                 transcription: str = "decoupled", init: tuple[Any, Any] | None = None,
-                slots: int | None | str = "auto", segment: int = 10, efforts: str = "samples") -> Solution:
+                slots: int | None | str = "auto", segment: int = 10, efforts: str | None = None,
+                options: SolverOptions | None = None) -> Solution:
     """Solve B problems sharing one robot, N and weights in one vmapped, compiled call.
 
+    ``solve_batch(problem)`` takes a batched :class:`jtraj.Problem` (``q_start`` and
+    ``q_goal`` of shape (B, n)); ``solve_batch(robot, q_start, q_goal, N=..., ...)`` is
+    the same solve built from arrays.
+
     Args:
-        robot: a :class:`jtraj.robots.Robot` (shared by the batch).
-        q_start, q_goal: (B, n) start and goal configurations.
-        qd_start, qd_goal: optional (B, n) boundary velocities (default rest).
-        T_max: optional scalar or (B,) bound on the total time.
+        problem: a batched :class:`jtraj.Problem` (without via points, with the robot's
+            default ``jerk``), or a :class:`jtraj.robots.Robot` for the array form.
+        q_start, q_goal: the array form's (B, n) start and goal configurations.
+        N, weights, efforts: the array form's shared N (default 20), :class:`jtraj.Weights`
+            and efforts ("samples" or "intervals", see :class:`jtraj.Problem`).
+        qd_start, qd_goal: the array form's optional (B, n) boundary velocities (default rest).
+        T_max: the array form's optional scalar or (B,) bound on the total time.
+        solver: :class:`jtraj.Auto` (default), :class:`jtraj.IPM` or
+            :class:`jtraj.AugmentedLagrangian` (see :func:`solve`).
         init: optional warm start (u (B, N, m_u), h (B, N)).
-        efforts: "samples" or "intervals" (see :class:`jtraj.Problem`).
         slots, segment: the batch is solved by ``slots`` vmapped lanes, each lane
             taking the next pending problem when its own finishes (the interior-point
             method at once, inside its compiled loop; the AL loop, which the default
@@ -158,11 +195,13 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
             iteration costs about its lane count, and more per lane once the lanes'
             working set outgrows the core's cache; on an accelerator lanes are nearly
             free, so larger ``slots`` pay there.
+        options: deprecated, a :class:`jtraj.SolverOptions`; pass
+            ``solver=jtraj.solver.from_options(options)`` instead.
 
     Returns a :class:`jtraj.Solution` whose fields carry a leading batch axis. Samples with
-    non-finite inputs are not solved: their status is ``Status.INVALID_INPUT`` (a batch
-    never raises for one bad sample); shapes and the robot are checked up front, and
-    float64 as in :func:`solve`.
+    non-finite inputs (array form) or infeasible on their face are not solved: their
+    status is ``Status.INVALID_INPUT`` (a batch never raises for one bad sample); shapes
+    and the robot are checked up front, and float64 as in :func:`solve`.
 
     Derivatives (``jax.grad``, ``jax.jvp``, ``jax.jacobian``, under ``jit`` and ``vmap``
     too) with respect to traced inputs (q_start, q_goal, boundary velocities, T_max,
@@ -174,8 +213,20 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     """
     from ..robots import Robot
 
-    if not isinstance(robot, Robot):
-        raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
+    opts = solver_options(solver, options)
+    if isinstance(problem, Problem):
+        robot, q_start, q_goal, N, weights, qd_start, qd_goal, T_max, efforts = _batched_problem(
+            problem, q_start=q_start, q_goal=q_goal, N=N, weights=weights, qd_start=qd_start, qd_goal=qd_goal,
+            T_max=T_max, efforts=efforts)
+    elif isinstance(problem, Robot):
+        robot = problem
+        if q_start is None or q_goal is None:
+            raise ValueError("q_start and q_goal are needed with a robot (or pass a batched jtraj.Problem)")
+        N = 20 if N is None else N
+        efforts = "samples" if efforts is None else efforts
+    else:
+        raise ValueError(f"problem must be a batched jtraj.Problem or a jtraj.robots.Robot, "
+                         f"got {type(problem).__name__}")
     n = robot.n
     traced = implicit.any_traced((robot, q_start, q_goal, qd_start, qd_goal, T_max, weights, init))
     # the inputs on the host (NumPy): their checks and broadcasts dispatch no programs;
@@ -207,7 +258,7 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     if jerk and transcription not in Transcription.JERK:
         raise ValueError(f"robot {robot.name!r} has a jerk bound, which transcription {transcription!r} cannot "
                          f"impose; solve Problem(..., jerk=False) one by one, or use one of {Transcription.JERK}")
-    opts = resolve_method(options, transcription, robot, jerk)
+    opts = resolve_method(opts, transcription, robot, jerk)
     weights = Weights() if weights is None else weights
     key = _setup.before_solve(robot, N, batch=True, weights=weights, options=opts, transcription=transcription,
                               efforts=efforts)
@@ -242,3 +293,25 @@ def solve_batch(robot, q_start, q_goal, *, N: int = 20, weights: Weights | None 
     sol = solve_problems(problems, opts, transcription, init, warm, slots, segment)
     _setup.compiled(key)
     return sol
+
+
+def _batched_problem(problem: Problem, **array_form):
+    """The array form's arguments of a batched :class:`Problem`; ``ValueError`` naming what
+    a batch cannot hold or what was passed twice."""
+    for name, value in array_form.items():
+        if value is not None:
+            raise ValueError(f"{name} is the problem's own in solve_batch(problem); pass it to jtraj.Problem")
+    if problem.batch_size is None:
+        raise ValueError(f"problem must be a batch (q_start of shape (B, {problem.robot.n})), got q_start of shape "
+                         f"{problem.q_start.shape}; solve one problem with jtraj.solve")
+    if problem.via_points:
+        raise ValueError("problem.via_points: a batch has none; solve problems with via points with jtraj.solve")
+    if problem.jerk != default_jerk(problem.robot):
+        raise ValueError(f"problem.jerk={problem.jerk} is not robot {problem.robot.name!r}'s default: a batch takes "
+                         f"the default; solve such problems with jtraj.solve")
+    for name in ("time", "energy", "kinetic", "singularity"):
+        if jnp.ndim(getattr(problem.weights, name)) != 0:
+            raise ValueError(f"weights.{name} must be a scalar: a batch shares its weights, got shape "
+                             f"{jnp.shape(getattr(problem.weights, name))}")
+    return (problem.robot, problem.q_start, problem.q_goal, problem.N, problem.weights, problem.qd_start,
+            problem.qd_goal, problem.T_max, problem.efforts)

@@ -3,9 +3,11 @@ and the KKT error the verification reads."""
 
 from __future__ import annotations
 
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array
 
 from .nlp import NLP, Multipliers, violation
 from .options import SolverOptions
@@ -84,8 +86,8 @@ def _polish(nlp: NLP, z, iterations: int = 4, chord: bool = True, release_above=
             gram = jnp.where(fixed[:, None] | fixed[None, :], 0.0, gram)
         return _ridge_solve(Jf, Jf.T @ r, 1e-10 * (1.0 + jnp.max(jnp.sum(Jf**2, axis=0))), gram)
 
-    def body(carry):
-        z, v, k, _, rel, v_start = carry
+    def body(c: _Projection) -> _Projection:
+        z, v, k, rel, v_start = c.z, c.violation, c.it, c.releasing, c.violation_start
         act_tol = jnp.where(rel, jnp.inf, window)
         if chord:  # the Jacobian at the entry point, of the phase's rows
             J = jnp.where(rel, J_all, J_near) if releasing else J_near
@@ -103,13 +105,12 @@ def _polish(nlp: NLP, z, iterations: int = 4, chord: bool = True, release_above=
             # releasing: equalities and violated inequalities; satisfied rows the
             # correction would take across their boundary join them (four rounds: each
             # correction can cross others)
-            def select(c):
-                rows, _, i = c
-                dz = correction(jnp.where(rows[:, None], J, 0.0), jnp.where(rows, raw, 0.0), fixed)
-                return rows | (is_ineq & (raw - J @ dz > 0)), dz, i + 1
+            def select(c: _Rounds) -> _Rounds:
+                dz = correction(jnp.where(c.rows[:, None], J, 0.0), jnp.where(c.rows, raw, 0.0), fixed)
+                return _Rounds(c.rows | (is_ineq & (raw - J @ dz > 0)), dz, c.round + 1)
 
-            rows, dz, _ = jax.lax.while_loop(lambda c: rel & (c[2] < 4), select,
-                                             (~is_ineq | (raw > 0), dz, jnp.asarray(0)))
+            rows, dz, _ = jax.lax.while_loop(lambda c: rel & (c.round < 4), select,
+                                             _Rounds(~is_ineq | (raw > 0), dz, jnp.asarray(0)))
             Jr = jnp.where(rel, jnp.where(rows[:, None], J, 0.0), J)
             r = jnp.where(rel, jnp.where(rows, raw, 0.0), r)
             # the selected rows' J^T J, formed (like the rounds) only while some lane releases
@@ -126,7 +127,7 @@ def _polish(nlp: NLP, z, iterations: int = 4, chord: bool = True, release_above=
         if releasing:  # the holding phase over: the releasing one starts where needed
             switch = ~rel & ~(going & (k < iterations)) & (v > release_above) & (v_start <= window)
             rel, k, going = rel | switch, jnp.where(switch, 0, k), going | switch
-        return z, v, k, going, rel, v_start
+        return _Projection(z, v, k, going, rel, v_start)
 
     v0 = viol(z)
     need = v0 > done if skip is None else (v0 > done) & ~skip
@@ -138,10 +139,32 @@ def _polish(nlp: NLP, z, iterations: int = 4, chord: bool = True, release_above=
         # (each a (rows x nz)^T (rows x nz) product: serial3, N = 20, 241 x 80). Inside a
         # loop of at most one pass, so that under vmap it runs only if some lane polishes
         J_all, J_near, G_near = at_most_once(need, lambda zz: _chord_jacobian(nlp, zz, window, is_ineq), z)
-    carry = (z, v0, jnp.asarray(0), need, jnp.asarray(False), v0)
+    carry = _Projection(z, v0, jnp.asarray(0), need, jnp.asarray(False), v0)
     # a bounded loop (under vmap it runs while some lane still improves)
-    z, *_ = jax.lax.while_loop(lambda c: c[3] & (c[2] < iterations), body, carry)
-    return z
+    return jax.lax.while_loop(lambda c: c.going & (c.it < iterations), body, carry).z
+
+
+class _Projection(NamedTuple):
+    """The carry of :func:`_polish`'s projections."""
+
+    z: Array
+    violation: Array
+    #: projections so far (of the current phase)
+    it: Array
+    #: the last projection shrank the violation (and it is above the target)
+    going: Array
+    #: in the releasing phase
+    releasing: Array
+    #: the violation at the polish's start
+    violation_start: Array
+
+
+class _Rounds(NamedTuple):
+    """The carry of the releasing phase's row selection."""
+
+    rows: Array
+    dz: Array
+    round: Array
 
 
 def at_most_once(pred, fn, x, fill=0.0):

@@ -38,7 +38,7 @@ def stagewise_directions(opts: SolverOptions, tr: Transcription, jerk: bool = Fa
     if solver == "auto":
         solver = "riccati" if jax.default_backend() == "cpu" and not jerk else "dense"
     if solver == "riccati" and jerk:
-        raise ValueError("options.linear_solver='riccati' does not handle Problem(jerk=True) (its rows couple "
+        raise ValueError("the solver's linear_solver='riccati' does not handle Problem(jerk=True) (its rows couple "
                          "consecutive stages); use linear_solver='auto' or 'dense', or jerk=False")
     return solver == "riccati" and tr.name == "decoupled"
 
@@ -233,9 +233,11 @@ def _check_method(opts: SolverOptions, transcription: str, path_equalities: bool
     if opts.method != "ip":
         return
     if transcription != "decoupled":
-        raise ValueError(f"options.method='ip' needs transcription='decoupled', got {transcription!r}")
+        raise ValueError(f"solver jtraj.IPM: method='ip' needs transcription='decoupled', got {transcription!r}; "
+                         f"use jtraj.Auto or jtraj.AugmentedLagrangian")
     if path_equalities:
-        raise ValueError("options.method='ip' does not handle a robot's path_equalities; use method='al'")
+        raise ValueError("solver jtraj.IPM: method='ip' does not handle a robot's path_equalities; use jtraj.Auto "
+                         "or jtraj.AugmentedLagrangian")
     if jerk:
-        raise ValueError("options.method='ip' does not handle Problem(jerk=True) (its rows couple consecutive "
-                         "stages); use method='al' or 'auto', or jerk=False")
+        raise ValueError("solver jtraj.IPM: method='ip' does not handle Problem(jerk=True) (its rows couple "
+                         "consecutive stages); use jtraj.Auto or jtraj.AugmentedLagrangian, or jerk=False")

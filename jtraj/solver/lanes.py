@@ -298,6 +298,21 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
         lanes = new_lanes
 
 
+class _Pool(NamedTuple):
+    """The carry of the interior-point lane pool's loop (``pool`` in :func:`_lane_programs`)."""
+
+    #: the lanes' problems and states (packed array leaves)
+    lane_nlps: Any
+    lane_states: Any
+    #: every problem's state (packed), the lanes' finished ones written back
+    states: Any
+    #: the problem each lane holds, and whether it holds an unfinished one
+    lanes: Any
+    live: Any
+    #: queued problems handed to lanes so far
+    queued: Any
+
+
 class _LanePrograms(NamedTuple):
     """The compiled programs of :func:`_run_lanes` on packed batches (tuples of
     ``(B, width)`` arrays, see :mod:`jtraj._packing`)."""
@@ -376,7 +391,7 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
             n, s = take(nlps, states, rows)
             return _packing.arrays(_packing.unpack(n, pn)), _packing.arrays(_packing.unpack(s, ps))
 
-        def refill(c):
+        def refill(c: _Pool) -> _Pool:
             ln, ls, states, lanes, live, nxt = c
             fin = finished(ls)
             states = write_back(states, ls, jnp.where(live & fin, lanes, B))
@@ -385,27 +400,26 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
             take = free & (pos < count)
             lanes = jnp.where(take, queue[jnp.clip(pos, 0, queue.shape[0] - 1)], lanes)
             new_n, new_s = gather(states, lanes)
-            return (select(take, new_n, ln), select(take, new_s, ls), states, lanes, (live & ~fin) | take,
-                    nxt + jnp.sum(take))
+            return _Pool(select(take, new_n, ln), select(take, new_s, ls), states, lanes, (live & ~fin) | take,
+                         nxt + jnp.sum(take))
 
-        def handover(c):  # only where a lane is free: a real branch (the loop is not vmapped)
-            _, ls, _, _, live, nxt = c
-            free = jnp.any(live & finished(ls)) | (jnp.any(~live) & (nxt < count))
+        def handover(c: _Pool) -> _Pool:  # only where a lane is free: a real branch (the loop is not vmapped)
+            free = jnp.any(c.live & finished(c.lane_states)) | (jnp.any(~c.live) & (c.queued < count))
             return jax.lax.cond(free, refill, lambda c: c, c)
 
-        def body(c):
+        def body(c: _Pool) -> _Pool:
             # the lanes whose problem finished (in the last iteration, or before its
             # first) handed over, then one iteration
-            ln, ls, states, lanes, live, nxt = handover(c)
-            new = step(_packing.from_arrays(ln, pn), _packing.from_arrays(ls, ps))
-            return ln, select(finished(ls), ls, _packing.arrays(new)), states, lanes, live, nxt
+            c = handover(c)
+            new = step(_packing.from_arrays(c.lane_nlps, pn), _packing.from_arrays(c.lane_states, ps))
+            return c._replace(lane_states=select(finished(c.lane_states), c.lane_states, _packing.arrays(new)))
 
-        def cond(c):
-            _, ls, _, _, live, nxt = c
-            return (nxt < count) | (jnp.sum(live & ~finished(ls)) > stop_at)
+        def cond(c: _Pool):
+            return (c.queued < count) | (jnp.sum(c.live & ~finished(c.lane_states)) > stop_at)
 
         ln, ls = gather(states, lanes)
-        _, ls, states, lanes, live, _ = jax.lax.while_loop(cond, body, (ln, ls, states, lanes, live, jnp.sum(live)))
+        _, ls, states, lanes, live, _ = jax.lax.while_loop(cond, body, _Pool(ln, ls, states, lanes, live,
+                                                                               jnp.sum(live)))
         states = write_back(states, ls, jnp.where(live, lanes, B))
         return states, lanes, live & ~finished(ls)
 

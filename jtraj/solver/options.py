@@ -13,21 +13,20 @@ import numpy as np
 from .. import _tracecache
 from .._compile import SOLVER_XLA_OPTIONS, cpu_jit, supported_options
 from .._compile import solver_jit as _jit
-from .curvature import CURVATURES
+from .methods import PBM_SETTINGS, SOLVERS, check_flat, flat, flat_traced, from_flat
 
 
 # ----------------------------------------------------------------------------------------
 # options
 
 
-#: the fields :meth:`SolverOptions.pbm` sets (tuned on bench_solver's pairs, see
-#: ``SolverOptions.inequality_penalty``); ``jtraj dataset --inequalities pbm`` stores them
-#: as the dataset's option overrides
-PBM_SETTINGS = dict(inequality_penalty="pbm", penalty_init=100.0, detect_min_viol=1e-2)
-
-
 class SolverOptions(eqx.Module):
-    """Options of the solver; the defaults are tuned on the serial3 benchmark family.
+    """Options of the solver as one flat set. Deprecated: pass a solver object instead,
+    ``jtraj.solve(problem, solver=...)`` with :class:`jtraj.Auto` (``method="auto"``),
+    :class:`jtraj.IPM` (``"ip"``) or :class:`jtraj.AugmentedLagrangian` (``"al"``);
+    :func:`jtraj.solver.from_options` gives the object of given options. The AL fields
+    keep their names on :class:`~jtraj.AugmentedLagrangian` (an IPM's ``fallback``);
+    the ``ip_`` fields lose the prefix on :class:`~jtraj.IPM`.
 
     Options that differ only in numbers (tolerances, penalties, iteration limits, the
     stall and kink settings: ``TRACED_OPTIONS``) share one compiled solver: those fields
@@ -190,52 +189,7 @@ class SolverOptions(eqx.Module):
         return cls(**{**PBM_SETTINGS, **overrides})
 
     def __check_init__(self):
-        if self.schedule not in ("default", "thesis"):
-            raise ValueError(f"schedule must be 'default' or 'thesis', got {self.schedule!r}")
-        if self.method not in ("auto", "al", "ip"):
-            raise ValueError(f"method must be 'auto', 'al' or 'ip', got {self.method!r}")
-        if self.ip_curvature not in CURVATURES:
-            raise ValueError(f"ip_curvature must be one of {CURVATURES}, got {self.ip_curvature!r}")
-        if self.inequality_penalty not in ("phr", "pbm"):
-            raise ValueError(f"inequality_penalty must be 'phr' or 'pbm', got {self.inequality_penalty!r}")
-        if not self.pbm_ratio > 1:
-            raise ValueError(f"pbm_ratio must be > 1, got {self.pbm_ratio!r}")
-        if self.linear_solver not in ("auto", "riccati", "dense"):
-            raise ValueError(f"linear_solver must be 'auto', 'riccati' or 'dense', got {self.linear_solver!r}")
-        if self.guess not in ("cycloidal_torque", "cycloidal", "trapezoidal"):
-            raise ValueError(f"guess must be 'cycloidal_torque', 'cycloidal' or 'trapezoidal', got {self.guess!r}")
-        for name in ("inner_tol_ratio", "pbm_inner_tol_ratio"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
-        for name in ("max_iter", "max_outer", "max_inner"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1")
-        for name in ("restart_iter", "kink_after", "stall_window", "stall_after", "pbm_fallback_iter", "ip_max_iter"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0):
-                raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
-        for name in ("kink_margin", "stall_ratio", "stall_min_viol", "detect_min_viol", "ip_dual_tol", "ip_compl_tol",
-                     "ip_project_tol", "ip_damping"):
-            value = getattr(self, name)
-            try:
-                ok = 0 <= float(value) < float("inf")
-            except (TypeError, ValueError):
-                ok = False
-            if not ok:
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        for name in ("tol_feasibility", "tol_optimality", "verify_tol", "penalty_init", "penalty_max",
-                     "damping_init", "restart_penalty_max", "pbm_init", "ip_tol", "ip_mu_init"):
-            value = getattr(self, name)
-            try:
-                ok = 0 < float(value) < float("inf")  # NumPy scalars of any float width too
-            except (TypeError, ValueError):
-                ok = False
-            if not ok:
-                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-        if not self.penalty_growth > 1:
-            raise ValueError(f"penalty_growth must be > 1, got {self.penalty_growth!r}")
-        if not 0 < self.feasibility_ratio < 1:
-            raise ValueError(f"feasibility_ratio must be in (0, 1), got {self.feasibility_ratio!r}")
+        check_flat({f.name: getattr(self, f.name) for f in dataclasses.fields(self)})
 
 
 #: SolverOptions fields that enter the compiled programs only as numbers: they cross the
@@ -243,13 +197,8 @@ class SolverOptions(eqx.Module):
 #: in them share one compilation (a sweep over tolerances or penalties compiles once).
 #: The other fields shape the programs and stay static. Of the ones here, a value of 0
 #: also switches a part of the loop off (``_SWITCHES``): the static copy keeps 0 or 1.
-TRACED_OPTIONS = ("max_iter", "max_inner", "tol_feasibility", "tol_optimality", "inner_tol_ratio",
-                  "pbm_inner_tol_ratio", "penalty_init", "penalty_growth", "penalty_max", "feasibility_ratio",
-                  "damping_init", "verify_tol", "detect_infeasible", "restart_iter", "restart_penalty_max",
-                  "kink_margin", "kink_after", "stall_window", "stall_ratio", "stall_min_viol", "stall_after",
-                  "pbm_fallback_iter", "detect_min_viol", "ip_dual_tol", "ip_compl_tol", "ip_project_tol",
-                  "ip_damping")
-_SWITCHES = ("inner_tol_ratio", "pbm_inner_tol_ratio", "kink_margin", "pbm_fallback_iter")
+TRACED_OPTIONS = tuple(flat_traced())
+_SWITCHES = tuple(name for name, off_at_zero in flat_traced().items() if off_at_zero)
 
 
 class SplitOptions(eqx.Module):
@@ -271,6 +220,72 @@ class TracedOptions:
     def __getattr__(self, name):
         values = self.__dict__["_values"]
         return values[name] if name in values else getattr(self.__dict__["static_options"], name)
+
+
+def to_options(solver) -> SolverOptions:
+    """The flat :class:`SolverOptions` a solver object (:mod:`jtraj.solver.methods`)
+    maps onto: the compiled programs read these, so a solver object and the options it
+    maps onto run the same programs. Cached: the same object first by identity (hashing
+    a solver costs about as much as hashing a SolverOptions, see :func:`split_options`),
+    then per equal object."""
+    hit = _TO_OPTIONS_BY_ID.get(id(solver))
+    if hit is not None and hit[0] is solver:
+        return hit[1]
+    try:
+        opts = _to_options_cached(solver)
+    except TypeError:  # an unhashable field value (an array): not cached
+        return SolverOptions(**_plain(flat(solver)))
+    if len(_TO_OPTIONS_BY_ID) >= 64:
+        _TO_OPTIONS_BY_ID.pop(next(iter(_TO_OPTIONS_BY_ID)))
+    _TO_OPTIONS_BY_ID[id(solver)] = (solver, opts)  # (holding solver keeps its id unique)
+    return opts
+
+
+_TO_OPTIONS_BY_ID: dict[int, tuple] = {}
+
+
+@functools.lru_cache(maxsize=64)
+def _to_options_cached(solver) -> SolverOptions:
+    return SolverOptions(**_plain(flat(solver)))
+
+
+def _plain(values: dict) -> dict:
+    """Option values as Python numbers: concrete 0-d arrays become scalars; a traced
+    value raises (the options are fixed when the solver is compiled)."""
+    out = {}
+    for name, value in values.items():
+        if isinstance(value, (jax.Array, np.ndarray, np.generic)):
+            if isinstance(value, jax.core.Tracer) or np.ndim(value) != 0:
+                raise ValueError(f"solver option {name} must be a concrete number, got {value!r}")
+            value = np.asarray(value).item()
+        out[name] = value
+    return out
+
+
+def from_options(options: SolverOptions):
+    """The solver object (:class:`jtraj.Auto`, :class:`jtraj.IPM` or
+    :class:`jtraj.AugmentedLagrangian`, by ``options.method``) holding ``options``:
+    ``jtraj.solve(p, solver=from_options(o))`` solves as ``jtraj.solve(p, options=o)``."""
+    if not isinstance(options, SolverOptions):
+        raise ValueError(f"options must be a jtraj.SolverOptions, got {type(options).__name__}")
+    return _from_options_cached(options)
+
+
+@functools.lru_cache(maxsize=64)
+def _from_options_cached(options: SolverOptions):
+    return from_flat({f.name: getattr(options, f.name) for f in dataclasses.fields(options)})
+
+
+def as_solver(value, name: str = "options"):
+    """A solver object from what the functions that still take ``options`` accept: None
+    (the default solver), a solver object, or a :class:`SolverOptions`
+    (:func:`from_options`); ``ValueError`` naming ``name`` otherwise."""
+    if value is None or isinstance(value, SOLVERS):
+        return value
+    if isinstance(value, SolverOptions):
+        return from_options(value)
+    raise ValueError(f"{name} must be jtraj.Auto, jtraj.IPM, jtraj.AugmentedLagrangian or a jtraj.SolverOptions, "
+                     f"got {type(value).__name__}")
 
 
 def static_options(opts):
