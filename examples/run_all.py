@@ -28,8 +28,8 @@ FIGURES = HERE / "figures"
 
 # in the order of issue 4, then the examples of differentiating through the solve;
 # scripts that do not exist yet are reported as missing
-EXPERIMENTS = ["serial3", "serial3_vertical", "ibm7535", "pkm2", "parallel3", "wmr", "gough_stewart",
-               "inverse_payload", "design_by_gradient"]
+EXPERIMENTS = ["serial3", "serial3_lines", "serial3_vertical", "ibm7535", "pkm2", "pkm2_table42", "parallel3", "wmr",
+               "gough_stewart", "inverse_payload", "design_by_gradient"]
 
 _HEADER = """# jtraj: reproduction of the published experiments
 
