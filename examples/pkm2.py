@@ -54,18 +54,28 @@ W_TE = weights(1.0, 1.0)  # time-energy, all weights 1
 W_E = weights(0.0, 1.0)  # energy only
 
 
+def pkm2_robot(platform=200.0, leg=570.5, slider=100.0, gravity=0.0, h_max=0.7):
+    """pkm2 with its masses, gravity and h_max as JAX arrays: Python floats would be static
+    fields under jit, so another value would recompile the solver; arrays are traced, and
+    every variant here and in pkm2_table42.py shares one compiled solver per N (JAX's
+    persistent cache carries it from one script to the other)."""
+    base = jtraj.robots.get(NAME)
+    limits = dataclasses.replace(base.limits, h_max=jnp.asarray(float(h_max)))
+    return dataclasses.replace(base, limits=limits, platform_mass=jnp.asarray(float(platform)),
+                               leg_mass=jnp.asarray(float(leg)), slider_mass=jnp.asarray(float(slider)),
+                               gravity_accel=jnp.asarray(float(gravity)))
+
+
 def robot_with_platform(mass):
-    """pkm2 with the platform mass as a JAX array: a Python float would be a static field
-    under jit, so 300 kg would recompile the solver; an array is traced."""
-    return dataclasses.replace(jtraj.robots.get(NAME), platform_mass=jnp.asarray(float(mass)))
+    return pkm2_robot(platform=mass)
 
 
-def make_problem(robot, N, w, *, passages_active):
+def make_problem(robot, N, w, *, passages_active, start=P_START, goal=P_GOAL, T_max=T_MAX):
     """Start/goal problem; the three passages are always present (the number of via
     points is a static shape) but inactive (tolerance 100 m) unless ``passages_active``."""
     tol = VIA_TOL if passages_active else 100.0
     via = [jtraj.ViaPoint(jnp.asarray(p), tol=tol) for p in PASSAGES]
-    return jtraj.Problem(robot, jnp.asarray(P_START), jnp.asarray(P_GOAL), N=N, weights=w, T_max=T_MAX,
+    return jtraj.Problem(robot, jnp.asarray(start), jnp.asarray(goal), N=N, weights=w, T_max=T_max,
                          via_points=via)
 
 
