@@ -186,6 +186,8 @@ def main():
     ax1, ax2, ax3 = fig.subplots(1, 3)
     Ns = np.array(N_TABLE)
     ax1.plot(Ns, [T_by_N[N] for N in N_TABLE], "o-", color="C0", label=f"jtraj (h_max = {H_MAX:g} s)")
+    ok07 = [N for N in N_TABLE if bool(res07[N].converged)]
+    ax1.plot(ok07, [float(res07[N].T) for N in ok07], "x", color="C1", ms=9, label="jtraj, h_max = 0.7 s (solved)")
     for i, p in enumerate(TABLE_42):
         ax1.plot(p[0], p[4], "s", color="C3", mfc="none", ms=8, label="Table 4.2" if i == 0 else None)
         ax1.annotate(f"{p[1]} x {p[2]}", (p[0], p[4]), textcoords="offset points", xytext=(6, 2), fontsize=7)
