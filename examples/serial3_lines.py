@@ -134,7 +134,7 @@ def main():
         rowsA.append((r["label"],
                       f"({r['p0'][0]:.3f}, {r['p0'][1]:.3f}) -> ({r['pT'][0]:.3f}, {r['pT'][1]:.3f}) m; q "
                       f"({', '.join(f'{x:.1f}' for x in r['q0'])}) -> ({', '.join(f'{x:.1f}' for x in r['qT'])}) deg",
-                      f"{r['T']:.3f}", f"{r['E']:.4g}", f"{r['path_len']:.3f} / {r['straight']:.3f}",
+                      f"{r['T']:.3f} ({r['n_hmax']}/{N} h_k at h_max)", f"{r['E']:.4g}", f"{r['path_len']:.3f} / {r['straight']:.3f}",
                       f"{r['status']}; tries {r['tries']}", f"{r['viol']:.1e}", f"{r['between']:.3f}",
                       f"`figures/serial3_line2_{r['key']}.png`"))
     text = (f"## serial3_lines: chapter 5's minimum-time run and annex A's second straight line\n\n"
@@ -151,7 +151,9 @@ def main():
               f"({fk(robotA, Q_LINE2)[0]:.2f}, {fk(robotA, Q_LINE2)[1]:.2f}) m), so both readings are run; "
               f"the goal configuration comes from the weighted-pseudo-inverse IK. The thesis publishes the figure, "
               f"not its T or energy, so the rows are jtraj's alone (not comparable: nothing printed to compare; "
-              f"the IK start for the stated tips is ({', '.join(f'{x:.1f}' for x in np.rad2deg(q_tips))}) deg).\n\n"
+              f"the IK start for the stated tips is ({', '.join(f'{x:.1f}' for x in np.rad2deg(q_tips))}) deg). "
+              f"As in the serial3 section, all weights 1 with torques normalised by their limits makes the energy "
+              f"term dominate: the periods run to h_max and T to about N h_max = 2 s.\n\n"
             + table(rowsA, header=("reading", "move", "T [s]", "energy [s]", "tip path / straight [m]",
                                    "status", "worst violation", "max |tau|/tau_max between samples", "figure")))
     text += "\n\n" + wall_and_cpu(t_start)
