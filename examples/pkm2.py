@@ -282,7 +282,7 @@ def main():
     plotting.save(fig, str(FIGURES / f"{NAME}_singularities.png"))
 
     gain_fixed = 100 * (1 - T / float(sf.T))
-    n_fixed = int(np.sum(np.asarray(sf.h) >= h0 * (1 - 1e-6)))
+    n_fixed = int(np.sum(np.asarray(sf.h) >= h0 * (1 - 1e-3)))
     rows2 = [
         ("time-energy (all weights 1): status, worst violation, max |f|/f_max between samples",
          f"{status_text(sol, t_main)}, {float(sol.max_violation['overall']):.1e}, "
@@ -291,7 +291,7 @@ def main():
         ("time-energy vs energy-only, periods fixed at the trapezoid's: T [s]",
          f"{T:.3f} vs {float(sf.T):.3f} ({gain_fixed:.0f} % faster)", "34 % faster",
          f"the thesis' energy-only run fixes h (value not printed); here h_k <= {h0:.4f} s, the trapezoidal "
-           f"guess' periods ({n_fixed}/{N_MAIN} h_k end at that bound, i.e. fixed; T = {T_trap:.3f} s), so the gap is the time-energy optimum against the guess' duration "
+           f"guess' periods ({n_fixed}/{N_MAIN} h_k end within 0.1 % of that bound, i.e. fixed; T = {T_trap:.3f} s), so the gap is the time-energy optimum against the guess' duration "
            f"and depends on that choice; energy-only status {status_text(sf, t_f)}, worst violation "
            f"{float(sf.max_violation['overall']):.1e}; `figures/{NAME}_time_vs_energy.png`"),
         ("time-energy vs energy-only, free periods (T <= T_max): T [s]",
@@ -308,9 +308,10 @@ def main():
          f"synchronised trapezoid, quarter of T accelerating (`jtraj.initial_guess.trapezoidal`): the 0.2 m/s "
          f"cruise on x sets T; `figures/{NAME}_trapezoidal.png` draws it dashed"),
         ("time-energy from the trapezoidal guess: T [s], status",
-         f"{float(st.T):.3f}, {status_text(st, t_t)}; |T - T_default| = {abs(float(st.T) - T):.1e} s",
+         f"{float(st.T):.3f}, {status_text(st, t_t)}; |T - T_default| = {abs(float(st.T) - T):.1e} s, "
+         f"relative cost difference {abs(float(st.cost) / float(sol.cost) - 1):.1e}",
          "-", ("the same optimum as from the default torque-scaled cycloid"
-               if abs(float(st.T) - T) <= 1e-3 * T and abs(float(st.cost) - float(sol.cost)) <= 1e-4 * float(sol.cost)
+               if abs(float(st.T) - T) <= 1e-3 * T and abs(float(st.cost) - float(sol.cost)) <= 1e-3 * float(sol.cost)
                else "a different point from the default torque-scaled cycloid's")
               + f" ({int(sol.iterations)} Newton it. from that one); tries {' -> '.join(ttries)}, worst violation "
               f"{float(st.max_violation['overall']):.1e}"),
@@ -357,7 +358,9 @@ def main():
             f"all weights 1 (time = energy = 1, energy on forces normalised by their limits). Figures: "
             f"`figures/{NAME}_line.png`, `figures/{NAME}_energy_only.png`, `figures/{NAME}_time_vs_energy.png`, "
             f"`figures/{NAME}_trapezoidal.png`, `figures/{NAME}_passages.png`, `figures/{NAME}_singularities.png`. "
-            f"Table 4.2, its bounds and annex B's N = 10 line are in the pkm2_table42 section."
+            f"Table 4.2, its bounds and annex B's N = 10 line are in the pkm2_table42 section. Seconds in a "
+            f"status are the wall time of that call on a shared 2-core machine, compilation included where the "
+            f"call is a program's first use in the process."
             + f"\n\nConvergence history, N = {N_MAIN} (Solution.history: cost, normalised violation and penalty at "
               f"the end of each outer iteration):\n\n"
             + table(hist_rows, header=("outer", "cost", "violation", "penalty mu"))
