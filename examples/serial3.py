@@ -263,7 +263,7 @@ def main():
             if not bool(np.all(np.isfinite(np.asarray(r["d"]["T"])))):
                 text += (f"\n\nSensitivity ({lab}): dT*/dm is NaN at this {r['status'].name} optimum "
                          f"(`jtraj.sensitivity.sensitivity(..., details=True)`), so its rows show nan; the "
-                         f"envelope derivative of the cost (dJ*/dm3) is finite and matches the re-solve.")
+                         f"envelope derivative of the cost (dJ*/dm3, rows above) does not depend on it.")
             text += (f"\n\nSensitivity ({lab}): {r['t_sens']:.1f} s (includes the warm-started solve that "
                      f"recovers the multipliers and, the first time, its compilation); KKT size "
                      f"{r['d']['kkt_size']}, {r['d']['n_active']} active constraints, {r['d']['n_bound']} "
