@@ -29,8 +29,8 @@ FIGURES = HERE / "figures"
 # in the order of issue 4, then the examples of differentiating through the solve, then
 # the neuro-fuzzy planners and their public ANFIS check;
 # scripts that do not exist yet are reported as missing
-EXPERIMENTS = ["serial3", "serial3_vertical", "ibm7535", "pkm2", "parallel3", "wmr", "gough_stewart",
-               "inverse_payload", "design_by_gradient", "neurofuzzy", "mackey_glass"]
+EXPERIMENTS = ["serial3", "serial3_lines", "serial3_vertical", "ibm7535", "pkm2", "pkm2_table42", "parallel3", "wmr",
+               "gough_stewart", "inverse_payload", "design_by_gradient", "neurofuzzy", "mackey_glass"]
 
 _HEADER = """# jtraj: reproduction of the published experiments
 
