@@ -260,9 +260,7 @@ def main():
         ("circle: status", status_text(cs, t_csolve) + "; tries: " + " -> ".join(ctries), "-",
          f"the default cycloidal guess is degenerate for start = goal (zero motion), so the solve starts from "
          f"a cycloidal-in-angle traversal of {T_CIRCLE:g} s obtained by IK, then one warm re-solve if not "
-         f"certified; first call {t_cfirst:.0f} s incl. compilation. With N = 24 (two intervals per arc) it ended "
-         f"MAX_ITERATIONS (via error 2e-2 m; also with 7 via points): h <= h_max = 0.1 s leaves too little time "
-         f"for the first and last arcs from and to rest"),
+         f"certified; first call {t_cfirst:.0f} s incl. compilation"),
         ("circle: via point errors (max) [m]; radial deviation at samples / between samples (max) [m]",
          f"{np.max(cerr):.1e}; {np.max(radial[::10]):.1e} / {np.max(radial):.1e}", "not published",
          "via points met; between them the tip is free (the other samples and the continuous motion cut the "

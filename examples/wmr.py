@@ -34,9 +34,8 @@ Q_START = (3.0, 3.0, 0.0)
 Q_GOAL = (23.0, 23.0, np.pi / 6)
 N = 50
 # The robot's assumed h_max = 2 s lets the chassis travel up to 4 m between samples, where the
-# obstacles are not checked: with N = 40 the optimum cut 0.55 m into an obstacle between samples
-# (N = 80 with h_max = 2 s: 1.7 m). h_max = 0.5 s bounds the gap to 1 m (a chord of an obstacle
-# disc then enters it by a few centimetres to about 0.1 m).
+# obstacles are not checked; h_max = 0.5 s bounds that distance to 1 m (the table reports the
+# resulting overlap between samples).
 H_MAX = 0.5
 # minimum time (time weight 1, energy 0)
 W_TIME = jtraj.Weights(time=1.0, energy=0.0)
@@ -109,8 +108,8 @@ def main():
         ("min clearance to the obstacles: samples / between samples [m]",
          f"{np.min(clr_samples):.3f} / {np.min(clr):.3f}", "-",
          f"obstacles enforced at the samples only (path_constraints); between samples the chassis may cut a "
-         f"corner (negative = overlap). With the robot's h_max = 2 s and N = 40 the overlap was 0.55 m "
-         f"(N = 80: 1.7 m), hence h_max = {H_MAX:g} s here"),
+         f"corner (negative = overlap); h_max = {H_MAX:g} s (instead of the robot's 2 s) bounds the distance "
+         f"travelled between two samples"),
         ("max lateral velocity |A(q) qd| at the samples [m/s]", f"{np.max(lateral):.1e}", "0 (nonholonomic)",
          "no-slip constraint imposed at every sample (path_equalities)"),
         ("samples with a wheel torque >= 90 % of 1 N m", f"{100 * np.mean(sat >= 0.9):.0f} %", "-",
