@@ -28,7 +28,10 @@ Run: python examples/ibm7535.py
 
 from __future__ import annotations
 
+import json
+import pickle
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -47,12 +50,13 @@ from jtraj.resample import intersample_effort  # noqa: E402
 from jtraj.transcription import TRANSCRIPTIONS, Transcription  # noqa: E402
 
 NAME = "ibm7535"
+CACHE = Path(tempfile.gettempdir()) / "jtraj_ibm7535_solves.pkl"
 N = 40
 WEIGHTS = jtraj.Weights(time=1.0, energy=0.0)
 Q_START, Q_GOAL = (0.0, 0.0), (0.0, np.pi / 4)
 #: warm-started continuation of an uncertified solve: runs of CHUNK Newton iterations
 #: (no automatic restart inside a run), at most CHUNKS of them
-CHUNK, CHUNKS = 100, 15
+CHUNK, CHUNKS = 100, 10
 #: Chettibi Table 1: method -> (jtraj transcription, N reproducing the parameter count,
 #: published parameters, T [s], CPU [s], how the published count decomposes)
 COARSE = {
@@ -131,6 +135,11 @@ def near_active(sol, tau_max, rel=1e-3):
     return int(np.sum(np.abs(np.asarray(sol.tau)) / tau_max >= 1 - rel))
 
 
+def slowed(T, effort):
+    """Duration of the same path slowed uniformly until its largest torque ratio is 1."""
+    return T * np.sqrt(max(1.0, effort))
+
+
 def n_params(problem, name):
     return Transcription(name).layout(problem).nz - (problem.robot.n if name == "spline" else 0)
 
@@ -186,7 +195,6 @@ def main():
     robot = jtraj.robots.get(NAME)
     tau_max = np.asarray(robot.limits.tau_max)
     problem = jtraj.Problem(robot, Q_START, Q_GOAL, N=N, weights=WEIGHTS)
-    tol = jtraj.SolverOptions().tol_optimality
     fine, histories, records = {}, {}, []
     for name in TRANSCRIPTIONS:
         first, t_first = timed_solve(problem, transcription=name)
@@ -219,15 +227,6 @@ def main():
     plotting.save(fig, str(FIGURES / f"{NAME}_decoupled_intervals.png"))
     print("intervals", float(s_int.T), e_int, flush=True)
 
-    def slowed(T, effort):
-        return T * np.sqrt(max(1.0, effort))
-
-    feasible_T = {k: slowed(float(r["sol"].T), r["effort"]) for k, r in fine.items()
-                  if int(r["sol"].status) in (jtraj.Status.CONVERGED, jtraj.Status.FEASIBLE_NOT_OPTIMAL)}
-    feasible_T["decoupled, intervals"] = slowed(float(s_int.T), e_int)
-    ref_name = min(feasible_T, key=feasible_T.get)
-    T_ref = feasible_T[ref_name]
-
     # Chettibi's coarse parameterisations
     robot_c = jtraj.robots.get(NAME, h_max=H_MAX_COARSE)
     coarse = {}
@@ -246,7 +245,31 @@ def main():
                                                     f"T = {float(sol.T):.4f} s ({jtraj.Status(int(sol.status)).name})")
         plotting.save(fig, str(FIGURES / f"{NAME}_{name}_coarse.png"))
         print("coarse", name, cold, jtraj.Status(int(sol.status)).name, float(sol.T), eff, flush=True)
-    write_status(NAME, records, t_start)
+    data = dict(fine=fine, histories=histories, records=records, s_int=s_int, t_int=t_int,
+                t_int_first=t_int_first, e_int=e_int, coarse=coarse, seconds=time.perf_counter() - t_start)
+    try:  # the report can be redrawn from it: python examples/ibm7535.py --report
+        with open(CACHE, "wb") as f:
+            pickle.dump(jax.tree.map(lambda x: np.asarray(x) if isinstance(x, jax.Array) else x, data), f)
+    except Exception as exc:  # the cache is a convenience; the report does not need it
+        print(f"not cached ({exc})", flush=True)
+    report(data)
+
+
+def report(data):
+    """Figures, status record and RESULTS.md section from the solves of :func:`main`."""
+    fine, histories, records, coarse = data["fine"], data["histories"], data["records"], data["coarse"]
+    s_int, t_int, t_int_first, e_int = data["s_int"], data["t_int"], data["t_int_first"], data["e_int"]
+    robot = jtraj.robots.get(NAME)
+    tau_max = np.asarray(robot.limits.tau_max)
+    p_int = jtraj.Problem(robot, Q_START, Q_GOAL, N=N, weights=WEIGHTS, efforts="intervals")
+    tol = jtraj.SolverOptions().tol_optimality
+    feasible_T = {k: slowed(float(r["sol"].T), r["effort"]) for k, r in fine.items()
+                  if int(r["sol"].status) in (jtraj.Status.CONVERGED, jtraj.Status.FEASIBLE_NOT_OPTIMAL)}
+    feasible_T["decoupled, intervals"] = slowed(float(s_int.T), e_int)
+    ref_name = min(feasible_T, key=feasible_T.get)
+    T_ref = feasible_T[ref_name]
+
+    write_status(NAME, records)
 
     if histories:
         kkt_figure(histories, tol, FIGURES / f"{NAME}_kkt.png")
@@ -333,11 +356,18 @@ def main():
             f"feasible point).\n\n" + table(crow, header=cheader)
             + f"\n\nFigure `figures/ibm7535_ratios.png` draws these ratios against the parameter count beside "
               f"Table 1's.")
-    text += f"\n\nScript wall time {time.perf_counter() - t_start:.0f} s (process CPU {time.process_time():.0f} s)."
-    write_status(NAME, records, t_start)
+    text += f"\n\nScript wall time {data['seconds']:.0f} s (solves; process CPU {time.process_time():.0f} s)."
+    status = write_status(NAME, records)
+    rec = json.loads(status.read_text())
+    rec["script_wall_s"] = round(data["seconds"], 1)
+    status.write_text(json.dumps(rec, indent=1) + "\n")
     write_section(NAME, text)
     print(text)
 
 
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:] == ["--report"]:
+        with open(CACHE, "rb") as f:
+            report(pickle.load(f))
+    else:
+        main()
