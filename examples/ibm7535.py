@@ -23,7 +23,8 @@ T_ref is the shortest such duration among the N = 40 solutions.
 
 Writes examples/figures/ibm7535_*.png, examples/status/ibm7535.json and the "ibm7535"
 section of examples/RESULTS.md.
-Run: python examples/ibm7535.py
+Run: python examples/ibm7535.py [--skip=shooting,...] (leave transcriptions out: the
+shooting programs take minutes of CPU to compile) | --report (redraw from the cached solves)
 """
 
 from __future__ import annotations
@@ -173,11 +174,12 @@ def ratio_figure(points, path):
 
     fig = Figure(figsize=(6, 4.2), layout="constrained")
     ax = fig.add_subplot()
-    for i, name in enumerate(("collocation", "shooting", "spline")):
-        fine, coarse = points[name]
-        ax.plot(*fine, "o", color=f"C{i}", ms=7, label=f"{name}, jtraj N = {N}")
-        ax.errorbar([coarse[0]], [coarse[1]], yerr=[[0.0], [coarse[2] - coarse[1]]], fmt="s", color=f"C{i}",
-                    ms=7, mfc="none", capsize=3, label=f"{name}, jtraj coarse (bar: slowed to meet the bound)")
+    for i, name in enumerate(COARSE):
+        if name in points:
+            fine, coarse = points[name]
+            ax.plot(*fine, "o", color=f"C{i}", ms=7, label=f"{name}, jtraj N = {N}")
+            ax.errorbar([coarse[0]], [coarse[1]], yerr=[[0.0], [coarse[2] - coarse[1]]], fmt="s", color=f"C{i}",
+                        ms=7, mfc="none", capsize=3, label=f"{name}, jtraj coarse (bar: slowed to meet the bound)")
         _, p, T_pub, _, _ = COARSE[name]
         ax.plot([p], [T_pub / PONTRYAGIN], "^", color=f"C{i}", mec="k", ms=9,
                 label=f"{name}, Chettibi Table 1 ({T_pub} / {PONTRYAGIN} s)")
@@ -190,13 +192,14 @@ def ratio_figure(points, path):
     plotting.save(fig, str(path))
 
 
-def main():
+def main(skip=()):
+    """Solve everything (the transcriptions in ``skip`` left out), cache the solves, report."""
     t_start = time.perf_counter()
     robot = jtraj.robots.get(NAME)
     tau_max = np.asarray(robot.limits.tau_max)
     problem = jtraj.Problem(robot, Q_START, Q_GOAL, N=N, weights=WEIGHTS)
     fine, histories, records = {}, {}, []
-    for name in TRANSCRIPTIONS:
+    for name in (t for t in TRANSCRIPTIONS if t not in skip):
         first, t_first = timed_solve(problem, transcription=name)
         sol, t_solve = timed_solve(problem, transcription=name)
         cold = jtraj.Status(int(sol.status)).name
@@ -231,6 +234,8 @@ def main():
     robot_c = jtraj.robots.get(NAME, h_max=H_MAX_COARSE)
     coarse = {}
     for name, (Nc, p_pub, T_pub, cpu_pub, how) in COARSE.items():
+        if name in skip:
+            continue
         pc = jtraj.Problem(robot_c, Q_START, Q_GOAL, N=Nc, weights=WEIGHTS)
         sol, t_first = timed_solve(pc, transcription=name)
         cold = jtraj.Status(int(sol.status)).name
@@ -246,7 +251,8 @@ def main():
         plotting.save(fig, str(FIGURES / f"{NAME}_{name}_coarse.png"))
         print("coarse", name, cold, jtraj.Status(int(sol.status)).name, float(sol.T), eff, flush=True)
     data = dict(fine=fine, histories=histories, records=records, s_int=s_int, t_int=t_int,
-                t_int_first=t_int_first, e_int=e_int, coarse=coarse, seconds=time.perf_counter() - t_start)
+                t_int_first=t_int_first, e_int=e_int, coarse=coarse, seconds=time.perf_counter() - t_start,
+                skipped=tuple(skip))
     try:  # the report can be redrawn from it: python examples/ibm7535.py --report
         with open(CACHE, "wb") as f:
             pickle.dump(jax.tree.map(lambda x: np.asarray(x) if isinstance(x, jax.Array) else x, data), f)
@@ -276,7 +282,7 @@ def report(data):
     ratio_figure({name: ((fine[name]["params"], feasible_T.get(name, np.nan) / T_ref),
                          (coarse[name]["params"], float(coarse[name]["sol"].T) / T_ref,
                           slowed(float(coarse[name]["sol"].T), coarse[name]["effort"]) / T_ref))
-                  for name in COARSE}, FIGURES / f"{NAME}_ratios.png")
+                  for name in COARSE if name in fine and name in coarse}, FIGURES / f"{NAME}_ratios.png")
 
     # ---- tables
     rows = []
@@ -289,6 +295,8 @@ def report(data):
                      f"{float(sol.kkt_error):.1e}", f"{float(sol.max_violation['overall']):.0e}",
                      f"{r['effort']:.3f}", f"{feasible_T.get(name, float('nan')) / T_ref:.4f}", str(r["params"]),
                      f"{r['t_solve']:.2f} ({r['t_first']:.0f})", f"{100 * r['sat']:.0f} %", DISCRETE[name]))
+    skipped = data.get("skipped", ())
+    rows += [(name, "not run by this invocation (`--skip`)", *["-"] * 9) for name in skipped]
     rows.append(("decoupled, efforts=intervals", f"{float(s_int.T):.4f}",
                  f"{jtraj.Status(int(s_int.status)).name} ({int(s_int.iterations)} Newton it.)",
                  f"{float(s_int.kkt_error):.1e}", f"{float(s_int.max_violation['overall']):.0e}", f"{e_int:.3f}",
@@ -310,6 +318,11 @@ def report(data):
     cheader = ("Chettibi method", "jtraj N: parameters", "T [s]", "status", "largest |tau|/tau_max along the motion",
                "T / T_ref (bound at the samples - slowed to meet it everywhere)", "published T / 0.99 s",
                "jtraj wall s", "published CPU s")
+    for name in skipped:
+        Nc, p_pub, T_pub, cpu_pub, how = COARSE.get(name, (None,) * 5)
+        if Nc is not None:
+            crow.append((name, f"not run by this invocation (`--skip`); {how} in Chettibi", "-", "-", "-", "-",
+                         f"{T_pub} / {PONTRYAGIN} = {T_pub / PONTRYAGIN:.3f}", "-", f"{cpu_pub}"))
     uncert = [k for k, r in fine.items() if not bool(r["sol"].converged)]
     kkt_text = ("Every N = 40 transcription ends CONVERGED (those that did not at once were certified by the "
                 "warm-started continuation; `figures/ibm7535_kkt.png` shows their KKT error against the Newton "
@@ -370,4 +383,5 @@ if __name__ == "__main__":
         with open(CACHE, "rb") as f:
             report(pickle.load(f))
     else:
-        main()
+        skip = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--skip=")]
+        main(skip=tuple(x for a in skip for x in a.split(",")))
