@@ -306,7 +306,7 @@ def report(data):
                  f"{t_int:.2f} ({t_int_first:.0f})", "-", "the torque bound also at each interval's end"))
     header = ("transcription (N = 40)", "T [s]", "status", "KKT error", "worst violation",
               "largest |tau|/tau_max along the motion", "T sqrt(max(1, that)) / T_ref", "parameters",
-              "CPU per solve [s] (first call, compile incl.)", "samples with an actuator >= 90 %", "discrete model")
+              "wall s per solve (first call, compile incl.; shared, loaded 2-core machine)", "samples with an actuator >= 90 %", "discrete model")
     crow = []
     for name, r in coarse.items():
         Nc, p_pub, T_pub, cpu_pub, how = COARSE[name]
