@@ -1,10 +1,12 @@
 """gough_stewart (Khoukhi ch. 4, the general 6-DOF model): a platform move under time 1 /
 energy 0.1, without and with an orientation passage ``||vect(R^T R_l)|| <= eps_l``;
 leg lengths, leg speeds and leg forces against their bounds, and the singularity
-measure along the way.
+measure along the way. Both moves are also solved with the force bound at both ends of
+every interval (``efforts="intervals"``), and every solve reports its largest leg force
+between samples (``intersample_effort``).
 
-Writes examples/figures/gough_stewart_move.png and the "gough_stewart" section of
-examples/RESULTS.md. Run: python examples/gough_stewart.py
+Writes examples/figures/gough_stewart_move.png, examples/status/gough_stewart.json and the
+"gough_stewart" section of examples/RESULTS.md. Run: python examples/gough_stewart.py
 """
 
 from __future__ import annotations
@@ -14,7 +16,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import FIGURES, setup, solve_with_restart, status_text, table, wall_and_cpu, write_section  # noqa: E402
+from run_all import (FIGURES, setup, solve_with_restart, status_record, status_text, table, wall_and_cpu,  # noqa: E402
+                     write_section, write_status)
 
 setup()
 
@@ -23,6 +26,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jtraj  # noqa: E402
+from jtraj import plotting  # noqa: E402
 from jtraj.problem import orientation_error  # noqa: E402
 from jtraj.robots.gough_stewart import rpy_matrix  # noqa: E402
 
@@ -74,6 +78,20 @@ def main():
     sol2, t2_first, t2_last, tries2 = solve_with_restart(oriented, init=(sol.v, sol.h))
     print(f"passage: {status_text(sol2, t2_last)}, T = {float(sol2.T):.4f} s", flush=True)
     k = free.via_samples()[0]
+    # the same two moves with the force bound at both ends of every interval, warm-started
+    # from the samples-only optima (one more compilation, shared by both)
+    solved = {"samples": (sol, sol2)}
+    ivals = []
+    for pr, s0 in ((free, sol), (oriented, sol2)):
+        pi = jtraj.Problem(robot, pr.q_start, pr.q_goal, N=N, weights=WEIGHTS, via_points=pr.via_points,
+                           efforts="intervals")
+        si, ti_first, ti_last, tries_i = solve_with_restart(pi, init=(s0.v, s0.h))
+        ivals.append((si, ti_first, ti_last, tries_i))
+        print(f"intervals: {status_text(si, ti_last)}, T = {float(si.T):.4f} s", flush=True)
+    solved["intervals"] = tuple(r[0] for r in ivals)
+    records = [status_record(f"{move}, {efforts}", s_, robot) for efforts, pair in solved.items()
+               for move, s_ in zip(("free orientation", "passage"), pair)]
+    effort = {r["run"]: r["effort_between_samples"] for r in records}
 
     def via_err(s):
         return float(jnp.linalg.norm(orientation_error(robot.rotation(s.q[k]), R_l)))
@@ -88,21 +106,29 @@ def main():
     for col, (s, label) in enumerate(((sol, "free orientation"), (sol2, f"orientation passage (eps {VIA_EPS:g})"))):
         t, rho, rhod, manip, t_s, tau = leg_profiles(robot, s)
         ax = axes[col, 0]
-        ax.plot(t, rho)
+        for j in range(rho.shape[1]):
+            ax.plot(t, rho[:, j], color=f"C{j}", label=f"leg {j + 1}")
         for b in (rho_lo, rho_hi):
             ax.axhline(b, ls="--", c="k", lw=0.8)
         ax.set_ylabel("leg length rho_i [m]")
+        ax.legend(fontsize=6, ncol=2)
         ax.set_title(f"{label}: T = {float(s.T):.3f} s", fontsize=9)
         ax = axes[col, 1]
-        ax.plot(t, rhod)
+        for j in range(rhod.shape[1]):
+            ax.plot(t, rhod[:, j], color=f"C{j}")
         for b in (-rhod_max, rhod_max):
             ax.axhline(b, ls="--", c="k", lw=0.8)
         ax.set_ylabel("leg speed [m/s]")
         ax = axes[col, 2]
-        ax.step(t_s, tau, where="post")
+        for j in range(tau.shape[1]):
+            ax.step(t_s, tau[:, j], where="post", color=f"C{j}")
+        dense_f = plotting.efforts_between_samples(robot, s)
+        if dense_f is not None:
+            for j in range(dense_f[1].shape[1]):
+                ax.plot(dense_f[0], dense_f[1][:, j], color=f"C{j}", lw=0.6)
         for b in (-f_max, f_max):
             ax.axhline(b, ls="--", c="k", lw=0.8)
-        ax.set_ylabel("leg force tau_i [N] (at the samples)")
+        ax.set_ylabel("leg force tau_i [N] (steps: samples; thin: between)")
         ax2 = ax.twinx()
         ax2.plot(t, manip, ":", c="gray")
         ax2.set_ylabel("manipulability |det J D| (1 = home), dotted", fontsize=8)
@@ -124,12 +150,21 @@ def main():
     rows = [
         ("free orientation", status_text(sol, t_last), f"{float(sol.T):.3f}", f"{float(sol.energy):.4g}",
          f"{float(sol.cost):.5f}", f"{via_err(sol):.3f}", peak(sol),
+         f"{effort['free orientation, samples']:.3f}",
          f"{' -> '.join(tries)}; first call {t_first:.0f} s (compilation)"),
         (f"passage, eps = {VIA_EPS:g}", status_text(sol2, t2_last), f"{float(sol2.T):.3f}", f"{float(sol2.energy):.4g}",
-         f"{float(sol2.cost):.5f}", f"{via_err(sol2):.2e}", peak(sol2),
+         f"{float(sol2.cost):.5f}", f"{via_err(sol2):.2e}", peak(sol2), f"{effort['passage, samples']:.3f}",
          f"{' -> '.join(tries2)}, warm-started from the free optimum; first call {t2_first:.0f} s"),
     ]
-    header = ("move", "status", "T [s]", "energy [s]", "cost", "||vect(R^T R_l)|| at the passage", "legs", "tries")
+    for move, (si, ti_first, ti_last, tries_i) in zip(("free orientation", f"passage, eps = {VIA_EPS:g}"), ivals):
+        key = "free orientation" if move == "free orientation" else "passage"
+        rows.append((f"{move}, efforts=intervals", status_text(si, ti_last), f"{float(si.T):.3f}",
+                     f"{float(si.energy):.4g}", f"{float(si.cost):.5f}", f"{via_err(si):.2e}", peak(si),
+                     f"{effort[key + ', intervals']:.3f}",
+                     f"{' -> '.join(tries_i)}, warm-started from the samples-only optimum; first call {ti_first:.0f} s"))
+    write_status(NAME, records, t_start)
+    header = ("move", "status", "T [s]", "energy [s]", "cost", "||vect(R^T R_l)|| at the passage", "legs",
+              "largest |tau|/tau_max between samples", "tries")
     text = (f"## gough_stewart: 6-DOF Gough-Stewart platform, a move with an orientation passage\n\n"
             f"Robot `gough_stewart` (parameters chosen here, the thesis publishes none: base radius 1.0 m, platform "
             f"radius 0.5 m, base joints at 120 k +- 15 deg, platform joints at 120 k +- 45 deg; platform 50 kg "
@@ -142,8 +177,10 @@ def main():
             f"options. The passage imposes the orientation roll/pitch/yaw = {VIA_RPY} rad at sample {k} to "
             f"||vect(R^T R_l)|| <= {VIA_EPS:g} (the thesis' orientation passage; its position tolerance, 0.5 m, is "
             f"inactive). Figure: `figures/{NAME}_move.png` (leg lengths, speeds and forces against their bounds, "
-            f"in m, m/s and N).\n\n" + table(rows, header=header))
+            f"in m, m/s and N; forces: steps at the samples, thin lines between them). The `efforts=intervals` "
+            f"rows bound the leg forces at both ends of every interval as well.\n\n" + table(rows, header=header))
     text += "\n\n" + wall_and_cpu(t_start)
+    write_status(NAME, records, t_start)
     write_section(NAME, text)
     print(text)
 

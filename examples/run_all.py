@@ -10,6 +10,23 @@ its own process (fresh in-memory JAX caches, bounded memory; JAX's persistent ca
 ``~/.cache/jtraj/jax`` is shared, so unchanged code loads instead of compiling); the
 wall time of each is printed, and a full run records them in RESULTS.md's last section
 (a partial run leaves that table to the last full run).
+
+Status record. Besides its RESULTS.md section, each script reports the outcome of
+every solve it shows in ``examples/status/<name>.json`` with :func:`write_status`::
+
+    {"experiment": "parallel3", "script_wall_s": 113.2,
+     "runs": [{"run": "mu = 1", "status": "CONVERGED", "max_violation": 1.1e-16,
+               "effort_between_samples": 1.83}, ...]}
+
+``status`` is the :class:`jtraj.Status` name, ``max_violation`` the solution's
+``max_violation["overall"]`` (relative for bounds, re-simulated) and
+``effort_between_samples`` :func:`jtraj.resample.intersample_effort` (max over the
+motion of |tau_i(t)| / tau_max_i, 1 = at the bound; null where it does not apply).
+:func:`status_record` builds one run's entry from a solution. run_all's table (the
+last section of RESULTS.md) lists, per experiment, the statuses, the worst violation
+and the largest effort between samples, read from these files; a script that writes
+none shows "no status reported". ``python examples/run_all.py --table`` rebuilds the
+table from the files without running anything.
 """
 
 from __future__ import annotations
@@ -25,6 +42,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "RESULTS.md"
 FIGURES = HERE / "figures"
+STATUS = HERE / "status"
 
 # in the order of issue 4, then the examples of differentiating through the solve, then
 # the neuro-fuzzy planners and their public ANFIS check;
@@ -57,6 +75,89 @@ def write_section(name: str, markdown: str) -> None:
         tmp = RESULTS.with_suffix(".md.tmp")
         tmp.write_text(text)
         os.replace(tmp, RESULTS)
+
+
+def status_record(run: str, sol, robot=None) -> dict:
+    """One run's entry of the status record (see the module docstring): ``sol``'s status
+    name, its overall re-simulated violation and, with ``robot`` (a robot with
+    ``tau_max``), the largest effort between samples of the constant-acceleration motion."""
+    import jtraj
+
+    rec = {"run": run, "status": jtraj.Status(int(sol.status)).name,
+           "max_violation": float(sol.max_violation["overall"]), "effort_between_samples": None}
+    if robot is not None and robot.limits.tau_max is not None:
+        from jtraj.resample import intersample_effort
+
+        rec["effort_between_samples"] = float(intersample_effort(sol, robot))
+    return rec
+
+
+def write_status(name: str, runs: list[dict], t_start: float | None = None) -> Path:
+    """Write ``examples/status/<name>.json``: the runs (:func:`status_record` entries) and,
+    with ``t_start`` (a perf_counter value), the script's wall time so far."""
+    import json
+
+    STATUS.mkdir(exist_ok=True)
+    record = {"experiment": name, "runs": list(runs)}
+    if t_start is not None:
+        record["script_wall_s"] = round(time.perf_counter() - t_start, 1)
+    path = STATUS / f"{name}.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(record, indent=1) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def read_status(name: str) -> dict | None:
+    """The status record of experiment ``name``, or None when its script writes none."""
+    import json
+
+    path = STATUS / f"{name}.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+#: order in which statuses are "worse" (the table names the worst run)
+_RANK = ["CONVERGED", "FEASIBLE_NOT_OPTIMAL", "VERIFICATION_FAILED", "LIKELY_INFEASIBLE", "MAX_ITERATIONS",
+         "NUMERICAL_ERROR", "INVALID_INPUT"]
+
+
+def status_row(name: str) -> tuple[str, str, str]:
+    """(statuses, worst violation, largest effort between samples) of experiment ``name``
+    for run_all's table, from its status record."""
+    rec = read_status(name)
+    if rec is None or not rec.get("runs"):
+        return "no status reported", "-", "-"
+    runs = rec["runs"]
+    counts = {}
+    for r in runs:
+        counts[r["status"]] = counts.get(r["status"], 0) + 1
+    statuses = ", ".join(f"{c} {s}" for s, c in sorted(counts.items(), key=lambda sc: _RANK.index(sc[0])
+                                                             if sc[0] in _RANK else len(_RANK)))
+    worst = max(runs, key=lambda r: r["max_violation"])
+    viol = f"{worst['max_violation']:.1e} ({worst['run']})"
+    eff = [r for r in runs if r.get("effort_between_samples") is not None]
+    if eff:
+        top = max(eff, key=lambda r: r["effort_between_samples"])
+        effort = f"{top['effort_between_samples']:.3f} ({top['run']})"
+    else:
+        effort = "-"
+    return statuses, viol, effort
+
+
+def status_table(names, timings=None) -> str:
+    """run_all's table: per experiment the wall time (this run's, else the script's own
+    record), the exit code, and :func:`status_row`."""
+    timings = timings or {}
+    rows = []
+    for n in names:
+        rec = read_status(n) or {}
+        if n in timings:
+            wall, result = timings[n]
+        else:
+            wall, result = rec.get("script_wall_s"), "not run by this call"
+        rows.append((n, "-" if wall is None else f"{wall:.0f}", result, *status_row(n)))
+    return table(rows, header=("experiment", "wall s", "script", "solver statuses (runs)", "worst violation (run)",
+                               "largest effort between samples / bound (run)"))
 
 
 def setup() -> None:
@@ -130,6 +231,13 @@ def main(argv: list[str]) -> int:
     script's time is single-threaded XLA compilation, so two scripts on two cores take
     about half the wall time of one after the other)."""
     jobs = os.cpu_count() or 1
+    if argv[:1] == ["--table"]:
+        text = status_table(argv[1:] or EXPERIMENTS)
+        print(text, flush=True)
+        if not argv[1:]:
+            _write_table(text + "\n\nRebuilt from the status records (`run_all.py --table`); wall times are "
+                               "the scripts' own.")
+        return 0
     if argv[:1] == ["--jobs"]:
         jobs, argv = max(1, int(argv[1])), argv[2:]
     names = argv or EXPERIMENTS
@@ -158,19 +266,27 @@ def main(argv: list[str]) -> int:
             log.close()
             dt = time.perf_counter() - t0
             print(f"[run_all] {name}: exit {rc} in {dt:.0f} s (output: examples/.{name}.log)", flush=True)
-            timings[name] = (dt, "ok" if rc == 0 else f"exit {rc}")
+            timings[name] = (dt, "exit 0" if rc == 0 else f"exit {rc}")
             if rc:
                 failed.append(name)
             del running[name]
     total = time.perf_counter() - t_all
-    rows = [(n, "-" if timings[n][0] is None else f"{timings[n][0]:.0f}", timings[n][1]) for n in names]
-    text = (table(rows, header=("experiment", "wall s", "result"))
+    text = (status_table(names, timings)
             + f"\n\nTotal wall time {total:.0f} s with {jobs} scripts at a time on {machine()}.")
     if argv:  # a partial run keeps the table of the last full one
         print(text, flush=True)
     else:
-        write_section("run_all", "## Run times of the last `run_all.py`\n\n" + text)
+        _write_table(text)
     return 1 if failed else 0
+
+
+def _write_table(text: str) -> None:
+    write_section("run_all", "## Solver status and run times of the last `run_all.py`\n\n"
+                  "Per experiment, from its status record (`examples/status/<name>.json`): how many solves ended "
+                  "in each status, the largest re-simulated violation (relative for bounds) and the largest "
+                  "actuator effort between samples over its bound (`intersample_effort`; above 1 means the "
+                  "constant-acceleration motion exceeds the bound between samples although the samples meet it)."
+                  "\n\n" + text)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,10 @@ returns a :class:`matplotlib.figure.Figure` built without ``pyplot``, so it is s
 with the Agg backend, in threads and in tests; save it with ``fig.savefig(path)``.
 
 The cycloidal initial guess (:func:`jtraj.initial_guess.cycloidal`) is drawn beside
-the optimum (thin dashed grey lines) so the gain of the optimisation is visible.
+the optimum (thin dashed lines in each joint's colour) so the gain of the optimisation is
+visible. Units follow each coordinate's type (rad or m, rad/s or m/s, N m or N: see
+:func:`coordinate_units` and :func:`effort_units`). Legends name each joint once (its
+colour) and each kind of line once (optimum, guess, bound, between samples).
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ import numpy as np
 
 _OPT = dict(lw=1.8)
 _GUESS = dict(lw=1.0, ls="--", color="0.55")
+_BOUND = dict(lw=0.9, ls="-.")
+_BETWEEN = dict(lw=0.7)
 
 
 def _np(x):
@@ -101,10 +106,22 @@ def _line(ax, t, y, **kw):
     ax.plot(t, y, **kw)
 
 
-def _signals_with_limits(ax, draw, sol, guess, key, bound, ylabel, title, units=None):
-    """One panel: every joint's ``sol[key]`` (and the guess's, dashed grey-ish) drawn by
-    ``draw(ax, t, y, **style)``, with +-bound as dashed lines in the joint's colour;
-    ``units``: each line's unit, in its legend label."""
+def _kind_legend(ax, kinds, fontsize=7):
+    """A legend with the labelled lines of ``ax`` (one per joint) followed by one grey
+    entry per kind of line: ``kinds`` is a list of (style dict, label)."""
+    from matplotlib.lines import Line2D
+
+    handles, labels = ax.get_legend_handles_labels()
+    for style, label in kinds:
+        handles.append(Line2D([], [], **{"color": "0.35", **style}))
+        labels.append(label)
+    ax.legend(handles, labels, fontsize=fontsize)
+
+
+def _signals_with_limits(ax, draw, sol, guess, key, bound, ylabel, title, units=None, kinds=()):
+    """One panel: every joint's ``sol[key]`` (and the guess's, dashed) drawn by
+    ``draw(ax, t, y, **style)``, with +-bound as dash-dotted lines in the joint's colour;
+    ``units``: each line's unit, in its legend label; ``kinds``: extra legend entries."""
     for j in range(sol[key].shape[1]):
         label = f"{key}{j + 1}" + ("" if units is None else f" [{units[j]}]")
         draw(ax, sol["t"], sol[key][:, j], color=f"C{j}", label=label, **_OPT)
@@ -112,15 +129,17 @@ def _signals_with_limits(ax, draw, sol, guess, key, bound, ylabel, title, units=
             draw(ax, guess["t"], guess[key][:, j], **{**_GUESS, "color": f"C{j}", "alpha": 0.6})
         if bound is not None:
             b = _np(bound)[j]
-            ax.axhline(b, ls="--", color=f"C{j}", lw=0.9)
-            ax.axhline(-b, ls="--", color=f"C{j}", lw=0.9)
+            ax.axhline(b, color=f"C{j}", **_BOUND)
+            ax.axhline(-b, color=f"C{j}", **_BOUND)
     ax.set_xlabel("t [s]")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
-    ax.legend(fontsize=7)
+    legend = [(_OPT, "optimum")] + ([(_GUESS, "cycloidal guess")] if guess is not None else [])
+    legend += list(kinds) + ([(_BOUND, "bound")] if bound is not None else [])
+    _kind_legend(ax, legend)
 
 
-def _efforts_between_samples(robot, solution, per_interval: int = 8):
+def efforts_between_samples(robot, solution, per_interval: int = 8):
     """(t, tau) of the constant-acceleration motion inside every interval (NaN rows
     between intervals, so that a line breaks where the acceleration jumps), or None for
     a trajectory that is not one (see :mod:`jtraj.resample`)."""
@@ -238,28 +257,32 @@ def plot_solution(problem, solution, *, guess: bool = True, title: str | None = 
         ax.plot(sol["t"], sol["q"][:, j], color=f"C{j}", label=f"q{j + 1} [{cu[j]}]", **_OPT)
         if g is not None:
             ax.plot(g["t"], g["q"][:, j], **{**_GUESS, "color": f"C{j}", "alpha": 0.6})
+    bounded = False
     if lim.q_min is not None:
         for j, (lo, hi) in enumerate(zip(_np(lim.q_min), _np(lim.q_max))):
             for b in (lo, hi):
                 if np.isfinite(b):
-                    ax.axhline(b, ls=":", color=f"C{j}", lw=0.8)
+                    ax.axhline(b, color=f"C{j}", **_BOUND)
+                    bounded = True
     ax.set_xlabel("t [s]")
     ax.set_ylabel(f"q [{_axis_unit(cu)}]")
-    ax.set_title("joint positions (dashed: guess)")
-    ax.legend(fontsize=7)
+    ax.set_title("joint positions")
+    _kind_legend(ax, [(_OPT, "optimum")] + ([(_GUESS, "cycloidal guess")] if g is not None else [])
+                 + ([(_BOUND, "bound")] if bounded else []))
 
     # qd(t)
     _signals_with_limits(axs[0, 2], _line, sol, g, "qd", lim.qd_max, f"qd [{_axis_unit(cu, '/s')}]",
                          "joint velocities and limits", [f"{u}/s" for u in cu])
 
-    # tau(t)
-    dense = _efforts_between_samples(robot, solution)
+    # tau(t): steps at the samples (the transcription's values), thin lines between them
+    dense = efforts_between_samples(robot, solution)
     _signals_with_limits(axs[1, 0], _stairs, sol, g, "tau", lim.tau_max, f"tau [{_axis_unit(eu)}]",
-                         "actuator efforts and limits (dashed)" if dense is None else
-                         "efforts at the samples (steps), between them (thin)", eu)
+                         "actuator efforts and limits" if dense is None else
+                         "efforts at the samples (steps), between them (thin)", eu,
+                         kinds=() if dense is None else [(_BETWEEN, "between samples")])
     if dense is not None:
         for j in range(dense[1].shape[1]):
-            axs[1, 0].plot(dense[0], dense[1][:, j], color=f"C{j}", lw=0.7)
+            axs[1, 0].plot(dense[0], dense[1][:, j], color=f"C{j}", **_BETWEEN)
 
     # h_k
     ax = axs[1, 1]
@@ -267,11 +290,11 @@ def plot_solution(problem, solution, *, guess: bool = True, title: str | None = 
     ax.plot(k, sol["h"], "o-", color="C3", label=f"optimum (T = {sol['t'][-1]:.3f} s)", **_OPT)
     if g is not None:
         ax.plot(k, g["h"], marker=".", label=f"guess (T = {g['t'][-1]:.3f} s)", **_GUESS)
-    ax.axhline(float(lim.h_min), ls=":", color="0.3", lw=0.8)
-    ax.axhline(float(lim.h_max), ls=":", color="0.3", lw=0.8)
+    ax.axhline(float(lim.h_min), color="0.3", **_BOUND)
+    ax.axhline(float(lim.h_max), color="0.3", **_BOUND, label="h_min, h_max")
     ax.set_xlabel("interval k")
     ax.set_ylabel("h_k [s]")
-    ax.set_title("sampling periods (dotted: bounds)")
+    ax.set_title("sampling periods")
     ax.legend(fontsize=7)
 
     # cumulative energy
@@ -282,7 +305,7 @@ def plot_solution(problem, solution, *, guess: bool = True, title: str | None = 
         eg = _energy(g["tau"], g["h"], lim.tau_max)
         ax.plot(g["t"], eg, label=f"guess ({eg[-1]:.3g})", **_GUESS)
     ax.set_xlabel("t [s]")
-    ax.set_ylabel("sum h tau^T diag(1/tau_max^2) tau [s]")
+    ax.set_ylabel("sum h tau^T diag(1/tau_max^2) tau [s]" if lim.tau_max is not None else "sum h tau^T tau")
     ax.set_title("cumulative energy")
     ax.legend(fontsize=7)
 

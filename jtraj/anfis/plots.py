@@ -10,7 +10,8 @@ import numpy as np
 
 def training_figure(history, model, path: str, input_names=None, title: str = "") -> str:
     """Write one PNG: RMSE per epoch (train and validation, log scale) and, per input,
-    the Gaussian memberships of every rule before (dashed) and after (solid) training."""
+    the Gaussian memberships of every rule before (dashed) and after (solid) training,
+    one colour per rule. ``input_names`` should carry each input's unit, e.g. "x [m]"."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -41,7 +42,13 @@ def training_figure(history, model, path: str, input_names=None, title: str = ""
             line, = a.plot(x, np.exp(-0.5 * ((x - c0[r, i]) / s0[r, i]) ** 2), ls="--", lw=0.8)
             a.plot(x, np.exp(-0.5 * ((x - c1[r, i]) / s1[r, i]) ** 2), color=line.get_color(), lw=1.2)
         a.set_xlabel(names[i])
+        a.set_ylabel("membership")
         a.set_ylim(0, 1.05)
+        if i == 0:  # one entry per kind of line; the colours are the rules
+            from matplotlib.lines import Line2D
+
+            a.legend([Line2D([], [], color="0.35", ls="--", lw=0.8), Line2D([], [], color="0.35", lw=1.2)],
+                     ["before training", "after training"], fontsize=7)
     fig.suptitle("memberships: dashed before, solid after training", y=0.995, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

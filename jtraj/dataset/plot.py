@@ -39,7 +39,8 @@ def plot(path: str, out: str) -> str:
     if p.shape[1] >= 2:
         from matplotlib.colors import LogNorm
 
-        a.hist2d(p[:, 0], p[:, 1], bins=80, cmap="viridis", cmin=1, norm=LogNorm())
+        *_, image = a.hist2d(p[:, 0], p[:, 1], bins=80, cmap="viridis", cmin=1, norm=LogNorm())
+        fig.colorbar(image, ax=a, label="trajectory samples per bin")
         a.scatter(p0[:, 0], p0[:, 1], s=5, c="white", edgecolors="k", linewidths=0.3, label="start")
         a.scatter(p1[:, 0], p1[:, 1], s=5, c="tab:orange", label="goal")
         bad = ~conv

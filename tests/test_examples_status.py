@@ -1,0 +1,88 @@
+"""The examples' status record (examples/run_all.py) and the trajectory figure's legends
+and units (jtraj.plotting): no solve, a trajectory from the recursion."""
+
+from __future__ import annotations
+
+import json
+import sys
+import types
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jtraj
+from jtraj import robots
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+import run_all  # noqa: E402
+
+
+def _fake_solution(status, violation):
+    return types.SimpleNamespace(status=np.int32(status), max_violation={"overall": np.float64(violation)})
+
+
+def test_status_record_and_table(tmp_path, monkeypatch):
+    monkeypatch.setattr(run_all, "STATUS", tmp_path)
+    runs = [run_all.status_record("a", _fake_solution(jtraj.Status.CONVERGED, 1e-12)),
+            run_all.status_record("b", _fake_solution(jtraj.Status.FEASIBLE_NOT_OPTIMAL, 3e-7)),
+            run_all.status_record("c", _fake_solution(jtraj.Status.CONVERGED, 2e-9))]
+    runs[0]["effort_between_samples"], runs[2]["effort_between_samples"] = 1.83, 1.002
+    path = run_all.write_status("demo", runs, t_start=0.0)
+    rec = json.loads(path.read_text())
+    assert rec["experiment"] == "demo" and [r["run"] for r in rec["runs"]] == ["a", "b", "c"]
+    assert rec["runs"][1]["status"] == "FEASIBLE_NOT_OPTIMAL" and rec["runs"][1]["effort_between_samples"] is None
+    statuses, worst, effort = run_all.status_row("demo")
+    assert statuses == "2 CONVERGED, 1 FEASIBLE_NOT_OPTIMAL"
+    assert worst == "3.0e-07 (b)" and effort == "1.830 (a)"
+    # a script without a record
+    assert run_all.status_row("other") == ("no status reported", "-", "-")
+    text = run_all.status_table(["demo", "other"], {"other": (12.0, "exit 0")})
+    lines = text.splitlines()
+    assert lines[2].startswith("| demo |") and "not run by this call" in lines[2]
+    assert lines[3].startswith("| other | 12 | exit 0 | no status reported |")
+
+
+class _Trajectory(dict):
+    """A trajectory as a mapping (what jtraj.resample takes) with attribute access (what
+    jtraj.plotting reads)."""
+
+    __getattr__ = dict.__getitem__
+
+
+def _recursion_solution(problem, v, h):
+    q, qd = jtraj.transcription.integrate(problem.q_start, problem.qd_start, v, h)
+    tau = jax.vmap(problem.robot.inverse_dynamics)(q[:-1], qd[:-1], v)
+    return _Trajectory(q=q, qd=qd, v=v, tau=tau, h=h)
+
+
+@pytest.mark.slow
+def test_figure_units_and_one_legend_entry_per_kind():
+    """parallel3: Cartesian coordinates in m, three torques in N m for two coordinates."""
+    from jtraj.plotting import plot_solution
+
+    robot = robots.get("parallel3")
+    q_unit, tau_unit = "m", "N m"
+    q0, q1 = jnp.asarray([-0.3, 0.2]), jnp.asarray([0.3, -0.3])
+    problem = jtraj.Problem(robot, q0, q1, N=6)
+    n = robot.n
+    v = jnp.concatenate([jnp.tile(0.8 * (q1 - q0), (3, 1)), jnp.tile(-0.8 * (q1 - q0), (3, 1))]).reshape(6, n)
+    fig = plot_solution(problem, _recursion_solution(problem, v, jnp.full(6, 0.1)))
+    axes = {ax.get_title(): ax for ax in fig.axes}
+    labels = {ax.get_ylabel() for ax in fig.axes}
+    assert {f"q [{q_unit}]", f"qd [{q_unit}/s]", f"tau [{tau_unit}]"} <= labels
+    for title, kinds in (("joint positions", ["optimum", "cycloidal guess"]),
+                         ("joint velocities and limits", ["optimum", "cycloidal guess", "bound"]),
+                         ("efforts at the samples (steps), between them (thin)",
+                          ["optimum", "cycloidal guess", "between samples", "bound"])):
+        texts = [t.get_text() for t in axes[title].get_legend().get_texts()]
+        joints = [t for t in texts if t not in kinds and t != "bound"]
+        assert len(joints) == (n if title != "efforts at the samples (steps), between them (thin)"
+                               else int(np.shape(robot.limits.tau_max)[0]))
+        for kind in kinds:  # every kind named once, not once per joint
+            assert texts.count(kind) == 1, (title, texts)
+    # the guess's duration is drawn beside the optimum's
+    h_texts = [t.get_text() for t in axes["sampling periods"].get_legend().get_texts()]
+    assert any(t.startswith("guess (T = ") for t in h_texts) and any(t.startswith("optimum (T = 0.600") for t in h_texts)
