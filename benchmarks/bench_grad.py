@@ -6,9 +6,22 @@
 Measurements on the serial3 benchmark family (time = 1, energy = 0.1, float64):
 
 1. **Agreement with finite differences of re-solves** on ``--fd-pairs`` pairs: for each
-   input kind (q_goal, q_start, the weights time and energy, the link masses, tau_max,
-   a binding T_max (0.99 of the free optimum's T), the position and tolerance of a via
-   point near the path's middle) a random unit direction per pair, the forward-mode
+   input kind a random unit direction per pair (``--kinds``, default all):
+
+   - ``q_goal``, ``q_start``; ``qd_boundary``: start and goal velocities (0.2 and 0.1 of
+     qd_max along the move);
+   - ``weights``: time and energy; ``weights_UQ``: explicit diagonal U (the default
+     energy term's) and Q (a kinetic term of 0.05);
+   - ``masses``: link masses and inertias; ``lengths``: link lengths and centres of mass;
+   - ``tau_max``; ``limits``: qd_max (0.8 of the free optimum's peak speed, so that it
+     binds), qdd_max and h_max; ``T_max``: a binding bound (0.99 of the free optimum's T);
+   - ``via``: the position and tolerance of a via point near the path's middle;
+   - ``path``: pkm2 (path constraints: the legs' closure and the distance to its
+     singularities) on its own pairs drawn in the middle of its joint box: its q_start,
+     q_goal and tau_max.
+
+   Steps are absolute for configurations, velocities and positions, relative to the
+   value otherwise. The forward-mode
    derivative (``jax.jvp`` through ``jtraj.solve``) of T and of the cost against central
    differences of warm re-solves (AL method, tolerances 1e-10). Two estimates: the
    central difference with step ``--step / 2`` and its Richardson extrapolation from
@@ -120,6 +133,21 @@ def _setup(kind, jtraj, robot, q0, q1, free, free_sol, N, w, options, pkm2_pair)
     return p, base, get, absolute
 
 
+def _table(fd_fig, kinds):
+    """The markdown table of part 1 (docs/benchmarks.md) from its figures."""
+    lines = ["", "| input kind | pairs | dT*: median / p90 / max | dJ*: median / p90 / max | "
+             "central differences alone, max (dT* / dJ*) |", "|---|---|---|---|---|"]
+    for kind in kinds:
+        r = [fd_fig[f"{kind}/d{o}"]["richardson"] for o in ("T", "cost")]
+        c = [fd_fig[f"{kind}/d{o}"]["central"] for o in ("T", "cost")]
+        if r[0] is None:
+            lines.append(f"| {kind} | 0 | | | |")
+            continue
+        cells = [" / ".join(f"{st[q]:.1e}" for q in ("median", "p90", "max")) for st in r]
+        lines.append(f"| {kind} | {r[0]['n']} | {cells[0]} | {cells[1]} | {c[0]['max']:.1e} / {c[1]['max']:.1e} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--fd-pairs", type=int, default=64)
@@ -131,7 +159,13 @@ def main(argv=None):
     ap.add_argument("--sweep", type=int, default=3, help="worst cases whose error is swept over the step")
     ap.add_argument("--kinds", default=",".join(KINDS))
     ap.add_argument("--json", default=os.path.join(HERE, "figures", "grad.json"))
+    ap.add_argument("--table", metavar="JSON", help="print part 1's table from the figures of an earlier run and exit")
     args = ap.parse_args(argv)
+    if args.table:
+        with open(args.table) as f:
+            fd_fig = json.load(f)["fd"]["errors"]
+        print(_table(fd_fig, [k for k in KINDS if f"{k}/dT" in fd_fig]))
+        return
 
     import equinox as eqx
     import jax
@@ -266,6 +300,7 @@ def main(argv=None):
                 fd_fig[f"{kind}/d{o}"] = {"central": c, "richardson": r}
                 print(f"   {kind:8s} d{o:4s} central:    {_fmt(c)}")
                 print(f"   {'':8s} {'':5s} Richardson: {_fmt(r)}")
+        print(_table(fd_fig, kinds))  # the benchmarks page's table (docs/benchmarks.md)
         allr = [e for (k, o, n), v in errs.items() if n == "richardson" for e in v]
         print(f"   all kinds, Richardson: {_fmt(_stats(allr))}; above 1e-5: {int(np.sum(np.asarray(allr) > 1e-5))}")
         figures.pop("fd_partial", None)

@@ -127,6 +127,7 @@ def grid_search(tips, grid: int = GRID):
             value, sol = mean_time(jnp.array([l1, l2]), tips)
             values[i, j] = float(value)
             converged[i, j] = int(np.sum(np.asarray(sol.status) == 0))
+        print(f"grid: l1 = {l1:.3f} m done, {time.perf_counter() - t0:.0f} s", flush=True)
     return axis, values, converged, time.perf_counter() - t0
 
 
@@ -151,6 +152,8 @@ def descend(tips, start=START, iterations: int = ITERATIONS, learning_rate: floa
         history["objective"].append(float(value))
         history["valid"].append(int(np.sum(np.asarray(jtraj.valid_derivatives(sol)))))
         history["design"].append(np.asarray(lengths))
+        print(f"descent {len(history['objective'])}: mean T {float(value):.5f} s, next design "
+              f"({float(lengths[0]):.4f}, {float(lengths[1]):.4f}) m, {time.perf_counter() - t0:.0f} s", flush=True)
     history["design"] = np.stack(history["design"])
     history["seconds"] = time.perf_counter() - t0
     return history
