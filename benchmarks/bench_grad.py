@@ -163,7 +163,14 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.table:
         with open(args.table) as f:
-            fd_fig = json.load(f)["fd"]["errors"]
+            fig = json.load(f)
+        if "fd" in fig:
+            fd_fig = fig["fd"]["errors"]
+        else:  # a run cut short: the pairs done
+            part = fig["fd_partial"]["errors"]
+            print(f"(a run cut short: {fig['fd_partial']['pairs_done']} pairs done)")
+            fd_fig = {f"{k}/d{o}": {e: part[f"{k}/d{o}/{e}"] for e in ("central", "richardson")}
+                      for k in KINDS for o in ("T", "cost") if f"{k}/d{o}/central" in part}
         print(_table(fd_fig, [k for k in KINDS if f"{k}/dT" in fd_fig]))
         return
 
