@@ -48,7 +48,7 @@ def main(argv=None):
     N, step = args.N, args.step
     robot0 = jtraj.robots.get("serial3")
     start = np.array([0.2, -0.3, 0.4])
-    goal = np.array([0.6, 0.1, -0.1])
+    goal = np.array([0.3, -0.2, 0.3])  # a short move: N = 10 periods of h_max = 0.1 s leave room
     goals = np.stack([goal, goal + np.array([0.05, -0.02, 0.01]), goal + np.array([-0.04, 0.03, 0.02])])
     tight = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2000, method="al")
     theta0 = np.r_[goal, 1.0, 0.1, np.asarray(robot0.masses)]  # q_goal (3), time, energy, masses (3)
