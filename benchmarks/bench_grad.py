@@ -6,9 +6,22 @@
 Measurements on the serial3 benchmark family (time = 1, energy = 0.1, float64):
 
 1. **Agreement with finite differences of re-solves** on ``--fd-pairs`` pairs: for each
-   input kind (q_goal, q_start, the weights time and energy, the link masses, tau_max,
-   a binding T_max (0.99 of the free optimum's T), the position and tolerance of a via
-   point near the path's middle) a random unit direction per pair, the forward-mode
+   input kind a random unit direction per pair (``--kinds``, default all):
+
+   - ``q_goal``, ``q_start``; ``qd_boundary``: start and goal velocities (0.2 and 0.1 of
+     qd_max along the move);
+   - ``weights``: time and energy; ``weights_UQ``: explicit diagonal U (the default
+     energy term's) and Q (a kinetic term of 0.05);
+   - ``masses``: link masses and inertias; ``lengths``: link lengths and centres of mass;
+   - ``tau_max``; ``limits``: qd_max (0.8 of the free optimum's peak speed, so that it
+     binds), qdd_max and h_max; ``T_max``: a binding bound (0.99 of the free optimum's T);
+   - ``via``: the position and tolerance of a via point near the path's middle;
+   - ``path``: pkm2 (path constraints: the legs' closure and the distance to its
+     singularities) on its own pairs drawn in the middle of its joint box: its q_start,
+     q_goal and tau_max.
+
+   Steps are absolute for configurations, velocities and positions, relative to the
+   value otherwise. The forward-mode
    derivative (``jax.jvp`` through ``jtraj.solve``) of T and of the cost against central
    differences of warm re-solves (AL method, tolerances 1e-10). Two estimates: the
    central difference with step ``--step / 2`` and its Richardson extrapolation from
@@ -45,7 +58,8 @@ import numpy as np
 
 sys.path.append(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository root: jtraj_peers
 
-KINDS = ("q_goal", "q_start", "weights", "masses", "tau_max", "T_max", "via")
+KINDS = ("q_goal", "q_start", "qd_boundary", "weights", "weights_UQ", "masses", "lengths", "tau_max", "limits",
+         "T_max", "via", "path")
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
@@ -63,6 +77,77 @@ def _fmt(st):
     return f"median {st['median']:.2e}  p90 {st['p90']:.2e}  max {st['max']:.2e}  (n = {st['n']})"
 
 
+def _setup(kind, jtraj, robot, q0, q1, free, free_sol, N, w, options, pkm2_pair):
+    """The problem of input kind ``kind`` on pair (q0, q1), its converged solution, the
+    getter of the differentiated leaves (a tuple of arrays) and, per leaf, whether its
+    step is absolute (True) or relative to its value; None where the pair does not give
+    a valid, converged problem of that kind."""
+    import jax.numpy as jnp
+
+    init = (free_sol.v, free_sol.h)
+    p, base = free, free_sol
+    if kind == "T_max":  # a binding total-time bound
+        p = jtraj.Problem(robot, q0, q1, N=N, weights=w, T_max=0.99 * float(free_sol.T))
+    elif kind == "via":  # a passage near the path's middle, off the free path
+        mid = np.asarray(free_sol.q)[N // 2]
+        p_mid = np.asarray(robot.forward_kinematics(jnp.asarray(mid))) + np.array([0.02, -0.01])
+        p = jtraj.Problem(robot, q0, q1, N=N, weights=w,
+                          via_points=[jtraj.ViaPoint(point=jnp.asarray(p_mid), tol=jnp.asarray(1e-3))])
+    elif kind == "qd_boundary":  # moving start and goal: 0.2 of qd_max along the motion
+        d = np.sign(np.asarray(q1) - np.asarray(q0)) * 0.2 * np.asarray(robot.limits.qd_max)
+        p = jtraj.Problem(robot, q0, q1, N=N, weights=w, qd_start=d, qd_goal=0.5 * d)
+    elif kind == "weights_UQ":  # explicit U (the default energy term's) and Q (a kinetic term)
+        U = 0.1 / np.asarray(robot.limits.tau_max) ** 2
+        p = jtraj.Problem(robot, q0, q1, N=N, weights=jtraj.Weights(time=1.0, energy=0.1, U=jnp.asarray(U),
+                                                                   Q=jnp.asarray(np.full(robot.n, 0.05))))
+    elif kind == "limits":  # a velocity bound that binds on the fastest joint; qdd_max, h_max as they are
+        qd_peak = float(np.max(np.abs(np.asarray(free_sol.qd))))
+        r = jtraj.robots.get("serial3", qd_max=np.full(robot.n, 0.8 * qd_peak))
+        p = jtraj.Problem(r, q0, q1, N=N, weights=w)
+    elif kind == "path":  # pkm2: path constraints (the legs' closure and the singularity distance)
+        r = jtraj.robots.get("pkm2")
+        try:
+            p = jtraj.Problem(r, pkm2_pair[0], pkm2_pair[1], N=N, weights=w)
+        except ValueError:
+            return None
+        init = None
+    if p is not free:
+        base = jtraj.solve(p, options=options, init=init)
+    if not bool(base.converged):
+        return None
+    get, absolute = {
+        "q_goal": (lambda d: (d.q_goal,), (True,)),
+        "q_start": (lambda d: (d.q_start,), (True,)),
+        "qd_boundary": (lambda d: (d.qd_start, d.qd_goal), (True, True)),
+        "weights": (lambda d: (d.weights.time, d.weights.energy), (False, False)),
+        "weights_UQ": (lambda d: (d.weights.U, d.weights.Q), (False, False)),
+        "masses": (lambda d: (d.robot.masses, d.robot.inertias), (False, False)),
+        "lengths": (lambda d: (d.robot.lengths, d.robot.com), (False, False)),
+        "tau_max": (lambda d: (d.robot.limits.tau_max,), (False,)),
+        "limits": (lambda d: (d.robot.limits.qd_max, d.robot.limits.qdd_max, d.robot.limits.h_max),
+                   (False, False, False)),
+        "T_max": (lambda d: (d.T_max,), (False,)),
+        "via": (lambda d: (d.via_points[0].point, d.via_points[0].tol), (True, False)),
+        "path": (lambda d: (d.q_start, d.q_goal, d.robot.limits.tau_max), (True, True, False)),
+    }[kind]
+    return p, base, get, absolute
+
+
+def _table(fd_fig, kinds):
+    """The markdown table of part 1 (docs/benchmarks.md) from its figures."""
+    lines = ["", "| input kind | pairs | dT*: median / p90 / max | dJ*: median / p90 / max | "
+             "central differences alone, max (dT* / dJ*) |", "|---|---|---|---|---|"]
+    for kind in kinds:
+        r = [fd_fig[f"{kind}/d{o}"]["richardson"] for o in ("T", "cost")]
+        c = [fd_fig[f"{kind}/d{o}"]["central"] for o in ("T", "cost")]
+        if r[0] is None:
+            lines.append(f"| {kind} | 0 | | | |")
+            continue
+        cells = [" / ".join(f"{st[q]:.1e}" for q in ("median", "p90", "max")) for st in r]
+        lines.append(f"| {kind} | {r[0]['n']} | {cells[0]} | {cells[1]} | {c[0]['max']:.1e} / {c[1]['max']:.1e} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--fd-pairs", type=int, default=64)
@@ -74,13 +159,28 @@ def main(argv=None):
     ap.add_argument("--sweep", type=int, default=3, help="worst cases whose error is swept over the step")
     ap.add_argument("--kinds", default=",".join(KINDS))
     ap.add_argument("--json", default=os.path.join(HERE, "figures", "grad.json"))
+    ap.add_argument("--table", metavar="JSON", help="print part 1's table from the figures of an earlier run and exit")
     args = ap.parse_args(argv)
+    if args.table:
+        with open(args.table) as f:
+            fig = json.load(f)
+        if "fd" in fig:
+            fd_fig = fig["fd"]["errors"]
+        else:  # a run cut short: the pairs done
+            part = fig["fd_partial"]["errors"]
+            print(f"(a run cut short: {fig['fd_partial']['pairs_done']} pairs done)")
+            fd_fig = {f"{k}/d{o}": {e: part[f"{k}/d{o}/{e}"] for e in ("central", "richardson")}
+                      for k in KINDS for o in ("T", "cost") if f"{k}/d{o}/central" in part}
+        print(_table(fd_fig, [k for k in KINDS if f"{k}/dT" in fd_fig]))
+        return
 
     import equinox as eqx
     import jax
     import jax.numpy as jnp
 
-    jax.config.update("jax_enable_x64", True)
+    from jtraj.cli import setup_jax
+
+    setup_jax(x64=True)  # float64 and the persistent compilation cache (a rerun loads its programs)
     import jtraj
     from jtraj.implicit import valid_derivatives
     from jtraj_peers.pairs import benchmark_pairs
@@ -106,9 +206,16 @@ def main(argv=None):
     # ---- 1. agreement with finite differences -----------------------------------------
     if args.fd_pairs:
         q0s, q1s = benchmark_pairs(args.fd_pairs, seed=args.seed)
+        pk = jtraj.robots.get("pkm2").limits
+        pk_lo, pk_hi = np.asarray(pk.q_min), np.asarray(pk.q_max)
+
+        def pkm2_pair(i):  # start and goal drawn in the middle 60 % of pkm2's joint box
+            u = np.random.default_rng([args.seed, i]).uniform(0.2, 0.8, (2, 2))
+            return pk_lo + u[0] * (pk_hi - pk_lo), pk_lo + u[1] * (pk_hi - pk_lo)
         errs = {(k, o, e): [] for k in kinds for o in ("T", "cost") for e in ("central", "richardson")}
         cases = []  # (error, kind, output, pair index, closure) for the sweep
         skipped, t0 = 0, time.perf_counter()
+        failed, unconverged = {}, {}  # per kind: pairs whose problem raised / did not converge
         for ip, (q0, q1) in enumerate(zip(q0s, q1s)):
             try:
                 free = jtraj.Problem(robot, q0, q1, N=args.N, weights=w)
@@ -120,77 +227,75 @@ def main(argv=None):
                 skipped += 1
                 continue
             for kind in kinds:
-                kw = {}
-                if kind == "T_max":
-                    kw["T_max"] = 0.99 * float(free_sol.T)
-                if kind == "via":
-                    mid = np.asarray(free_sol.q)[args.N // 2]
-                    p_mid = np.asarray(robot.forward_kinematics(jnp.asarray(mid))) + np.array([0.02, -0.01])
-                    kw["via_points"] = [jtraj.ViaPoint(point=jnp.asarray(p_mid), tol=jnp.asarray(1e-3))]
-                p = jtraj.Problem(robot, q0, q1, N=args.N, weights=w, **kw) if kw else free
-                base = jtraj.solve(p, options=tight, init=(free_sol.v, free_sol.h)) if kw else free_sol
-                if not bool(base.converged):
+                try:
+                    setup = _setup(kind, jtraj, robot, q0, q1, free, free_sol, args.N, w, tight, pkm2_pair(ip))
+                except Exception as err:  # counted and printed: a kind that fails is a finding, not a crash
+                    failed[kind] = failed.get(kind, 0) + 1
+                    print(f"   pair {ip} {kind}: {type(err).__name__}: {err}"[:400], flush=True)
                     continue
-                dyn, static = eqx.partition(p, eqx.is_inexact_array)
-                zero = jax.tree.map(jnp.zeros_like, dyn)
-                get = {"q_goal": lambda d: d.q_goal, "q_start": lambda d: d.q_start,
-                       "weights": lambda d: (d.weights.time, d.weights.energy),
-                       "masses": lambda d: d.robot.masses, "tau_max": lambda d: d.robot.limits.tau_max,
-                       "T_max": lambda d: d.T_max,
-                       "via": lambda d: (d.via_points[0].point, d.via_points[0].tol)}[kind]
-                x = get(p)
-                leaves, tdef = jax.tree.flatten(x)
-                flat = np.concatenate([np.ravel(np.asarray(v, float)) for v in leaves])
-                u = rng.standard_normal(flat.size)
-                u /= np.linalg.norm(u)
-                # an absolute step (rad, m) for configurations and positions, a relative one otherwise
-                absolute = kind in ("q_goal", "q_start")
-                scale = np.ones_like(flat) if absolute else np.abs(flat)
-                if kind == "via":
-                    scale = np.r_[np.ones(flat.size - 1), abs(flat[-1])]
-                direction = u * scale
-                pieces, pos = [], 0
-                for v in leaves:
-                    pieces.append(jnp.asarray(direction[pos:pos + np.size(v)]).reshape(np.shape(v)))
-                    pos += np.size(v)
-
-                def along(t, leaves=leaves, tdef=tdef, pieces=pieces):
-                    return jax.tree.unflatten(tdef, [jnp.asarray(v) + t * d for v, d in zip(leaves, pieces)])
-
-                tangent = eqx.tree_at(get, zero, jax.tree.unflatten(tdef, pieces))
-
-                def out_of(d, static=static):
-                    s = jtraj.solve(eqx.combine(d, static), options=tight)
-                    return jnp.stack([s.T, s.cost])
-
-                _, jvp = jax.jvp(out_of, (dyn,), (tangent,))
-                jvp = np.asarray(jvp)
-
-                def central(step, options=tight, dyn=dyn, static=static, get=get, along=along, base=base):
-                    vals = []
-                    for sign in (1.0, -1.0):
-                        d_ = eqx.tree_at(get, dyn, along(sign * step))
-                        s = jtraj.solve(eqx.combine(d_, static), options=options, init=(base.v, base.h))
-                        if not bool(s.converged):
-                            return None
-                        vals.append(np.array([float(s.T), float(s.cost)]))
-                    return (vals[0] - vals[1]) / (2 * step)
-
-                d1, d2 = central(args.step), central(args.step / 2)
-                if d1 is None or d2 is None:
+                if setup is None:
+                    unconverged[kind] = unconverged.get(kind, 0) + 1
                     continue
-                rich = (4 * d2 - d1) / 3
-                for i, o in enumerate(("T", "cost")):
-                    for name, fd in (("central", d2), ("richardson", rich)):
-                        e = abs(jvp[i] - fd[i]) / max(abs(fd[i]), 1e-6)
-                        errs[(kind, o, name)].append(e)
-                    e = abs(jvp[i] - rich[i]) / max(abs(rich[i]), 1e-6)
-                    cases.append((e, kind, o, ip, i, jvp[i], central))
+                try:
+                    p, base, get, absolute = setup
+                    dyn, static = eqx.partition(p, eqx.is_inexact_array)
+                    zero = jax.tree.map(jnp.zeros_like, dyn)
+                    x = get(p)
+                    leaves, tdef = jax.tree.flatten(x)
+                    flat = np.concatenate([np.ravel(np.asarray(v, float)) for v in leaves])
+                    u = rng.standard_normal(flat.size)
+                    u /= np.linalg.norm(u)
+                    # an absolute step (rad, rad/s, m) for configurations, velocities and positions,
+                    # a relative one otherwise
+                    scale = np.concatenate([np.ones(np.size(v)) if a else np.abs(np.ravel(np.asarray(v, float)))
+                                            for v, a in zip(leaves, absolute)])
+                    direction = u * scale
+                    pieces, pos = [], 0
+                    for v in leaves:
+                        pieces.append(jnp.asarray(direction[pos:pos + np.size(v)]).reshape(np.shape(v)))
+                        pos += np.size(v)
+
+                    def along(t, leaves=leaves, tdef=tdef, pieces=pieces):
+                        return jax.tree.unflatten(tdef, [jnp.asarray(v) + t * d for v, d in zip(leaves, pieces)])
+
+                    tangent = eqx.tree_at(get, zero, jax.tree.unflatten(tdef, pieces))
+
+                    def out_of(d, static=static):
+                        s = jtraj.solve(eqx.combine(d, static), options=tight)
+                        return jnp.stack([s.T, s.cost])
+
+                    _, jvp = jax.jvp(out_of, (dyn,), (tangent,))
+                    jvp = np.asarray(jvp)
+
+                    def central(step, options=tight, dyn=dyn, static=static, get=get, along=along, base=base):
+                        vals = []
+                        for sign in (1.0, -1.0):
+                            d_ = eqx.tree_at(get, dyn, along(sign * step))
+                            s = jtraj.solve(eqx.combine(d_, static), options=options, init=(base.v, base.h))
+                            if not bool(s.converged):
+                                return None
+                            vals.append(np.array([float(s.T), float(s.cost)]))
+                        return (vals[0] - vals[1]) / (2 * step)
+
+                    d1, d2 = central(args.step), central(args.step / 2)
+                    if d1 is None or d2 is None:
+                        unconverged[kind] = unconverged.get(kind, 0) + 1
+                        continue
+                    rich = (4 * d2 - d1) / 3
+                    for i, o in enumerate(("T", "cost")):
+                        for name, fd in (("central", d2), ("richardson", rich)):
+                            e = abs(jvp[i] - fd[i]) / max(abs(fd[i]), 1e-6)
+                            errs[(kind, o, name)].append(e)
+                        e = abs(jvp[i] - rich[i]) / max(abs(rich[i]), 1e-6)
+                        cases.append((e, kind, o, ip, i, jvp[i], central))
+                except Exception as err:  # counted and printed, as above
+                    failed[kind] = failed.get(kind, 0) + 1
+                    print(f"   pair {ip} {kind}: {type(err).__name__}: {err}"[:400], flush=True)
+            print(f"   pair {ip}: {time.perf_counter() - t0:.0f} s", flush=True)
             figures["fd_partial"] = {"pairs_done": ip + 1, "seconds": time.perf_counter() - t0,
+                                     "failed": failed, "unconverged": unconverged,
                                      "errors": {f"{k}/d{o}/{e}": _stats(v) for (k, o, e), v in errs.items()}}
             dump()
-            if (ip + 1) % 8 == 0:
-                print(f"   ... {ip + 1} pairs, {time.perf_counter() - t0:.0f} s", flush=True)
         elapsed = time.perf_counter() - t0
         print(f"1. finite differences of re-solves, {args.fd_pairs} pairs ({skipped} skipped: invalid or "
               f"not converged), {elapsed:.0f} s; relative errors (central with step {args.step / 2:g}; "
@@ -202,11 +307,13 @@ def main(argv=None):
                 fd_fig[f"{kind}/d{o}"] = {"central": c, "richardson": r}
                 print(f"   {kind:8s} d{o:4s} central:    {_fmt(c)}")
                 print(f"   {'':8s} {'':5s} Richardson: {_fmt(r)}")
+        print(_table(fd_fig, kinds))  # the benchmarks page's table (docs/benchmarks.md)
         allr = [e for (k, o, n), v in errs.items() if n == "richardson" for e in v]
         print(f"   all kinds, Richardson: {_fmt(_stats(allr))}; above 1e-5: {int(np.sum(np.asarray(allr) > 1e-5))}")
         figures.pop("fd_partial", None)
         figures["fd"] = {"pairs": args.fd_pairs, "skipped": skipped, "step": args.step, "seconds": elapsed,
-                         "errors": fd_fig, "all_richardson": _stats(allr),
+                         "errors": fd_fig, "all_richardson": _stats(allr), "failed": failed,
+                         "unconverged": unconverged,
                          "above_1e-5": int(np.sum(np.asarray(allr) > 1e-5))}
         # the worst cases: error against the step, and with tighter re-solves
         sweep = []

@@ -170,6 +170,60 @@ def test_static_inputs_are_refused_when_traced():
         implicit._method(jtraj.transcription.Transcription("decoupled"), "lu")
 
 
+def test_static_arguments_refused_before_tracing():
+    """Differentiating with respect to the transcription or a string option raises a
+    ValueError naming it, before any solver is traced (no compilation here)."""
+    p = _problem()
+    cases = {
+        "transcription": lambda x: jtraj.solve(p, transcription=x).T,
+        "on_failure": lambda x: jtraj.solve(p, on_failure=x).T,
+        "warm": lambda x: jtraj.solve(p, warm=x).T,
+        "efforts": lambda x: jtraj.Problem(ROBOT, START, GOAL, N=N, efforts=x).T_max,
+        "method": lambda x: jtraj.solve(p, options=jtraj.SolverOptions(method=x)).T,
+    }
+    for name, f in cases.items():
+        with pytest.raises(ValueError, match=name):
+            jax.grad(f)(1.0)
+    with pytest.raises(ValueError, match="transcription"):
+        jax.grad(lambda x: jtraj.solve_batch(ROBOT, START[None], GOAL[None], N=N, transcription=x).T.sum())(1.0)
+
+
+def _face_invalid_gradient():
+    """T and the gradient of T in every array leaf of a problem whose host-side checks
+    cannot run (its leaves traced) and that the checks would refuse (T_max below the
+    move's minimum time), with the solve's status."""
+    with pytest.raises(ValueError, match="T_max"):
+        _problem(T_max=0.05)
+    dyn, static = eqx.partition(_problem(T_max=0.05, validate=False), eqx.is_inexact_array)
+
+    def f(d):
+        s = jtraj.solve(eqx.combine(d, static), options=TIGHT)
+        return s.T, s.status
+
+    T, vjp, status = jax.vjp(f, dyn, has_aux=True)
+    (g,) = vjp(jnp.ones(()))
+    return status, g
+
+
+@pytest.mark.slow  # a reverse program with the status as an auxiliary output: minutes
+def test_traced_problem_infeasible_on_its_face_gives_nan():
+    """The solve flags such a problem INVALID_INPUT: its derivatives are NaN, never a
+    plausible number."""
+    status, g = _face_invalid_gradient()
+    assert int(status) == jtraj.Status.INVALID_INPUT
+    for leaf in (g.q_goal, g.q_start):
+        assert np.all(np.isnan(leaf))
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the gradients of T_max and of the time weight of an INVALID_INPUT "
+                                       "solve are 0, not NaN")
+def test_traced_problem_infeasible_on_its_face_every_gradient_is_nan():
+    status, g = _face_invalid_gradient()
+    for leaf in jax.tree.leaves(g):
+        assert np.all(np.isnan(leaf))
+
+
 @pytest.mark.slow  # the forward-mode tangent program is a compilation of its own
 def test_jvp_wrt_weights_and_mass(base):
     """Forward mode along a direction that moves the weights and a link mass at once; a
