@@ -61,7 +61,7 @@ otherwise. Figures are in `examples/figures/`.
 
 
 def write_section(name: str, markdown: str) -> None:
-    """Replace (or append) the section of experiment ``name`` in RESULTS.md (under a file
+    """Replace (or add, before the run-times section) the section of experiment ``name`` in RESULTS.md (under a file
     lock: run_all runs scripts concurrently; the file is replaced atomically)."""
     import fcntl
 
@@ -71,7 +71,13 @@ def write_section(name: str, markdown: str) -> None:
         fcntl.flock(lock, fcntl.LOCK_EX)
         text = RESULTS.read_text() if RESULTS.exists() else _HEADER
         pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end) + r"\n?", re.S)
-        text = pattern.sub(lambda _: block, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + block
+        last = "<!-- BEGIN run_all -->"  # the run-times table stays last
+        if pattern.search(text):
+            text = pattern.sub(lambda _: block, text)
+        elif name != "run_all" and last in text:
+            text = text.replace(last, block + "\n" + last, 1)
+        else:
+            text = text.rstrip("\n") + "\n\n" + block
         tmp = RESULTS.with_suffix(".md.tmp")
         tmp.write_text(text)
         os.replace(tmp, RESULTS)
