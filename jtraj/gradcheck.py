@@ -247,7 +247,7 @@ def fd_gradients(problem, v, h, mult, mu, step=DEFAULT_FD_STEP):
 
     def to_vh(g):
         gv, gh = layout.unpack(g)  # unpack multiplies by the scale; a gradient divides
-        return gv / layout.u_scale**2, gh / layout.h_scale**2
+        return gv / layout.u_scale[None] ** 2, gh / layout.h_scale**2
 
     return to_vh(gz[:, 0]), to_vh(gz[:, 1])
 
@@ -328,7 +328,7 @@ def _point_ok(robot, q0, qd0, v, h) -> bool:
 
     q, qd = integrate(jnp.asarray(q0), jnp.asarray(qd0), jnp.asarray(v), jnp.asarray(h))
     lim = robot.limits
-    if lim.q_min is not None and not bool(jnp.all((q >= lim.q_min) & (q <= lim.q_max))):
+    if lim.q_min is not None and not bool(jnp.all((q >= lim.q_min[None]) & (q <= lim.q_max[None]))):
         return False
     tau = jax.vmap(robot.inverse_dynamics)(q[:-1], qd[:-1], jnp.asarray(v))
     p = jax.vmap(robot.forward_kinematics)(q)

@@ -154,7 +154,7 @@ def outputs(problem: Problem, tr: Transcription, z) -> dict:
     a, tau = jax.vmap(lambda q_, qd_, c_: tr.accel_and_tau(problem, q_, qd_, c_))(q[:-1], qd[:-1], c[:-1])
     terms = nlp.cost_terms(z)
     lim = problem.robot.limits
-    scale = 1.0 if lim.tau_max is None else lim.tau_max
+    scale = 1.0 if lim.tau_max is None else lim.tau_max[None]
     energy = jnp.sum(h * jnp.sum((tau / scale) ** 2, axis=1))
     return dict(q=q, qd=qd, v=a, tau=tau, h=h, T=jnp.sum(h), cost=sum(terms.values()), cost_terms=terms,
                 energy=energy)

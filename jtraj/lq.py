@@ -316,7 +316,7 @@ def kkt_directions(model: StageModel, shifts: Array, terminal: Array) -> tuple[A
         rec, Rk, Sk, Qk, rk, cxk = xs
         rec = _Recursion(*rec)
         PA = rec.right_A(P)
-        Quu = Rk + rec.left_Bt(rec.right_B(P)) + eye * shifts
+        Quu = Rk + rec.left_Bt(rec.right_B(P)) + eye * shifts[None, None]
         Qux = Sk + rec.left_Bt(PA)
         Qxx = Qk + rec.left_At(PA)
         qu = rk + rec.left_Bt(p)  # (m, 1 + r, L)

@@ -17,9 +17,9 @@ def _peak_torque_ratio(problem, T, points=41):
     s = np.linspace(0.0, 1.0, points)
     q, qd = cycloid_path(problem, T, s * T)
     dq = problem.q_goal - problem.q_start
-    qdd = dq * (2 * np.pi / T**2 * np.sin(2 * np.pi * s))[:, None]
+    qdd = dq[None] * (2 * np.pi / T**2 * np.sin(2 * np.pi * s))[:, None]
     tau = jax.vmap(robot.inverse_dynamics)(q, qd, qdd)
-    return float(jnp.max(jnp.abs(tau) / robot.limits.tau_max))
+    return float(jnp.max(jnp.abs(tau) / robot.limits.tau_max[None]))
 
 
 def _vertical_arm():

@@ -137,9 +137,9 @@ def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
     for indefinite in (False, True):
         batch = jax.tree.map(lambda *x: jnp.stack(x), *models)
         if indefinite:
-            batch = batch._replace(R=batch.R - 30.0 * jnp.eye(m))
+            batch = batch._replace(R=batch.R - 30.0 * jnp.eye(m)[None, None])
         term = jnp.stack(terms)
-        shifts = jnp.asarray([[40.0], [10.0], [1.0]]) * jnp.asarray(S.IPM_SHIFT_LADDER)
+        shifts = jnp.asarray([[40.0], [10.0], [1.0]]) * jnp.asarray(S.IPM_SHIFT_LADDER)[None]
         ref = jax.jit(jax.vmap(lq.kkt_directions))(batch, shifts, term)
         nat = jax.jit(jax.vmap(_kkt_native.kkt_directions))(batch, shifts, term)
         one = jax.jit(_kkt_native.kkt_directions)(jax.tree.map(lambda x: x[1], batch), shifts[1], term[1])

@@ -38,7 +38,7 @@ def decoupled_hessian(layout: Layout, W, c, Hk):
     A, sy, Chv, Chh, perm = decoupled_pieces(layout, W, c)
     Hss, Hsc, Hcc = Hk[:, :ns, :ns], Hk[:N, :ns, ns:], Hk[:N, ns:, ns:]
     H = jnp.einsum("kai,kaj->ij", A, jnp.einsum("kab,kbj->kaj", Hss, A))
-    X = jnp.einsum("kai,kab->ikb", A[:N], Hsc).reshape(ny, ny) * sy  # state-control rows
+    X = jnp.einsum("kai,kab->ikb", A[:N], Hsc).reshape(ny, ny) * sy[None]  # state-control rows
     H = H + X + X.T
     H = H + jnp.einsum("kab,kl->kalb", Hcc, jnp.eye(N, dtype=W.dtype)).reshape(ny, ny) * jnp.outer(sy, sy)
     C = jnp.zeros((N, n + 1, N, n + 1), W.dtype).at[:, n, :, :n].set(Chv).reshape(ny, ny)
@@ -78,13 +78,13 @@ def decoupled_pieces(layout: Layout, W, c):
         blk = coef[:, None, :, None] * eye[None, :, None, :]  # (N+1, n, N, n)
         return jnp.concatenate([blk, dh.transpose(0, 2, 1)[..., None]], axis=-1)
 
-    Aq = rows(jnp.where(low, h * (dt - 0.5 * h), 0.0), jnp.where(low[..., None], qd[None, :N] + dt[..., None] * u, 0.0))
-    Aqd = rows(jnp.where(low, h, 0.0), jnp.where(low[..., None], u[None], 0.0))
+    Aq = rows(jnp.where(low, h[None] * (dt - 0.5 * h[None]), 0.0), jnp.where(low[..., None], qd[None, :N] + dt[..., None] * u[None], 0.0))
+    Aqd = rows(jnp.where(low, h[None], 0.0), jnp.where(low[..., None], u[None], 0.0))
     sy = jnp.tile(jnp.concatenate([layout.u_scale, layout.h_scale[None]]), N)  # dy/dz
-    A = jnp.concatenate([Aq, Aqd], axis=1).reshape(N + 1, ns, ny) * sy  # state rows of J
+    A = jnp.concatenate([Aq, Aqd], axis=1).reshape(N + 1, ns, ny) * sy[None, None]  # state rows of J
     Cq, cv_diag, Chh = costate_terms(c, u, dt)
     I, J = jnp.arange(N)[:, None], jnp.arange(N)[None, :]
-    Chv = jnp.where((J < I)[..., None], Cq[:, None, :] * h[None, :, None], 0.0) + jnp.eye(N)[..., None] * cv_diag
+    Chv = jnp.where((J < I)[..., None], Cq[:, None, :] * h[None, :, None], 0.0) + jnp.eye(N)[..., None] * cv_diag[None]
     perm = np.concatenate([(np.arange(N)[:, None] * (n + 1) + np.arange(n)).ravel(), np.arange(N) * (n + 1) + n])
     return A, sy, Chv, Chh, perm
 

@@ -94,6 +94,7 @@ def jump_rows(dv, dt, limits):
     """``|dv| <= qddd_max dt`` row by row as ``(+-dv - qddd_max dt) / (qddd_max h_max) <= 0``:
     dv (K, n) jumps of acceleration, dt (K,) the times they may take; (2 K n,)."""
     J = jnp.asarray(limits.qddd_max, dv.dtype)
+    J = jnp.broadcast_to(J, dv.shape[-1:])[None]  # (1, n)
     reach = dt[:, None] * J
     scale = J * limits.h_max
     return jnp.stack([(dv - reach) / scale, (-dv - reach) / scale], axis=-1).ravel()
