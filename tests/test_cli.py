@@ -332,6 +332,7 @@ def test_planner_checks_the_start_and_goal_and_resamples_for_another_N(plan_mode
     np.testing.assert_allclose(h2, 0.1) and np.testing.assert_array_equal(v2[:, 0], [1, 3, 5, 7, 9])
 
 
+@pytest.mark.slow  # the refined query is checked through the library in test_online_plan.py
 def test_query_refine_exit_code_and_json(plan_model, tmp_path, capsys):
     """--refine at the model's N (the solve test's serial3 program at N = 10): the exit
     code says whether the refined solution converged, the JSON is strict."""

@@ -87,6 +87,7 @@ class _BadDerivativeArm(SerialPlanar):
         return _id_forces(self, q, qd, qdd)
 
 
+@pytest.mark.slow  # the checker's own test (the default suite checks serial3 passes)
 def test_checker_can_fail():
     """Two faults injected at once, each visible to one comparison only (one compile):
 

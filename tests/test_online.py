@@ -217,6 +217,7 @@ def test_train_command_rejects_a_bad_radius():
     assert parser.parse_args(["--data", "d", "--out", "m"]).radius == "auto"
 
 
+@pytest.mark.slow  # the repaired planner (the default) is checked in test_online_plan.py
 def test_planner_one_call_with_feasibility(tmp_path, data):
     from jtraj.online import Planner
 
