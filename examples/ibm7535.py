@@ -374,8 +374,8 @@ def report(data):
             f"the last-but-two column brackets their optimum with the bound imposed everywhere: between the "
             f"knot-only T (a relaxation) and the same path slowed until it meets the bound everywhere (a "
             f"feasible point).\n\n" + table(crow, header=cheader)
-            + f"\n\nFigure `figures/ibm7535_ratios.png` draws these ratios against the parameter count beside "
-              f"Table 1's.")
+            + "\n\nFigure `figures/ibm7535_ratios.png` draws these ratios against the parameter count beside "
+              "Table 1's.")
     text += f"\n\nScript wall time {data['seconds']:.0f} s (solves; process CPU {time.process_time():.0f} s)."
     status = write_status(NAME, records)
     rec = json.loads(status.read_text())

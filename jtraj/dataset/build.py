@@ -21,7 +21,6 @@ import dataclasses
 import datetime
 import importlib
 import math
-import os
 import platform
 import sys
 import time
