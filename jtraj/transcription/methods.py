@@ -38,21 +38,26 @@ def _forward_accelerations(tr: Transcription, problem: Problem, q, qd, c):
     return jax.vmap(lambda q_, qd_, c_: tr.accel_and_tau(problem, q_, qd_, c_)[0])(q[:-1], qd[:-1], c[:-1])
 
 
-class Decoupled(Transcription):
-    """u_k = v_k, the accelerations; tau_k = ID(q_k, qd_k, v_k) (the thesis' method)."""
+class _AccelerationDriven(Transcription):
+    """A control slot holding the joint accelerations, the efforts their inverse dynamics."""
 
-    name = "decoupled"
     controls_are_accelerations = True
     linear_in_controls = True
 
     def control_dim(self, problem):
         return problem.robot.n
 
-    def control_box(self, problem):
-        return _symmetric_box(problem.robot.limits.qdd_max, problem.robot.n)
-
     def accel_and_tau(self, problem, q, qd, c):
         return c, problem.robot.inverse_dynamics(q, qd, c)
+
+
+class Decoupled(_AccelerationDriven):
+    """u_k = v_k, the accelerations; tau_k = ID(q_k, qd_k, v_k) (the thesis' method)."""
+
+    name = "decoupled"
+
+    def control_box(self, problem):
+        return _symmetric_box(problem.robot.limits.qdd_max, problem.robot.n)
 
     def initial_controls(self, problem, v, h):
         return v
@@ -192,17 +197,12 @@ class Collocation(Transcription):
         return jerk_inequalities(_forward_accelerations(self, problem, q, qd, c), h, problem.robot.limits)
 
 
-class Spline(Transcription):
+class Spline(_AccelerationDriven):
     """u_k = q_{k+1}, the knot positions of a clamped cubic spline (C2) through the start
     and the knots; tau = ID at the knots (Chettibi's method 3). The last knot is the goal,
     a fixed variable; the knot accelerations and efforts are bounded at all N+1 knots."""
 
     name = "spline"
-    controls_are_accelerations = True
-    linear_in_controls = True
-
-    def control_dim(self, problem):
-        return problem.robot.n
 
     def control_box(self, problem):
         # knots scaled by the displacement that saturates the acceleration over one
@@ -213,9 +213,6 @@ class Spline(Transcription):
     def control_bounds(self, problem, lo, hi, u_scale):
         goal = problem.q_goal / u_scale
         return lo.at[-1].set(goal), hi.at[-1].set(goal)
-
-    def accel_and_tau(self, problem, q, qd, c):
-        return c, problem.robot.inverse_dynamics(q, qd, c)
 
     def initial_controls(self, problem, v, h):
         return integrate(problem.q_start, problem.qd_start, v, h)[0][1:]
