@@ -77,7 +77,7 @@ def _fmt(st):
     return f"median {st['median']:.2e}  p90 {st['p90']:.2e}  max {st['max']:.2e}  (n = {st['n']})"
 
 
-def _setup(kind, jtraj, robot, q0, q1, free, free_sol, N, w, options, pkm2_pair):
+def _setup(kind, jtraj, robot, q0, q1, free, free_sol, N, w, solver, pkm2_pair):
     """The problem of input kind ``kind`` on pair (q0, q1), its converged solution, the
     getter of the differentiated leaves (a tuple of arrays) and, per leaf, whether its
     step is absolute (True) or relative to its value; None where the pair does not give
@@ -112,7 +112,7 @@ def _setup(kind, jtraj, robot, q0, q1, free, free_sol, N, w, options, pkm2_pair)
             return None
         init = None
     if p is not free:
-        base = jtraj.solve(p, options=options, init=init)
+        base = jtraj.solve(p, solver=solver, init=init)
     if not bool(base.converged):
         return None
     get, absolute = {
@@ -199,8 +199,8 @@ def main(argv=None):
                "cpu_count": os.cpu_count()}
     robot = jtraj.robots.get("serial3")
     w = jtraj.Weights(time=1.0, energy=0.1)
-    tight = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2000, method="al")
-    tighter = jtraj.SolverOptions(tol_feasibility=1e-12, tol_optimality=1e-12, max_iter=4000, method="al")
+    tight = jtraj.AugmentedLagrangian(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2000)
+    tighter = jtraj.AugmentedLagrangian(tol_feasibility=1e-12, tol_optimality=1e-12, max_iter=4000)
     rng = np.random.default_rng(args.seed)
 
     # ---- 1. agreement with finite differences -----------------------------------------
@@ -222,7 +222,7 @@ def main(argv=None):
             except ValueError:
                 skipped += 1
                 continue
-            free_sol = jtraj.solve(free, options=tight)
+            free_sol = jtraj.solve(free, solver=tight)
             if not bool(free_sol.converged):
                 skipped += 1
                 continue
@@ -261,17 +261,17 @@ def main(argv=None):
                     tangent = eqx.tree_at(get, zero, jax.tree.unflatten(tdef, pieces))
 
                     def out_of(d, static=static):
-                        s = jtraj.solve(eqx.combine(d, static), options=tight)
+                        s = jtraj.solve(eqx.combine(d, static), solver=tight)
                         return jnp.stack([s.T, s.cost])
 
                     _, jvp = jax.jvp(out_of, (dyn,), (tangent,))
                     jvp = np.asarray(jvp)
 
-                    def central(step, options=tight, dyn=dyn, static=static, get=get, along=along, base=base):
+                    def central(step, solver=tight, dyn=dyn, static=static, get=get, along=along, base=base):
                         vals = []
                         for sign in (1.0, -1.0):
                             d_ = eqx.tree_at(get, dyn, along(sign * step))
-                            s = jtraj.solve(eqx.combine(d_, static), options=options, init=(base.v, base.h))
+                            s = jtraj.solve(eqx.combine(d_, static), solver=solver, init=(base.v, base.h))
                             if not bool(s.converged):
                                 return None
                             vals.append(np.array([float(s.T), float(s.cost)]))

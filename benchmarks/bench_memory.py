@@ -45,10 +45,11 @@ def child(N: int, limit_gb: float, method: str = "auto") -> dict:
 
         jax.config.update("jax_enable_x64", True)
         import jtraj
+        from jtraj.solver.options import from_overrides
         from profile_compile import quick_start_problem
 
         problem = quick_start_problem(N)
-        sol = jtraj.solve(problem, options=jtraj.SolverOptions(method=method))
+        sol = jtraj.solve(problem, solver=from_overrides({"method": method}))
         out.update(status=int(sol.status), converged=bool(sol.converged), iterations=int(sol.iterations),
                    cost=float(sol.cost))
     except Exception as exc:  # noqa: BLE001 - reported, not raised: the point of the run

@@ -223,10 +223,9 @@ def main(argv=None):
         r["nn_repaired_cost"] = float(nr.cost[i])
 
     # --- exact solves
-    opts = {"cold": jtraj.SolverOptions(), "plan_primal": jtraj.SolverOptions(),
-            "plan_full": jtraj.SolverOptions(), "nn_primal": jtraj.SolverOptions(),
-            "plan_mu3": jtraj.SolverOptions(ip_mu_init=1e-3), "al_cold": jtraj.SolverOptions(method="al"),
-            "al_plan_full": jtraj.SolverOptions(method="al")}
+    solvers = {"cold": jtraj.Auto(), "plan_primal": jtraj.Auto(), "plan_full": jtraj.Auto(), "nn_primal": jtraj.Auto(),
+               "plan_mu3": jtraj.Auto(ipm=jtraj.IPM(mu_init=1e-3)), "al_cold": jtraj.AugmentedLagrangian(),
+               "al_plan_full": jtraj.AugmentedLagrangian()}
 
     def run(label, i):
         prob = jtraj.Problem(robot, QS[i], QG[i], N=N, weights=weights)
@@ -237,7 +236,7 @@ def main(argv=None):
         else:
             init, warm = (pb.v[i], pb.h[i]), ("primal" if label == "plan_primal" else "full")
         t0 = time.perf_counter()
-        sol = jtraj.solve(prob, init=init, options=opts[label], warm=warm)
+        sol = jtraj.solve(prob, init=init, solver=solvers[label], warm=warm)
         jax.block_until_ready(sol.status)
         dt = time.perf_counter() - t0
         return dict(converged=bool(sol.converged), status=int(sol.status), iterations=int(sol.iterations),

@@ -44,12 +44,12 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 
-def _solve(prob, init, options, primal_only=False):
+def _solve(prob, init, solver, primal_only=False):
     import jtraj
 
     t0 = time.perf_counter()
     # primal_only: the warm start's primal point with cold multipliers and penalty
-    sol = jtraj.solve(prob, init=init, options=options, warm="primal" if primal_only else "full")
+    sol = jtraj.solve(prob, init=init, solver=solver, warm="primal" if primal_only else "full")
     jax.block_until_ready(sol.status)
     dt = time.perf_counter() - t0
     st = int(np.asarray(sol.status))
@@ -94,7 +94,7 @@ def main(argv=None):
     robot = jtraj.robots.get(meta["robot"], **({"h_max": float(h_max)} if h_max else {}))
     N = int(meta["N"])
     weights = jtraj.Weights.parse(meta.get("weights_text", "time=1,energy=0.1"))
-    options = jtraj.SolverOptions()
+    solver = jtraj.Auto()
 
     X, Y, traj, _, _ = mappings.view(data, "plan")
     tr, te = mappings.split(traj)
@@ -167,7 +167,7 @@ def main(argv=None):
     _, qs0, qg0 = pairs[0]
     ini, _, _ = inits(qs0, qg0)
     for lab in labels:
-        _solve(jtraj.Problem(robot, qs0, qg0, N=N, weights=weights), ini[lab], options, lab.endswith("_primal"))
+        _solve(jtraj.Problem(robot, qs0, qg0, N=N, weights=weights), ini[lab], solver, lab.endswith("_primal"))
     print(f"compilation + first solves: {time.perf_counter() - t0:.1f} s")
 
     rows = []
@@ -184,7 +184,7 @@ def main(argv=None):
         if closed is not None:
             row["closed_goal_error"] = float(pc.goal_error)
         for lab in order:
-            row[lab] = _solve(prob, ini[lab], options, lab.endswith("_primal"))
+            row[lab] = _solve(prob, ini[lab], solver, lab.endswith("_primal"))
         rows.append(row)
         print(f"  {i + 1:3d}/{len(pairs)} {src:5s} " + "  ".join(
             f"{lab}: st {row[lab]['status']} it {row[lab]['iterations']:4d} {row[lab]['seconds']:.2f} s"

@@ -59,9 +59,10 @@ def _solve_chunk(q0, q1, N, weights, options=None, h_max=None):
 
     jax.config.update("jax_enable_x64", True)
     import jtraj
+    from jtraj.solver.options import from_overrides
 
     sol = jtraj.solve_batch(_robot(h_max), q0, q1, N=N, weights=jtraj.Weights(**weights),
-                            options=jtraj.SolverOptions(**(options or {})))
+                            solver=from_overrides(options or {}))
     return {k: np.asarray(getattr(sol, k)) for k in KEYS}
 
 
@@ -158,14 +159,15 @@ def _single_latencies(q0, q1, N, weights, repeats=3, options=None, formulation="
 
     jax.config.update("jax_enable_x64", True)
     import jtraj
+    from jtraj.solver.options import from_overrides
     from jtraj_peers.ipopt_peer import solve_pair
 
     robot = jtraj.robots.get("serial3")
     weights = jtraj.Weights(**weights)
-    opts = jtraj.SolverOptions(**(options or {}))
+    solver = from_overrides(options or {})
     problems = [jtraj.Problem(robot, a, b, N=N, weights=weights, validate=False) for a, b in zip(q0, q1)]
     t0 = time.perf_counter()
-    jax.block_until_ready(jtraj.solve(problems[0], options=opts).status)
+    jax.block_until_ready(jtraj.solve(problems[0], solver=solver).status)
     compile_s = time.perf_counter() - t0
 
     def peer_seconds(i):
@@ -178,7 +180,7 @@ def _single_latencies(q0, q1, N, weights, repeats=3, options=None, formulation="
         best = np.inf
         for _ in range(repeats):
             t0 = time.perf_counter()
-            jax.block_until_ready(jtraj.solve(p, options=opts).status)
+            jax.block_until_ready(jtraj.solve(p, solver=solver).status)
             best = min(best, time.perf_counter() - t0)
         ours.append(best)
         peer.append(min(peer_seconds(i) for _ in range(repeats)))

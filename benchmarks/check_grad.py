@@ -50,7 +50,7 @@ def main(argv=None):
     start = np.array([0.2, -0.3, 0.4])
     goal = np.array([0.3, -0.2, 0.3])  # a short move: N = 10 periods of h_max = 0.1 s leave room
     goals = np.stack([goal, goal + np.array([0.05, -0.02, 0.01]), goal + np.array([-0.04, 0.03, 0.02])])
-    tight = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2000, method="al")
+    tight = jtraj.AugmentedLagrangian(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2000)
     theta0 = np.r_[goal, 1.0, 0.1, np.asarray(robot0.masses)]  # q_goal (3), time, energy, masses (3)
     groups = {"q_goal": slice(0, 3), "weights": slice(3, 5), "masses": slice(5, 8)}
     figures, t0 = {"N": N, "step": step}, time.perf_counter()
@@ -76,7 +76,7 @@ def main(argv=None):
         return np.where(np.arange(theta.size) < 3, step, step * np.abs(theta))
 
     # ---- 1. jacobian through solve -------------------------------------------------------
-    jac = jax.jacobian(lambda th: outputs(jtraj.solve(problem(th), options=tight)))(jnp.asarray(theta0))
+    jac = jax.jacobian(lambda th: outputs(jtraj.solve(problem(th), solver=tight)))(jnp.asarray(theta0))
     cols = {o: [] for o in ("T", "cost", "q")}
     hs = steps(theta0)
     for i in range(theta0.size):
@@ -84,7 +84,7 @@ def main(argv=None):
         for sign in (1.0, -1.0):
             th = theta0.copy()
             th[i] += sign * hs[i]
-            s = jtraj.solve(problem(th), options=tight)
+            s = jtraj.solve(problem(th), solver=tight)
             assert bool(s.converged), s.status_message
             vals.append({k: np.asarray(v) for k, v in outputs(s).items()})
         for o in cols:
@@ -103,7 +103,7 @@ def main(argv=None):
     def batch_T(theta, g):
         robot = jtraj.robots.get("serial3", masses=theta[5:8])
         s = jtraj.solve_batch(robot, np.broadcast_to(start, g.shape), g, N=N,
-                              weights=jtraj.Weights(time=theta[3], energy=theta[4]), options=tight, slots=None)
+                              weights=jtraj.Weights(time=theta[3], energy=theta[4]), solver=tight, slots=None)
         return s.T
 
     J_th, J_g = jax.jacobian(batch_T, argnums=(0, 1))(jnp.asarray(theta0), jnp.asarray(goals))
@@ -140,7 +140,7 @@ def main(argv=None):
 
     # ---- 3. vmap(grad) ----------------------------------------------------------------------
     def one_T(g):
-        return jtraj.solve(jtraj.Problem(robot0, start, g, N=N, weights=w0), options=tight).T
+        return jtraj.solve(jtraj.Problem(robot0, start, g, N=N, weights=w0), solver=tight).T
 
     vg = np.asarray(jax.vmap(jax.grad(one_T))(jnp.asarray(goals)))
     diag = np.stack([J_g[b, b] for b in range(B)])
@@ -159,7 +159,7 @@ def main(argv=None):
 
     def total_T(g):
         s = jtraj.solve_batch(robot0, np.broadcast_to(start, g.shape), g, N=N, weights=w0, T_max=T_max,
-                              options=tight, slots=None)
+                              solver=tight, slots=None)
         return jnp.sum(jnp.where(valid_derivatives(s), s.T, 0.0)), s
 
     (_, sol), grad = jax.value_and_grad(total_T, has_aux=True)(jnp.asarray(goals))

@@ -70,7 +70,7 @@ def main(argv=None) -> int:
         p = problem(i)
         if o is short:
             fallback += not bool(solver.staged_ip_jit(p, o, "decoupled", init, no, yes)[1])
-        new = jtraj.solve(p, options=o)
+        new = jtraj.solve(p, solver=jtraj.solver.from_options(o))
         old = solver.solve_jit(p, o, "decoupled", init, no, yes)
         rel = abs(float(new.cost) - float(old.cost)) / max(1.0, abs(float(old.cost)))
         worst = max(worst, rel if np.isfinite(rel) else 0.0)

@@ -182,7 +182,7 @@ def main(argv=None):
                   f"{float(sol_t.cost):.8f}, T {float(np.sum(sol_t.h)):.6f} s", flush=True)
         if not bool(decided):
             t0 = time.perf_counter()
-            full = jtraj.solve(problem, options=jtraj.SolverOptions(ip_curvature=args.curvature))
+            full = jtraj.solve(problem, solver=jtraj.Auto(ipm=jtraj.IPM(curvature=args.curvature)))
             print(f"  undecided: jtraj.solve with the AL fallback {time.perf_counter() - t0:.1f} s, converged "
                   f"{bool(full.converged)}, iterations {int(full.iterations)}, cost {float(full.cost):.8f}")
     if args.json:

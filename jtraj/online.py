@@ -343,8 +343,8 @@ class Planner:
             out[k] = np.asarray(getattr(p, k)).tolist()
         return out
 
-    def query(self, q_start, q_goal, *, refine: bool = False, weights=None, options=None,
-              warm: str = "primal", N: int | None = None) -> dict:
+    def query(self, q_start, q_goal, *, refine: bool = False, weights=None, solver=None,
+              warm: str = "primal", N: int | None = None, options=None) -> dict:
         """Plan, report feasibility, cost and coverage, and optionally refine with the exact
         solver.
 
@@ -354,8 +354,10 @@ class Planner:
         at each new interval's midpoint), which keeps the plan's total time.
 
         ``weights`` of the refined problem default to the planner's (the training
-        dataset's); ``options`` is its solver (:class:`jtraj.Auto` by default,
-        :class:`jtraj.IPM`, :class:`jtraj.AugmentedLagrangian` or a :class:`jtraj.SolverOptions`). Returns :meth:`report`'s dict with ``seconds`` (the plan's wall time,
+        dataset's); ``solver`` is its solver (:class:`jtraj.Auto` by default,
+        :class:`jtraj.IPM` or :class:`jtraj.AugmentedLagrangian`; ``options``, a
+        :class:`jtraj.SolverOptions`, is deprecated as in :func:`jtraj.solve`). Returns
+        :meth:`report`'s dict with ``seconds`` (the plan's wall time,
         Python included); with ``refine`` it adds the solver's status, iterations, time,
         cost, the plan's ``gap`` to the refined optimum (``(cost - refined_cost) /
         refined_cost``, where the refined solve converged with the plan's weights and N),
@@ -368,6 +370,9 @@ class Planner:
         which also estimates multipliers at the plan and starts the penalty at
         ``penalty_max / 100`` (``jtraj.solve(..., warm=)``; benchmarks/bench_online.py
         compares them)."""
+        from jtraj.solver.api import solver_argument
+
+        solver = solver_argument(solver, options)
         if warm not in ("primal", "full"):
             raise ValueError(f"warm must be 'primal' or 'full', got {warm!r}")
         if N is not None and (isinstance(N, bool) or not isinstance(N, (int, np.integer)) or N < 2):
@@ -385,7 +390,6 @@ class Planner:
                 {"q": p.q, "qd": p.qd, "v": p.v, "h": p.h}, self.robot))
         if refine:
             import jtraj
-            from jtraj.solver import as_solver
 
             same_cost = weights is None
             prob = jtraj.Problem(self.robot, np.asarray(q_start, float), np.asarray(q_goal, float), N=N,
@@ -396,9 +400,9 @@ class Planner:
             for label, init in (("cycloidal", None), ("refined", _resampled(p.v, p.h, N, self.robot.limits))):
                 t1 = time.perf_counter()
                 if init is None:
-                    sol = jtraj.solve(prob, solver=as_solver(options))
+                    sol = jtraj.solve(prob, solver=solver)
                 else:
-                    sol = jtraj.solve(prob, init=init, solver=as_solver(options), warm=warm)
+                    sol = jtraj.solve(prob, init=init, solver=solver, warm=warm)
                     out["refined_warm"] = warm
                 jax.block_until_ready(sol)
                 dt = time.perf_counter() - t1

@@ -27,10 +27,11 @@ from . import implicit
 from ._compile import solver_jit
 from .problem import Problem
 from .robots import Limits, parameter_names
-from .solver import SolverOptions, Status, as_solver
+from .solver import SolverOptions, Status
 from .solver.al import run_al as _run
 from .solver.core import finish as _finish
 from .solver.nlp import NLP as _NLP
+from .solver.options import to_options
 from .transcription import Transcription
 
 __all__ = ["sensitivity", "solve_with_multipliers"]
@@ -59,16 +60,22 @@ def _solve_state(problem: Problem, opts: SolverOptions, transcription: str, init
     return sol, s.mult, s.mu
 
 
-def solve_with_multipliers(problem: Problem, *, options: SolverOptions | None = None,
-                           transcription: str = "decoupled", init=None):
-    """Solve like :func:`jtraj.solve` and also return the solver's final multipliers.
+def solve_with_multipliers(problem: Problem, *, solver=None, transcription: str = "decoupled", init=None,
+                           options: SolverOptions | None = None):
+    """Solve like :func:`jtraj.solve` (the augmented-Lagrangian loop of ``solver``,
+    :class:`jtraj.AugmentedLagrangian` or the fallback of an :class:`jtraj.IPM` or
+    :class:`jtraj.Auto`; ``options``, a :class:`jtraj.SolverOptions`, is deprecated) and
+    also return the solver's final multipliers.
 
     Returns ``(solution, multipliers, mu)``: ``multipliers`` is the solver's
     ``Multipliers(eq, ineq, glob)`` after its last outer update (so they are the
     Lagrange multipliers at the optimum, ``lambda_old + mu c``), ``mu`` the final penalty.
     """
     tr = Transcription(transcription)
-    opts = SolverOptions() if options is None else options
+    from .solver.api import solver_argument
+
+    solver = solver_argument(solver, options)
+    opts = SolverOptions() if solver is None else to_options(solver)
     if init is not None:
         u, h = jnp.asarray(init[0], float), jnp.asarray(init[1], float)
         m_u = tr.control_dim(problem)
@@ -116,8 +123,8 @@ def _with_param(problem: Problem, name: str, theta):
 # the sensitivity
 
 
-def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, options=None,
-                transcription: str = "decoupled", details: bool = False) -> dict:
+def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=None,
+                transcription: str = "decoupled", details: bool = False, options=None) -> dict:
     """Derivatives of the optimal cost and the optimal time with respect to a robot
     parameter, by implicit differentiation of the KKT conditions at the optimum
     (:mod:`jtraj.implicit`).
@@ -128,13 +135,15 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, options
             ``"lengths"``, ``"inertias"``, ...) or a limit field (``"tau_max"``, ...).
         solution: optional converged :class:`jtraj.Solution` of ``problem`` (same
             transcription); it warm-starts the solve.
-        options: the solver of that solve: :class:`jtraj.Auto` (None: the default),
-            :class:`jtraj.IPM`, :class:`jtraj.AugmentedLagrangian` or a :class:`jtraj.SolverOptions`.
+        solver: the solver of that solve: :class:`jtraj.Auto` (None: the default),
+            :class:`jtraj.IPM` or :class:`jtraj.AugmentedLagrangian`.
         transcription: "decoupled" (default) or another transcription.
         details: also return the chain-rule cost derivative (``"cost_chain"``, through
             the implicit tangent; ``"cost"`` is the envelope theorem's, see
             :func:`jtraj.implicit.envelope`: they agree at a KKT point), the active
             set's sizes (``"kkt_size"``, ``"n_active"``, ``"n_bound"``) and the solution.
+        options: deprecated, a :class:`jtraj.SolverOptions` (as in :func:`jtraj.solve`);
+            pass ``solver=`` instead.
 
     Returns:
         ``{"cost": dJ*/dtheta, "T": dT*/dtheta}``, numpy arrays shaped like the
@@ -145,7 +154,9 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, options
             the solve did not converge (sensitivities need a converged KKT point).
     """
     from .solver import solve
+    from .solver.api import solver_argument
 
+    solver = solver_argument(solver, options)
     if not isinstance(problem, Problem):
         raise ValueError(f"problem must be a jtraj.Problem, got {type(problem).__name__}")
     tr = Transcription(transcription)
@@ -157,7 +168,7 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, options
         raise ValueError(f"the given solution did not converge (status {Status(int(solution.status)).name}); "
                          "sensitivities need a converged KKT point")
     init = None if solution is None else (tr.controls_of(solution), solution.h)
-    sol = solve(problem, solver=as_solver(options), transcription=tr.name, init=init)
+    sol = solve(problem, solver=solver, transcription=tr.name, init=init)
     if not bool(sol.converged):
         raise ValueError(f"the solve did not converge (status {Status(int(sol.status)).name}: "
                          f"{Status(int(sol.status)).message}); sensitivities need a converged KKT point")
@@ -165,7 +176,7 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, options
     warm = (tr.controls_of(sol), sol.h)
 
     def optimum(theta):
-        s = solve(_with_param(problem, wrt, theta), solver=as_solver(options), transcription=tr.name, init=warm)
+        s = solve(_with_param(problem, wrt, theta), solver=solver, transcription=tr.name, init=warm)
         return {"cost": s.cost, "T": s.T}
 
     jac = jax.jacrev(optimum)(theta0)

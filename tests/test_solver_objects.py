@@ -124,6 +124,102 @@ def test_deprecated_options_warn_and_name_the_replacement(problem):
                               init=(np.zeros((1, N, 2)), np.ones((1, N))))
 
 
+def test_sensitivity_and_the_planner_take_solver_and_deprecate_options(problem):
+    # the argument is read first: a bad argument after it stops before any solve
+    from jtraj.online import Planner
+
+    with pytest.warns(DeprecationWarning, match="solver="):
+        with pytest.raises(ValueError, match="unknown parameter"):
+            jtraj.sensitivity(problem, "no_such_parameter", options=SolverOptions())
+    with pytest.raises(ValueError, match="not both"):
+        jtraj.sensitivity(problem, solver=Auto(), options=SolverOptions())
+    with pytest.raises(ValueError, match="solver must be"):
+        jtraj.sensitivity(problem, solver=SolverOptions())
+    planner = object.__new__(Planner)  # (query reads its solver before the planner's state)
+    with pytest.warns(DeprecationWarning, match="solver="):
+        with pytest.raises(ValueError, match="warm"):
+            planner.query(Q0, Q1, options=SolverOptions(method="al"), warm="cold")
+    with pytest.raises(ValueError, match="solver must be"):
+        planner.query(Q0, Q1, solver="ipm")
+
+
+# ----- the shared options and the flat overrides ---------------------------------------------
+def test_shared_options_forward_to_the_fallback():
+    tight = AugmentedLagrangian(tol_optimality=1e-6, verify_tol=1e-8, guess="trapezoidal")
+    assert Auto(tol_optimality=1e-6, verify_tol=1e-8, guess="trapezoidal") == Auto(ipm=IPM(fallback=tight))
+    assert IPM(max_iter=80, tol_optimality=1e-6, verify_tol=1e-8, guess="trapezoidal") == IPM(max_iter=80,
+                                                                                              fallback=tight)
+    # onto a given fallback, whose other fields stay
+    pbm = AugmentedLagrangian.pbm()
+    assert Auto(ipm=IPM(fallback=pbm), tol_feasibility=1e-7).ipm.fallback == dataclasses.replace(
+        pbm, tol_feasibility=1e-7)
+    # the traced values reach the programs' options (IPM's tolerances are capped by them)
+    assert to_options(Auto(tol_optimality=1e-6)).tol_optimality == 1e-6
+    with pytest.raises(TypeError, match="max_iter"):  # not shared: IPM's and the fallback's differ
+        Auto(max_iter=10)
+    with pytest.raises(ValueError, match=r"AugmentedLagrangian\.tol_optimality"):
+        Auto(tol_optimality=-1.0)
+
+
+def test_overrides_round_trip():
+    from jtraj.solver.options import from_overrides, overrides
+
+    for solver in (Auto(), IPM(mu_init=0.01, tol_optimality=1e-5), AugmentedLagrangian.pbm(max_iter=300),
+                   Auto(ipm=IPM(curvature="exact"))):
+        flat = overrides(solver)
+        assert from_overrides(flat) == solver
+        assert flat["method"] == {Auto: "auto", IPM: "ip", AugmentedLagrangian: "al"}[type(solver)]
+    assert overrides(AugmentedLagrangian(max_iter=300)) == {"max_iter": 300, "method": "al"}
+    with pytest.raises(ValueError, match="unknown solver option 'ip_tolerance'"):
+        from_overrides({"ip_tolerance": 1.0})
+
+
+def test_dataset_spec_takes_a_solver_object():
+    from jtraj import dataset
+
+    def identity(**kw):
+        return dataset.make_spec("serial3", 10, 0, **kw).identity()["solver_options"]
+
+    by_dict = identity(options={"method": "ip", "tol_optimality": 1e-5, "max_iter": 300})
+    assert identity(solver=IPM(tol_optimality=1e-5, fallback=AugmentedLagrangian(max_iter=300))) == by_dict
+    assert identity(options=IPM(tol_optimality=1e-5, fallback=AugmentedLagrangian(max_iter=300))) == by_dict
+    assert by_dict != identity(options={"method": "ip"})
+    with pytest.raises(ValueError, match="not both"):
+        dataset.make_spec("serial3", 10, 0, solver=IPM(), options={"max_iter": 3})
+    with pytest.raises(ValueError, match="options"):
+        dataset.make_spec("serial3", 10, 0, options={"tol_optimality": 0.0})
+
+
+def test_cli_solver_and_option_arguments():
+    import argparse
+
+    from jtraj.commands import dataset, query, solve, solver_from_args
+
+    def parsed(module, *argv):
+        parser = argparse.ArgumentParser()
+        module.configure(parser)
+        extra = ("--model", "m", "--start", "0", "--goal", "0") if module is query else ()
+        return parser.parse_args([*extra, *argv])
+
+    for module in (solve, query, dataset):
+        args = parsed(module, "--solver", "ipm", "--option", "tol_optimality=1e-8", "--option", "ip_max_iter=300")
+        assert solver_from_args(args) == IPM(max_iter=300, tol_optimality=1e-8)
+    # the old spellings
+    assert solver_from_args(parsed(solve, "--method", "al", "--inequalities", "pbm")) == AugmentedLagrangian.pbm()
+    assert solver_from_args(parsed(dataset, "--max-iter", "40")) == Auto(ipm=IPM(fallback=AugmentedLagrangian(
+        max_iter=40)))
+    assert solver_from_args(parsed(solve, "--option", "detect_infeasible=off", "--option", "guess=cycloidal")) \
+        == Auto(ipm=IPM(fallback=AugmentedLagrangian(detect_infeasible=False, guess="cycloidal")))
+    for argv, message in ((("--option", "tol=1"), "--option tol: unknown"),
+                          (("--option", "max_iter=2.5"), "must be an integer"),
+                          (("--option", "max_iter"), "NAME=VALUE"),
+                          (("--option", "verify_tol=-1"), "--option: verify_tol"),
+                          (("--solver", "ipm", "--method", "al"), "disagree"),
+                          (("--solver", "newton"), "--solver must be")):
+        with pytest.raises(ValueError, match=message):
+            solver_from_args(parsed(solve, *argv))
+
+
 # ----- batched Problem (its solve: test_solver.py) -----------------------------------------
 @pytest.fixture(scope="module")
 def pairs():

@@ -31,3 +31,89 @@ def check_output_file(path, option: str) -> None:
         raise ValueError(f"{option} {path!r}: the folder {folder!r} does not exist")
     if not os.access(folder, os.W_OK | os.X_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
         raise ValueError(f"{option} {path!r} is not writable")
+
+
+#: ``--solver`` names and the method each is (``ipm``/``ip`` the interior-point method
+#: with its AL fallback, ``al`` the augmented-Lagrangian method alone)
+SOLVER_NAMES = {"auto": "auto", "ipm": "ip", "ip": "ip", "al": "al"}
+
+
+def add_solver_arguments(parser, when: str = "", functions: bool = False) -> None:
+    """``--solver NAME`` and the repeatable ``--option NAME=VALUE`` (``when``: a prefix
+    of their help, such as "with --refine: "; ``functions``: ``--solver`` also takes a
+    batch solve function as ``module:function``, which tests use)."""
+    parser.add_argument("--solver", default=None, metavar="{auto,ipm,al}",
+                        help=f"{when}the solver: auto (default: the interior-point method where it applies, else "
+                             "the augmented-Lagrangian method), ipm (the interior-point method with the AL "
+                             "fallback, decoupled transcription only) or al (jtraj.Auto, jtraj.IPM, "
+                             "jtraj.AugmentedLagrangian); the same as --method auto/ip/al")
+    parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
+                        help=f"{when}a solver option (repeatable) in jtraj.SolverOptions' names: the "
+                             "AugmentedLagrangian fields (tol_optimality, max_iter, ...) and the IPM fields "
+                             "with the prefix ip_ (ip_max_iter, ...), e.g. --option tol_optimality=1e-6")
+    parser.set_defaults(solver_functions=functions)
+
+
+def solve_function(args) -> str | None:
+    """The ``module:function`` a ``--solver`` names, or None."""
+    value = getattr(args, "solver", None)
+    return value if value is not None and ":" in value else None
+
+
+def solver_overrides(args) -> dict:
+    """The solver of the parsed arguments as flat option overrides (the form
+    :func:`jtraj.solver.options.from_overrides` and a dataset take): the method of
+    ``--solver`` or ``--method``, the settings of ``--inequalities pbm``, ``--max-iter``
+    where the command has it, then each ``--option``. ``ValueError`` naming the argument."""
+    from jtraj.solver import PBM_SETTINGS, SolverOptions
+
+    method = getattr(args, "method", "auto")
+    name = getattr(args, "solver", None)
+    if name is not None and solve_function(args) is None:
+        if name not in SOLVER_NAMES:
+            raise ValueError(f"--solver must be one of auto, ipm, al, got {name!r}")
+        if method != "auto" and SOLVER_NAMES[name] != method:
+            raise ValueError(f"--solver {name} and --method {method} disagree; give one of them")
+        method = SOLVER_NAMES[name]
+    out = dict(PBM_SETTINGS) if getattr(args, "inequalities", "phr") == "pbm" else {}
+    if getattr(args, "max_iter", None) is not None:
+        out["max_iter"] = args.max_iter
+    fields = SolverOptions.__dataclass_fields__
+    for text in getattr(args, "option", []):
+        key, sep, value = text.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ValueError(f"--option must look like NAME=VALUE, got {text!r}")
+        if key not in fields or key == "method":
+            raise ValueError(f"--option {key}: unknown solver option; the options are "
+                             f"{sorted(set(fields) - {'method'})} (the method is --solver)")
+        out[key] = _option_value(key, value.strip(), fields[key].default)
+    out["method"] = method
+    return out
+
+
+def _option_value(key: str, text: str, default):
+    """``text`` as a value of the option's type (that of its default)."""
+    try:
+        if isinstance(default, bool):
+            if text.lower() not in ("true", "false", "1", "0", "on", "off", "yes", "no"):
+                raise ValueError
+            return text.lower() in ("true", "1", "on", "yes")
+        if isinstance(default, int):
+            number = float(text)
+            if not number.is_integer():
+                raise ValueError
+            return int(number)
+        if isinstance(default, float):
+            return float(text)
+        return text
+    except ValueError:
+        kind = {bool: "true or false", int: "an integer", float: "a number"}.get(type(default), "text")
+        raise ValueError(f"--option {key}={text}: the value must be {kind}") from None
+
+
+def solver_from_args(args):
+    """The solver object of the parsed arguments (:func:`solver_overrides`)."""
+    from jtraj.solver.options import from_overrides
+
+    return from_overrides(solver_overrides(args), "--option")

@@ -37,6 +37,8 @@ ACTIONS = ("build", "info", "verify", "plot")
 
 
 def configure(parser):
+    from jtraj.commands import add_solver_arguments
+
     parser.add_argument("action", nargs="*", metavar="[build | info PATH | verify PATH | plot PATH]",
                         help="what to do (default build)")
     parser.add_argument("--robot", help="robot name (see 'jtraj robots')")
@@ -76,7 +78,7 @@ def configure(parser):
                         help="where the torque bound holds: at the samples (default, the thesis) or also at each "
                              "interval's end, so that the executed motion meets it (see jtraj.Problem)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--solver", default="jtraj:solve_batch", help=argparse.SUPPRESS)  # tests: module:function
+    add_solver_arguments(parser, functions=True)  # (--solver also takes module:function, for tests)
 
 
 def _workers(text):
@@ -153,17 +155,16 @@ def run(args) -> int:
             batch = read_manifest(args.out)["identity"]["batch"]
         except (ValueError, KeyError):
             batch = None  # not a dataset (yet): the build reports what is wrong there
-    options = {} if args.max_iter is None else {"max_iter": args.max_iter}
-    if args.inequalities == "pbm":
-        from jtraj.solver import PBM_SETTINGS
+    from jtraj.commands import solve_function, solver_overrides
 
-        options.update(PBM_SETTINGS)
-    options["method"] = args.method  # recorded: a dataset resumes only with the same method
+    # the method recorded too: a dataset resumes only with the same method
+    options = solver_overrides(args)
+    solve_fn = solve_function(args) or "jtraj:solve_batch"
     spec = dataset.make_spec(args.robot, args.pairs, args.seed, N=args.N, weights=args.weights,
                              batch=batch, space=args.space,
                              start_range=args.start_range, step_range=args.step_range,
                              min_separation=args.min_separation, ik_method=args.ik_method, options=options,
-                             solver=args.solver, h_max=_h_max(args.h_max), efforts=args.efforts)
+                             solver=solve_fn, h_max=_h_max(args.h_max), efforts=args.efforts)
     stats = dataset.build(spec, args.out, ray=args.ray, workers=getattr(args, "workers", None),
                           progress=not args.no_progress)
     P = stats["pairs_done"]

@@ -28,6 +28,8 @@ PIN_ONE_CPU = True
 
 
 def configure(parser):
+    from jtraj.commands import add_solver_arguments
+
     parser.add_argument("--model", required=True,
                         help="model file from `jtraj train --mapping plan`, or `--mapping nefotc` with --periods")
     parser.add_argument("--periods", help="with a nefotc --model: a model file from `jtraj train --mapping nefumop` "
@@ -45,6 +47,7 @@ def configure(parser):
                         help="with --refine: inner method of the solver (see jtraj solve)")
     parser.add_argument("--inequalities", choices=("phr", "pbm"), default="phr",
                         help="with --refine: inequality term of the solver (see jtraj solve)")
+    add_solver_arguments(parser, when="with --refine: ")
     parser.add_argument("--warm", default="primal", choices=["primal", "full"],
                         help="refine from the plan's primal point only (default; multipliers and penalty as in "
                              "a cold start) or with jtraj.solve's full warm start (estimated multipliers, high "
@@ -91,15 +94,13 @@ def run(args) -> int:
     q_start = _vector(args.start, "--start", planner.n, deg)
     q_goal = _vector(args.goal, "--goal", planner.n, deg)
     check_joint_values(planner.robot, {"--start": q_start, "--goal": q_goal}, deg)
-    options = None
+    solver = None
     if args.refine:
-        import jtraj
+        from jtraj.commands import solver_from_args
 
-        method = getattr(args, "method", "auto")
-        options = (jtraj.SolverOptions.pbm(method=method) if getattr(args, "inequalities", "phr") == "pbm"
-                   else jtraj.SolverOptions(method=method))
+        solver = solver_from_args(args)
     out = planner.query(q_start, q_goal, refine=args.refine, warm=getattr(args, "warm", "primal"),
-                        weights=weights, options=options, N=getattr(args, "N", None))
+                        weights=weights, solver=solver, N=getattr(args, "N", None))
     cov = out["coverage"]
     print(f"plan: T = {out['T']:.4f} s, cost {out['cost']:.6g}, feasible = {out['feasible']} (worst violation "
           f"{out['violation']:.3g}, goal error {out['goal_error']:.3g} rad"

@@ -24,6 +24,8 @@ CONSTANT_ACCELERATION = ("decoupled", "coupled")
 
 
 def configure(parser):
+    from jtraj.commands import add_solver_arguments
+
     parser.add_argument("--robot", default="serial3", help="robot name (see `jtraj robots`), default serial3")
     parser.add_argument("--urdf", metavar="PATH", help="load a serial arm from a URDF file instead of --robot "
                         "(jtraj.robots.from_urdf: limits from the file, qdd_max 10 rad/s^2)")
@@ -55,6 +57,7 @@ def configure(parser):
                         help="inner method: auto (default: ip where it applies, else al), al (the augmented-Lagrangian "
                              "loop) or ip (the interior-point method, decoupled transcription only); see "
                              "SolverOptions.method")
+    add_solver_arguments(parser)
     parser.add_argument("--json", metavar="PATH", help="write the solution as JSON")
     parser.add_argument("--rate", type=float, default=None, metavar="HZ",
                         help="with --json: also write the trajectory resampled at this rate (t, q, qd, qdd, tau "
@@ -296,14 +299,12 @@ def run(args) -> int:
     import jax.numpy as jnp
 
     import jtraj
-    from jtraj.commands import check_output_file
-    from jtraj.solver import from_options
+    from jtraj.commands import check_output_file, solver_from_args
 
     check_output_file(args.json, "--json")
     check_output_file(args.plot, "--plot")
+    solver = solver_from_args(args)
     robot, problem = build_problem(args)
-    solver = from_options(jtraj.SolverOptions.pbm(method=args.method) if args.inequalities == "pbm"
-                          else jtraj.SolverOptions(method=args.method))
     t0 = time.perf_counter()
     sol = jtraj.solve(problem, transcription=args.transcription, solver=solver)
     jax.block_until_ready(sol)

@@ -330,7 +330,14 @@ def make_spec(robot: str, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=N
     (default) is :data:`H_MAX_FACTOR` times the robot's own bound, ``"robot"`` keeps the
     robot's, a number sets it (it must exceed the robot's h_min). ``efforts``: where the
     torque bound holds, "samples" or "intervals" (see :class:`jtraj.Problem`).
-    ``batch=None``: see :func:`default_batch`."""
+    ``batch=None``: see :func:`default_batch`.
+
+    ``options``: the solver of the dataset's solves, as a solver object
+    (:class:`jtraj.Auto`, :class:`jtraj.IPM`, :class:`jtraj.AugmentedLagrangian`) or as
+    a dict of overrides in the flat option names (``SolverOptions``' fields, ``method``
+    among them); the dataset records the overrides (its identity). ``solver``: a solver
+    object in place of ``options``, or the batch solve function as
+    ``"module:function"`` (default :data:`DEFAULT_SOLVER`)."""
     from jtraj import robots
 
     if not isinstance(robot, str) or robot not in robots.names():
@@ -353,8 +360,23 @@ def make_spec(robot: str, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=N
     jtraj.Weights.parse(weights)  # validates
     dist = sampling.Distribution(space=space, start_range=float(start_range), step_range=float(step_range),
                                  min_separation=float(min_separation), ik_method=ik_method)
+    from jtraj.solver import SolverOptions
+    from jtraj.solver.methods import SOLVERS
+    from jtraj.solver.options import from_overrides, overrides
+
+    if isinstance(solver, SOLVERS):
+        if options:
+            raise ValueError("pass the solver's options on the solver object (solver=) or in options, not both")
+        options, solver = solver, DEFAULT_SOLVER
+    if isinstance(options, (*SOLVERS, SolverOptions)):
+        options = overrides(options)
+    elif options is not None and not isinstance(options, dict):
+        raise ValueError(f"options must be a dict of solver options or a solver object (jtraj.Auto, jtraj.IPM, "
+                         f"jtraj.AugmentedLagrangian), got {type(options).__name__}")
     opts = tuple(sorted((options or {}).items()))
-    jtraj.SolverOptions(**dict(opts))  # validates
+    from_overrides(dict(opts), "options")  # validates
+    if not isinstance(solver, str):
+        raise ValueError(f"solver must be a solver object or 'module:function', got {type(solver).__name__}")
     resolve_solver(solver)
     limits = robots.get(robot).limits
     if isinstance(h_max, str):

@@ -19,7 +19,7 @@ from ..transcription import Transcription
 from .core import initial_guess, placeholder_init, resolve_method
 from .lanes import cpu_lanes, solve_problems
 from .methods import IPM, SOLVERS, AugmentedLagrangian, Auto
-from .options import SolverOptions, options_jit, to_options
+from .options import SolverOptions, as_solver, options_jit, to_options
 from .results import Solution
 
 
@@ -96,24 +96,45 @@ def solve(problem: Problem, *, solver: Auto | IPM | AugmentedLagrangian | None =
     return sol
 
 
+def _deprecated_options(solver, stacklevel: int) -> None:
+    if solver is not None:
+        raise ValueError("pass solver= or the deprecated options=, not both")
+    warnings.warn("options=SolverOptions(...) is deprecated and goes in the next release: pass "
+                  "solver=jtraj.Auto(), jtraj.IPM(...) or jtraj.AugmentedLagrangian(...) "
+                  "(jtraj.solver.from_options(options) gives the solver of given options)",
+                  DeprecationWarning, stacklevel=stacklevel + 1)
+
+
+def _check_solver(solver) -> None:
+    if not isinstance(solver, SOLVERS):
+        raise ValueError(f"solver must be jtraj.Auto, jtraj.IPM or jtraj.AugmentedLagrangian, "
+                         f"got {type(solver).__name__}")
+
+
 def solver_options(solver, options) -> SolverOptions | None:
     """The flat options the compiled programs read: those ``solver`` maps onto
     (:func:`jtraj.solver.options.to_options`), ``options`` (deprecated, with a warning)
     or None for the defaults."""
     if options is not None:
-        if solver is not None:
-            raise ValueError("pass solver= or the deprecated options=, not both")
-        warnings.warn("options=SolverOptions(...) is deprecated and goes in the next release: pass "
-                      "solver=jtraj.Auto(), jtraj.IPM(...) or jtraj.AugmentedLagrangian(...) "
-                      "(jtraj.solver.from_options(options) gives the solver of given options)",
-                      DeprecationWarning, stacklevel=3)
+        _deprecated_options(solver, stacklevel=3)
         return options
     if solver is None:
         return None
-    if not isinstance(solver, SOLVERS):
-        raise ValueError(f"solver must be jtraj.Auto, jtraj.IPM or jtraj.AugmentedLagrangian, "
-                         f"got {type(solver).__name__}")
+    _check_solver(solver)
     return to_options(solver)
+
+
+def solver_argument(solver, options):
+    """The solver object of a function that takes ``solver=`` and the deprecated
+    ``options=`` (a :class:`jtraj.SolverOptions` or a solver object, with the warning
+    :func:`solve` gives), or None for the default; ``ValueError`` for anything else or
+    for both."""
+    if options is not None:
+        _deprecated_options(solver, stacklevel=3)
+        return as_solver(options, "options")
+    if solver is not None:
+        _check_solver(solver)
+    return solver
 
 
 def _check_efforts(efforts, transcription):

@@ -286,6 +286,30 @@ IPM_NAMES = {"max_iter": "ip_max_iter", "tol": "ip_tol", "dual_tol": "ip_dual_to
              "project_tol": "ip_project_tol", "damping": "ip_damping", "mu_init": "ip_mu_init",
              "curvature": "ip_curvature"}
 
+#: the options every method shares: the targets, the start and the linear solver. The
+#: :class:`AugmentedLagrangian` holds them (an :class:`IPM`'s ``fallback``);
+#: :class:`IPM` and :class:`Auto` take them as keywords and forward them there, so
+#: ``Auto(tol_optimality=1e-5)`` is ``Auto(ipm=IPM(fallback=AugmentedLagrangian(tol_optimality=1e-5)))``
+SHARED = ("tol_optimality", "tol_feasibility", "verify_tol", "guess", "linear_solver")
+
+
+def _shared(owner: str, options: dict, own=()) -> dict:
+    """The :data:`SHARED` options among ``options`` (``TypeError`` naming any other
+    keyword that is not in ``own``)."""
+    unknown = sorted(set(options) - set(SHARED) - set(own))
+    if unknown:
+        raise TypeError(f"{owner}() got an unexpected keyword argument {unknown[0]!r} (it takes its own fields "
+                        f"and the shared options {', '.join(SHARED)})")
+    return {name: value for name, value in options.items() if name in SHARED}
+
+
+def _forwarded(fallback, shared: dict):
+    """``fallback`` with the shared options set."""
+    if not isinstance(fallback, AugmentedLagrangian):
+        raise ValueError(f"fallback must be a jtraj.AugmentedLagrangian, got {type(fallback).__name__}")
+    return dataclasses.replace(fallback, **shared) if shared else fallback
+
+
 class IPM(eqx.Module):
     """The primal-dual interior-point method (:mod:`jtraj.solver.ipm`) with the AL loop
     (``fallback``) as the fallback for what it leaves unsolved. It needs the decoupled
@@ -306,6 +330,11 @@ class IPM(eqx.Module):
         mu_init: the first barrier parameter (0.1); smaller for a start near an optimum.
         curvature: a :class:`Curvature` (``"auto"``): the Newton model of the dynamics.
         fallback: the :class:`AugmentedLagrangian` that finishes what the method leaves.
+
+    The options every method shares (:data:`SHARED`: ``tol_optimality``,
+    ``tol_feasibility``, ``verify_tol``, ``guess``, ``linear_solver``) are also taken as
+    keywords and set on ``fallback``: ``IPM(tol_optimality=1e-5)`` is
+    ``IPM(fallback=AugmentedLagrangian(tol_optimality=1e-5))``.
     """
 
     max_iter: int = _static(150)
@@ -317,6 +346,13 @@ class IPM(eqx.Module):
     mu_init: float = _static(0.1)
     curvature: str = _static("auto", _choice(Curvature, "curvature"))
     fallback: AugmentedLagrangian = AugmentedLagrangian()
+
+    def __init__(self, *, fallback: AugmentedLagrangian | None = None, **options):
+        own = [f.name for f in dataclasses.fields(IPM) if f.name != "fallback"]
+        shared = _shared("IPM", options, own)
+        for name in own:
+            setattr(self, name, options.get(name, IPM.__dataclass_fields__[name].default))
+        self.fallback = _forwarded(AugmentedLagrangian() if fallback is None else fallback, shared)
 
     def __check_init__(self):
         if not isinstance(self.fallback, AugmentedLagrangian):
@@ -332,9 +368,22 @@ class Auto(eqx.Module):
     Attributes:
         ipm: the :class:`IPM` (its ``fallback`` is the AL method used where the
             interior-point method does not apply).
+
+    The options both methods share (:data:`SHARED`: ``tol_optimality``,
+    ``tol_feasibility``, ``verify_tol``, ``guess``, ``linear_solver``) are also taken as
+    keywords and set on ``ipm.fallback``, which both read (the interior-point method's
+    tolerances are capped by the fallback's targets): ``Auto(tol_optimality=1e-5)``
+    asks both methods for the tighter solve.
     """
 
     ipm: IPM = IPM()
+
+    def __init__(self, ipm: IPM | None = None, **shared):
+        shared = _shared("Auto", shared)
+        ipm = IPM() if ipm is None else ipm
+        if not isinstance(ipm, IPM):
+            raise ValueError(f"ipm must be a jtraj.IPM, got {type(ipm).__name__}")
+        self.ipm = dataclasses.replace(ipm, fallback=_forwarded(ipm.fallback, shared)) if shared else ipm
 
     def __check_init__(self):
         if not isinstance(self.ipm, IPM):

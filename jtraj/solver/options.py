@@ -13,7 +13,7 @@ import numpy as np
 from .. import _tracecache
 from .._compile import SOLVER_XLA_OPTIONS, cpu_jit, supported_options
 from .._compile import solver_jit as _jit
-from .methods import PBM_SETTINGS, SOLVERS, check_flat, flat, flat_traced, from_flat
+from .methods import PBM_SETTINGS, SOLVERS, Auto, check_flat, flat, flat_traced, from_flat
 
 
 # ----------------------------------------------------------------------------------------
@@ -286,6 +286,31 @@ def as_solver(value, name: str = "options"):
         return from_options(value)
     raise ValueError(f"{name} must be jtraj.Auto, jtraj.IPM, jtraj.AugmentedLagrangian or a jtraj.SolverOptions, "
                      f"got {type(value).__name__}")
+
+
+def overrides(solver) -> dict:
+    """A solver's options that differ from the defaults, in the flat option names
+    (``SolverOptions``' fields: the AL fields, the ``ip_`` fields), with its ``method``
+    always: the form a dataset records (:func:`jtraj.dataset.make_spec`)."""
+    solver = as_solver(solver, "solver")
+    values = _plain(flat(Auto() if solver is None else solver))
+    defaults = SolverOptions.__dataclass_fields__
+    return {name: value for name, value in values.items()
+            if name == "method" or value != defaults[name].default}
+
+
+def from_overrides(values: dict, name: str = "options"):
+    """The solver object of flat option overrides (``{SolverOptions field: value}``,
+    ``method`` among them or ``"auto"``): the inverse of :func:`overrides`.
+    ``ValueError`` naming ``name`` and the option for an unknown name or a bad value."""
+    fields = SolverOptions.__dataclass_fields__
+    for key in values:
+        if key not in fields:
+            raise ValueError(f"{name}: unknown solver option {key!r}; the options are {sorted(fields)}")
+    try:
+        return from_options(SolverOptions(**values))
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{name}: {err}") from None
 
 
 def static_options(opts):
