@@ -54,8 +54,8 @@ def main(argv=None) -> int:
         o = solver.TracedOptions(split)
         nlp, state, valid = _start(problem, o, "decoupled", init, np.bool_(False), np.bool_(True))
         ip = solver.ip_run(nlp, state, o)
-        sol = solver.finish(nlp, solver.ip_result(nlp, state, ip), o, valid, light=True)
-        return sol.status, sol.iterations, sol.cost, solver.ip_solved(state, ip)
+        sol = solver.finish(nlp, solver.ipm.InteriorPoint().postprocess(nlp, ip, state), o, valid, light=True)
+        return sol.status, sol.iterations, sol.cost, solver.ipm.decided(state, ip)
 
     flat = [jax.tree.leaves(eqx.filter((p, split, init), eqx.is_array)) for p in problems]
     t0 = time.perf_counter()

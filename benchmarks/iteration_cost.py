@@ -161,7 +161,8 @@ def _ip_programs(nlps, states, opts, warm, jit, vmap):
     tol = S.ip_tolerances(opts)
     max_iter = S.static_options(opts).ip_max_iter
     ips = S.ip_init_batch_jit(nlps, states, opts)
-    mid = jax.block_until_ready(jit(lambda n, s: vmap(lambda n, s: ipm.loop(n, s, max_iter, tol, warm))(n, s))(nlps, ips))
+    method = ipm.InteriorPoint(max_iter=max_iter, tol=tol)
+    mid = jax.block_until_ready(jit(lambda n, s: vmap(lambda n, s: S.loop.iterate(method, n, s, warm))(n, s))(nlps, ips))
     if bool(jnp.any(ipm.finished(mid, max_iter))):
         print(f"note: some lanes finished within {warm} iterations (their pieces still run)")
 

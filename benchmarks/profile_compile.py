@@ -118,18 +118,18 @@ def main():
 
         def ip(nlp, state, split):
             return solver.ip_run(nlp, state, solver.TracedOptions(split))
-        c = measure("ipm.run", ip, nlp, state, split, options=xla)
+        c = measure("interior point run", ip, nlp, state, split, options=xla)
         ipr = c(nlp, state, split)
 
         def light(nlp, state, ipr, split):
             o = solver.TracedOptions(split)
-            s = solver.ip_result(nlp, state, ipr)
+            s = solver.ipm.InteriorPoint().postprocess(nlp, ipr, state)
             return solver.finish(nlp, s, o, valid, light=True)
-        measure("ip_result+finish(light)", light, nlp, state, ipr, split, options=xla)
+        measure("ip postprocess+finish(light)", light, nlp, state, ipr, split, options=xla)
 
         def finish_light_static(nlp, state, ipr, split):
             o = solver.TracedOptions(split)
-            s = solver.ip_result(nlp, state, ipr)
+            s = solver.ipm.InteriorPoint().postprocess(nlp, ipr, state)
             return solver.finish(nlp, s, o, valid, light=True)
 
         def al(nlp, state, split):

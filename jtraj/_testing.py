@@ -10,8 +10,8 @@ This is the one module of ``jtraj`` that imports private names of the others (th
 layout test, ``tests/test_layout.py``, exempts it by name).
 """
 
-from .solver import ipm, staged  # modules whose internals tests check
-from .solver.al import (ALState, al_finished, al_loop, held_bounds, init_state, next_inner_tol,
+from .solver import ipm, loop, staged  # modules whose internals tests check
+from .solver.al import (ALMethod, ALState, al_finished, al_loop, held_bounds, init_state, next_inner_tol,
                         restart_state, run_al, run_with_restart, with_phase)
 from .solver.al import _TRIAL_SHIFT as TRIAL_SHIFT
 from .solver.al import _TRIAL_STEP as TRIAL_STEP
@@ -19,7 +19,7 @@ from .solver.api import _guess_batch_jit as guess_batch_jit
 from .solver.certify import (al_kkt_error, estimate_multipliers, final_polish, init_multipliers,
                              kkt_error, ls_multipliers)
 from .solver.certify import _polish as polish
-from .solver.core import (finish, initial_guess, ip_result, ip_run, ip_solved, ip_tolerances,
+from .solver.core import (finish, initial_guess, ip_method, ip_tolerances,
                           placeholder_init, prepare, resolve_method, solve_jit, stagewise_directions)
 from .solver.lanes import _ip_init_batch_jit as ip_init_batch_jit
 from .solver.lanes import _prepare_batch_jit as prepare_batch_jit
@@ -71,11 +71,11 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["ALState", "IPM_ALPHAS", "IPM_RHO_E", "IPM_SHIFT_LADDER", "IPM_TRIAL_SHARE", "Multipliers", "NLP",
+__all__ = ["ALMethod", "ALState", "IPM_ALPHAS", "IPM_RHO_E", "IPM_SHIFT_LADDER", "IPM_TRIAL_SHARE", "Multipliers", "NLP",
            "PBM_FLOOR", "Solution", "SolverOptions", "SplitOptions", "Status", "TRACED_OPTIONS", "TRIAL_SHIFT",
            "TRIAL_STEP", "TracedOptions", "al_finished", "al_kkt_error", "al_loop", "estimate_multipliers",
            "final_polish", "finish", "guess_batch_jit", "held_bounds", "init_multipliers", "init_state",
-           "initial_guess", "ip_init_batch_jit", "ip_result", "ip_run", "ip_solved", "ip_tolerances", "ipm",
+           "initial_guess", "ip_init_batch_jit", "ip_method", "ip_run", "ip_tolerances", "ipm", "loop",
            "ipm_flat", "ipm_ladder_directions", "ipm_ladder_directions_xla", "ipm_model", "ipm_parts",
            "ipm_shorter_trials", "ipm_trial", "ipm_with_rhs", "kink_curvature", "kkt_error", "lane_programs",
            "ls_multipliers", "mass_matrix_mechanism", "native_compiler", "next_inner_tol", "pbm", "pbm_phi",
@@ -84,3 +84,12 @@ __all__ = ["ALState", "IPM_ALPHAS", "IPM_RHO_E", "IPM_SHIFT_LADDER", "IPM_TRIAL_
            "solve_batch_jit", "solve_jit", "solve_problems", "split_options", "staged", "staged_al_jit",
            "stage_axes", "stage_mult", "staged_ip_jit", "staged_start", "stagewise_directions", "static_options", "suffix_sums", "violation",
            "with_phase"]  # and the names of _LAZY
+
+
+def ip_run(nlp, state, opts):
+    """The interior-point method's run from the AL state ``state`` as a solve runs it
+    (:func:`jtraj.solver.core.solve_core`): its final state."""
+    import jax.numpy as jnp
+
+    method = ip_method(opts, jnp.where(state.done, 0, static_options(opts).ip_max_iter))
+    return loop.iterate(method, nlp, method.init(nlp, state.z, static_options(opts).ip_mu_init))

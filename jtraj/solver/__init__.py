@@ -11,7 +11,9 @@ Modules, each importing only those above it:
 * :mod:`.nlp`: the transcribed problem in augmented-Lagrangian form and its
   :class:`Multipliers`, shared by both methods;
 * :mod:`.certify`: the feasibility polish, multiplier estimates and the KKT error;
-* :mod:`.al`: the augmented-Lagrangian method (one flat, bounded loop);
+* :mod:`.loop`: the methods' protocol (``init``, ``enter``, ``step``, ``terminate``,
+  ``postprocess``) and the one bounded driver that runs them;
+* :mod:`.al`: the augmented-Lagrangian method (one flat, bounded loop, and its restarts);
 * :mod:`.ipm`: the primal-dual interior-point method;
 * :mod:`.core`: one problem's solve as traced programs and its finish;
 * :mod:`.staged`: the single solve on concrete arrays, in stages;

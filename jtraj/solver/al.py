@@ -50,6 +50,7 @@ from jaxtyping import Array
 from .. import lq
 from .certify import estimate_multipliers, final_polish, init_multipliers, kkt_error, ls_multipliers, stationarity
 from .nlp import NLP, PBM_FLOOR, Multipliers, violation
+from . import loop
 from .options import SolverOptions, TracedOptions, static_options
 
 
@@ -291,31 +292,9 @@ def restart_state(nlp: NLP, s: ALState, opts: SolverOptions) -> ALState:
 
 
 def run_with_restart(nlp: NLP, state: ALState, opts: SolverOptions) -> ALState:
-    """The loop to its end, then (if needed, see :func:`restart_state`) once more, or twice
-    for a PBM run. Written as
-    a loop over runs so that the Newton loop is compiled once (two copies of it doubled
-    the solver's compilation)."""
-    if not isinstance(opts, TracedOptions) and _max_restarts(opts) == 0:
-        return al_loop(nlp, state, opts)
-
-    def run(c: _Runs) -> _Runs:
-        # a real branch for one problem; under vmap both sides run on the first pass
-        # (the restart is a no-op where it is not needed)
-        s = jax.lax.cond(c.runs > 0, lambda t: restart_state(nlp, t, opts), lambda t: t, c.state)
-        return _Runs(al_loop(nlp, s, opts), c.runs + 1)
-
-    def going(c: _Runs):
-        return (c.runs == 0) | needs_restart(c.state, opts)
-
-    return jax.lax.while_loop(going, run, _Runs(state, jnp.asarray(0))).state
-
-
-class _Runs(NamedTuple):
-    """The carry of :func:`run_with_restart`'s loop over runs."""
-
-    state: ALState
-    #: runs so far (the first, then the restarts)
-    runs: Array
+    """The AL loop from ``state`` to its end, restarted where needed (see
+    :func:`restart_state`): :func:`jtraj.solver.loop.run` of :class:`ALMethod`."""
+    return loop.run(ALMethod(opts), nlp, state)
 
 
 def next_inner_tol(opts: SolverOptions, omega, viol, pbm_on=False):
@@ -332,17 +311,66 @@ def next_inner_tol(opts: SolverOptions, omega, viol, pbm_on=False):
     return tol("inner_tol_ratio")
 
 
-def al_loop(nlp: NLP, state: ALState, opts: SolverOptions, limit=None):
-    """Iterate from ``state`` until finished or until ``state.it`` reaches ``limit``;
-    resumable, so a batch can be run in segments (see :func:`jtraj.solve_batch`)."""
+class ALRun(NamedTuple):
+    """What a run of the AL loop holds fixed (:meth:`ALMethod.enter`)."""
 
-    nlp = with_phase(nlp, state)
-    pbm_on = nlp.pbm_active
+    #: the NLP with the run's inequality term (:func:`with_phase`)
+    nlp: NLP
+    #: whether that term is PBM's (a traced bool; False for PHR)
+    pbm_on: Array
 
-    def cond(s: ALState):
-        return ~al_finished(s, opts) if limit is None else ~al_finished(s, opts) & (s.it < limit)
 
-    def body(s: ALState):
+def al_loop(nlp: NLP, state: ALState, opts: SolverOptions, limit=None) -> ALState:
+    """The AL loop from ``state`` until finished or until ``state.it`` reaches ``limit``
+    (resumable, so a batch can be run in segments): :func:`jtraj.solver.loop.iterate`
+    of :class:`ALMethod`, without restarts."""
+    return loop.iterate(ALMethod(opts), nlp, state, limit)
+
+
+class ALMethod:
+    """The augmented-Lagrangian method in the protocol of :mod:`jtraj.solver.loop`: one
+    flat loop of Newton iterations whose outer (multiplier and penalty) updates are
+    branch-free, and restarts of runs that end uncertified. ``opts``: the options inside
+    the compiled program (a ``SolverOptions`` or its traced form)."""
+
+    def __init__(self, opts):
+        self.opts = opts
+
+    @property
+    def restarts(self) -> bool:
+        """Whether a run can be restarted (static; inside a compiled program the count of
+        restarts is traced, so always)."""
+        return isinstance(self.opts, TracedOptions) or _max_restarts(self.opts) > 0
+
+    def init(self, nlp: NLP, z0, warm=False) -> ALState:
+        """:func:`init_state`."""
+        return init_state(nlp, z0, self.opts, warm)
+
+    def enter(self, nlp: NLP, state: ALState) -> ALRun:
+        """The NLP in the phase of the run ``state`` is in (PBM's first run, PHR after)."""
+        nlp = with_phase(nlp, state)
+        return ALRun(nlp=nlp, pbm_on=nlp.pbm_active)
+
+    def terminate(self, run: ALRun, s: ALState):
+        """:func:`al_finished`."""
+        return al_finished(s, self.opts)
+
+    def needs_restart(self, nlp: NLP, s: ALState):
+        """:func:`needs_restart`."""
+        return needs_restart(s, self.opts)
+
+    def restart(self, nlp: NLP, s: ALState) -> ALState:
+        """:func:`restart_state`."""
+        return restart_state(nlp, s, self.opts)
+
+    def postprocess(self, nlp: NLP, s: ALState, start: ALState) -> ALState:
+        """The state itself: it is the AL state :func:`jtraj.solver.core.finish` takes."""
+        return s
+
+    def step(self, run: ALRun, s: ALState) -> ALState:
+        """One Newton iteration of the current subproblem and, where it ends the
+        subproblem, the outer update (computed always, applied by ``jnp.where``)."""
+        opts, nlp, pbm_on = self.opts, run.nlp, run.pbm_on
         # the kink curvature's margin, zero until the subproblem has run kink_after iterations
         kink = (None if static_options(opts).kink_margin == 0
                 else jnp.where((s.inner >= opts.kink_after) & ~pbm_on, opts.kink_margin, 0.0).astype(s.z.dtype))
@@ -406,5 +434,3 @@ def al_loop(nlp: NLP, state: ALState, opts: SolverOptions, limit=None):
             it=s.it + 1, done=(subproblem_done & converged) | failed, failed=failed, stalled=stalled,
             stationarity=stat, history=jnp.where(subproblem_done, hist, s.history),
             it_max=s.it_max, mu_max=s.mu_max, restarts=s.restarts, z_start=s.z_start, val_ref=val_ref)
-
-    return jax.lax.while_loop(cond, body, state)

@@ -10,14 +10,13 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
 
 from ..problem import Problem, orientation_error
 from ..transcription import Transcription
-from . import curvature, ipm
-from .al import ALState, init_state, run_with_restart, with_phase
+from . import curvature, ipm, loop
+from .al import ALMethod, ALState, with_phase
 from .certify import al_kkt_error, at_most_once, final_polish, kkt_error
-from .nlp import NLP, violation
+from .nlp import NLP
 from .options import SolverOptions, options_jit, static_options
 from .results import Solution, Status
 
@@ -58,29 +57,36 @@ def prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm
     valid = jnp.all(jnp.isfinite(z0)) & ~problem.infeasible_on_its_face()
     z0 = jnp.where(valid, z0, jnp.clip(jnp.zeros_like(z0), layout.z_lo, layout.z_hi))
     # an invalid sample takes no iteration (its lane is free at once in a batch)
-    state = init_state(nlp, z0, opts, warm)
+    state = ALMethod(opts).init(nlp, z0, warm)
     return nlp, state._replace(done=state.done | ~valid), valid
 
 
 def solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False) -> Solution:
+    """One problem's solve as one traced program: the interior-point method where the
+    options' method is "ip", the AL loop (with its restarts) where it leaves the problem
+    undecided or alone otherwise, then :func:`finish`; each method run by the driver of
+    :mod:`jtraj.solver.loop`."""
     nlp, state, valid = prepare(problem, opts, tr, init, warm)
+    al = ALMethod(opts)
     if static_options(opts).method == "ip":
         # one problem: a real branch (vmapped, both sides would run; solve_batch does not
         # come here with "ip")
-        ip = ip_run(nlp, state, opts)
-        solved = ip_solved(state, ip)
-        state = jax.lax.cond(solved, lambda: ip_result(nlp, state, ip),
-                             lambda: run_with_restart(nlp, state, opts))
+        method = ip_method(opts, jnp.where(state.done, 0, static_options(opts).ip_max_iter))
+        ip = loop.iterate(method, nlp, method.init(nlp, state.z, static_options(opts).ip_mu_init))
+        solved = ipm.decided(state, ip)
+        state = jax.lax.cond(solved, lambda: method.postprocess(nlp, ip, state),
+                             lambda: loop.run(al, nlp, state))
         sol = finish(nlp, state, opts, valid, light=solved)
         return dataclasses.replace(sol, iterations=sol.iterations + jnp.where(solved, 0, ip.it))
-    return finish(nlp, run_with_restart(nlp, state, opts), opts, valid)
+    return finish(nlp, al.postprocess(nlp, loop.run(al, nlp, state), state), opts, valid)
 
 
-def ip_run(nlp: NLP, state: ALState, opts: SolverOptions):
-    """The interior-point method (:mod:`jtraj.solver.ipm`) from the state's start; a state the
-    AL loop would not run (a warm start already optimal) takes no iteration."""
-    return ipm.run(nlp, state.z, jnp.where(state.done, 0, static_options(opts).ip_max_iter), ip_tolerances(opts),
-                   static_options(opts).ip_mu_init)
+def ip_method(opts, max_iter=None) -> ipm.InteriorPoint:
+    """The interior-point method of the options: at most ``max_iter`` iterations (default
+    ``ip_max_iter``; a solve passes 0 for a state the AL loop would not run, a warm start
+    already optimal), its tolerances :func:`ip_tolerances`."""
+    max_iter = static_options(opts).ip_max_iter if max_iter is None else max_iter
+    return ipm.InteriorPoint(max_iter=max_iter, tol=ip_tolerances(opts))
 
 
 def ip_tolerances(opts) -> ipm.Tolerances:
@@ -93,25 +99,6 @@ def ip_tolerances(opts) -> ipm.Tolerances:
                           jnp.minimum(0.5 * opts.verify_tol, opts.tol_feasibility),
                           jnp.minimum(opts.ip_compl_tol, opts.tol_optimality), opts.ip_project_tol,
                           opts.ip_damping)
-
-
-def ip_solved(state: ALState, ip) -> Array:
-    """Where the interior-point method decided (solved, or stalled as likely infeasible:
-    see :mod:`jtraj.solver.ipm`); elsewhere the AL loop takes over."""
-    return ~state.done & ((ip.done & ~ip.failed) | ip.infeasible)
-
-
-def ip_result(nlp: NLP, state: ALState, ip) -> ALState:
-    """The AL loop's state for a problem the interior-point method decided: its point,
-    certified or stalled, and its multipliers (``finish(..., light=True)`` verifies it
-    and reports their KKT error)."""
-    solved = ip.done & ~ip.failed
-    # its active bounds snapped on (ipm.snap_to_bounds), unless that costs feasibility
-    snapped = ipm.snap_to_bounds(nlp, ip)
-    keep = violation(*nlp.constraints(snapped)) <= jnp.maximum(1e-7, violation(*nlp.constraints(ip.z)))
-    return state._replace(z=jnp.where(keep, snapped, ip.z), mult=ipm.multipliers(nlp, ip), done=solved,
-                          stalled=~solved, it=ip.it,
-                          stationarity=jnp.where(solved, ip.certified, jnp.inf).astype(state.stationarity.dtype))
 
 
 def finish(nlp: NLP, s: ALState, opts: SolverOptions, valid, light=False) -> Solution:

@@ -40,12 +40,15 @@ shrinking (:data:`_STALL_WINDOW`), or whose Hessian no shift makes positive defi
 (:data:`_DELTA_RANGE`), is handed to the AL solver's cold run by the caller
 (:func:`jtraj.solver.solve`), except where it stalled far from feasible with the barrier
 parameter never lowered: that run is reported likely infeasible.
+
+:class:`InteriorPoint` is the method in the protocol of :mod:`jtraj.solver.loop`, whose
+driver runs it.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -55,7 +58,7 @@ from jaxtyping import Array
 
 from .. import _kkt_native, lq
 from .._math import small_matmul
-from .nlp import Multipliers
+from .nlp import Multipliers, violation
 
 #: the line search's step lengths (fractions of the largest step the fraction-to-the-boundary
 #: rule allows): the first alone, the others at once where it is rejected (_shorter_trials)
@@ -605,17 +608,45 @@ def finished(st: IPState, max_iter) -> Array:
     return st.done | st.failed | st.stalled | (st.it >= max_iter)
 
 
-def loop(nlp, st: IPState, max_iter, tol, limit=None) -> IPState:
-    """Iterate from st until finished (at most ``max_iter`` iterations in all) or until
-    ``st.it`` reaches ``limit`` (resumable; a batch's lanes step instead in the loop of
-    ``jtraj.solver.lanes._run_pool``, which refills them)."""
-    def cond(s):
-        return ~finished(s, max_iter) if limit is None else ~finished(s, max_iter) & (s.it < limit)
+class InteriorPoint(NamedTuple):
+    """The interior-point method in the protocol of :mod:`jtraj.solver.loop`: at most
+    ``max_iter`` iterations (a traced count) of :func:`step` with the tolerances
+    ``tol`` (:class:`Tolerances`, or a number: the overall tolerance alone)."""
 
-    return jax.lax.while_loop(cond, lambda s: step(nlp, s, tol), st)
+    #: (None where only :meth:`init` or :meth:`postprocess` is called, which read no option)
+    max_iter: Any = None
+    tol: Any = None
+
+    def init(self, nlp, z0, mu0=_MU0) -> IPState:
+        """:func:`init`: the state at z0 (pushed inside its boxes), first barrier parameter ``mu0``."""
+        return init(nlp, z0, mu0)
+
+    def enter(self, nlp, st: IPState):
+        return nlp
+
+    def step(self, nlp, st: IPState) -> IPState:
+        """:func:`step`."""
+        return step(nlp, st, self.tol)
+
+    def terminate(self, nlp, st: IPState) -> Array:
+        """:func:`finished`."""
+        return finished(st, self.max_iter)
+
+    def postprocess(self, nlp, st: IPState, start):
+        """The AL state ``start`` (the solve's starting state) holding the result of a run
+        the method decided (certified, or stalled: see :func:`decided`): its point with
+        its active bounds snapped on (:func:`snap_to_bounds`, unless that costs
+        feasibility) and its multipliers; ``jtraj.solver.core.finish(..., light=True)``
+        verifies it and reports their KKT error."""
+        solved = st.done & ~st.failed
+        snapped = snap_to_bounds(nlp, st)
+        keep = violation(*nlp.constraints(snapped)) <= jnp.maximum(1e-7, violation(*nlp.constraints(st.z)))
+        return start._replace(z=jnp.where(keep, snapped, st.z), mult=multipliers(nlp, st), done=solved,
+                              stalled=~solved, it=st.it,
+                              stationarity=jnp.where(solved, st.certified, jnp.inf).astype(start.stationarity.dtype))
 
 
-def run(nlp, z0, max_iter, tol, mu0=_MU0) -> IPState:
-    """The interior-point loop from z0 with first barrier parameter ``mu0``: at most
-    ``max_iter`` iterations."""
-    return loop(nlp, init(nlp, z0, mu0), max_iter, tol)
+def decided(start, st: IPState) -> Array:
+    """Where the method decided a problem that started from the AL state ``start``
+    (solved, or stalled as likely infeasible); elsewhere the AL loop takes over."""
+    return ~start.done & ((st.done & ~st.failed) | st.infeasible)

@@ -16,9 +16,9 @@ from .. import _packing, _tracecache
 from .._compile import SOLVER_XLA_OPTIONS, supported_options
 from .._compile import solver_jit as _jit
 from ..transcription import Transcription
-from . import ipm
-from .al import al_finished, al_loop, needs_restart, restart_state
-from .core import finish, ip_result, ip_solved, ip_tolerances, prepare, solve_core
+from . import ipm, loop
+from .al import ALMethod
+from .core import finish, ip_method, prepare, solve_core
 from .options import TracedOptions, options_jit, split_options, static_options
 from .results import Solution
 
@@ -35,14 +35,16 @@ def _prepare_batch_jit(problems, opts, transcription, init, warm):
     return eqx.filter_vmap(lambda p, i: prepare(p, opts, tr, i, warm))(problems, init)
 
 
-def _segment(nlps, states, opts, steps: int):
-    """``steps`` more iterations of each lane's loop (vmapped; a finished lane idles)."""
-    return eqx.filter_vmap(lambda n, s: al_loop(n, s, opts, s.it + steps))(nlps, states)
+def _segment(nlps, states, opts, steps: int, method=None):
+    """``steps`` more iterations of each lane's run of ``method`` (default the AL method of
+    ``opts``; :func:`jtraj.solver.loop.iterate`, vmapped: a finished lane idles)."""
+    method = ALMethod(opts) if method is None else method
+    return eqx.filter_vmap(lambda n, s: loop.iterate(method, n, s, s.it + steps))(nlps, states)
 
 
-def _restart_lanes(nlps, states, need, opts):
-    """``states`` (a set of lanes) with the lanes ``need`` restarted (:func:`jtraj.solver.al.restart_state`)."""
-    new = eqx.filter_vmap(lambda n, s: restart_state(n, s, opts))(nlps, states)
+def _restart_lanes(nlps, states, need, method):
+    """``states`` (a set of lanes) with the lanes ``need`` restarted (``method.restart``)."""
+    new = eqx.filter_vmap(lambda n, s: method.restart(n, s))(nlps, states)
     return jax.tree.map(lambda a, b: jnp.where(need.reshape(need.shape + (1,) * (a.ndim - 1)), a, b), new, states)
 
 
@@ -163,7 +165,7 @@ def _ip_init_batch_jit(nlps, states, opts):
     """The interior-point states of a batch (a state the AL loop would not run, a warm
     start already optimal, starts finished)."""
     def one(n, s):
-        st = ipm.init(n, s.z, static_options(opts).ip_mu_init)
+        st = ipm.InteriorPoint().init(n, s.z, static_options(opts).ip_mu_init)
         return st._replace(done=s.done)
 
     return eqx.filter_vmap(one)(nlps, states)
@@ -171,8 +173,10 @@ def _ip_init_batch_jit(nlps, states, opts):
 
 @_jit
 def _ip_merge_jit(nlps, states, ips):
-    solved = ip_solved(states, ips)
-    merged = eqx.filter_vmap(ip_result)(nlps, states, ips)
+    """The AL states with the interior-point method's results where it decided
+    (:meth:`jtraj.solver.ipm.InteriorPoint.postprocess`), and where that is."""
+    solved = ipm.decided(states, ips)
+    merged = eqx.filter_vmap(lambda n, s, st: ipm.InteriorPoint().postprocess(n, st, s))(nlps, states, ips)
     return jax.tree.map(lambda a, b: jnp.where(solved.reshape(solved.shape + (1,) * (a.ndim - 1)), a, b),
                         merged, states), solved
 
@@ -349,18 +353,21 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
         return tuple(a[lanes] for a in nlps), tuple(a[lanes] for a in states)
 
     def segment(nlps, states, split):
-        opts = TracedOptions(split)
+        # (the AL method: a method's run in segments of `steps` iterations, restarted
+        # where it ended uncertified; terminate and needs_restart on all lanes at once)
+        method = ALMethod(TracedOptions(split))
         nlps, before = _packing.unpack(nlps, pn), _packing.unpack(states, ps)
-        out = _segment(nlps, before, opts, steps)
-        fin = al_finished(out, opts)
-        # the lanes whose run ended in this segment uncertified, to restart (restart_state)
-        need = fin & ~al_finished(before, opts) & needs_restart(out, opts)
+        out = _segment(nlps, before, None, steps, method)
+        fin = method.terminate(nlps, out)
+        # the lanes whose run ended in this segment uncertified, to restart
+        need = fin & ~method.terminate(nlps, before) & method.needs_restart(nlps, out)
         return _packing.pack(_packing.arrays(out), ps), fin, need
 
     def restart(nlps, states, need, split):
-        opts = TracedOptions(split)
-        out = _restart_lanes(_packing.unpack(nlps, pn), _packing.unpack(states, ps), need, opts)
-        return _packing.pack(_packing.arrays(out), ps), al_finished(out, opts)
+        method = ALMethod(TracedOptions(split))
+        nlps = _packing.unpack(nlps, pn)
+        out = _restart_lanes(nlps, _packing.unpack(states, ps), need, method)
+        return _packing.pack(_packing.arrays(out), ps), method.terminate(nlps, out)
 
     def exchange(nlps, states, sub, lanes, new_lanes):
         states = put(states, sub, lanes)
@@ -373,13 +380,14 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
         # `stop_at` are unfinished; returns the states with every lane's written back, the
         # lanes' problems and which of them are unfinished. The loop carries the lanes'
         # array leaves (a loop's or a cond's carry turns a static leaf into an array)
-        opts = TracedOptions(split)
-        max_iter, tol = static_options(opts).ip_max_iter, ip_tolerances(opts)
+        # (the interior-point method: its step on every lane, vmapped; terminate on all
+        # lanes at once)
+        method = ip_method(TracedOptions(split))
         B = states[0].shape[0]
-        step = eqx.filter_vmap(lambda n, s: ipm.step(n, s, tol))
+        step = eqx.filter_vmap(lambda n, s: method.step(method.enter(n, s), s))
 
         def finished(ls):
-            return ipm.finished(_packing.from_arrays(ls, ps), max_iter)
+            return method.terminate(None, _packing.from_arrays(ls, ps))
 
         def select(mask, a, b):
             return [jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y) for x, y in zip(a, b)]
@@ -392,16 +400,15 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
             return _packing.arrays(_packing.unpack(n, pn)), _packing.arrays(_packing.unpack(s, ps))
 
         def refill(c: _Pool) -> _Pool:
-            ln, ls, states, lanes, live, nxt = c
-            fin = finished(ls)
-            states = write_back(states, ls, jnp.where(live & fin, lanes, B))
-            free = ~live | fin
-            pos = nxt + jnp.cumsum(free) - 1
+            fin = finished(c.lane_states)
+            states = write_back(c.states, c.lane_states, jnp.where(c.live & fin, c.lanes, B))
+            free = ~c.live | fin
+            pos = c.queued + jnp.cumsum(free) - 1
             take = free & (pos < count)
-            lanes = jnp.where(take, queue[jnp.clip(pos, 0, queue.shape[0] - 1)], lanes)
+            lanes = jnp.where(take, queue[jnp.clip(pos, 0, queue.shape[0] - 1)], c.lanes)
             new_n, new_s = gather(states, lanes)
-            return _Pool(select(take, new_n, ln), select(take, new_s, ls), states, lanes, (live & ~fin) | take,
-                         nxt + jnp.sum(take))
+            return _Pool(lane_nlps=select(take, new_n, c.lane_nlps), lane_states=select(take, new_s, c.lane_states),
+                         states=states, lanes=lanes, live=(c.live & ~fin) | take, queued=c.queued + jnp.sum(take))
 
         def handover(c: _Pool) -> _Pool:  # only where a lane is free: a real branch (the loop is not vmapped)
             free = jnp.any(c.live & finished(c.lane_states)) | (jnp.any(~c.live) & (c.queued < count))
@@ -418,10 +425,10 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
             return (c.queued < count) | (jnp.sum(c.live & ~finished(c.lane_states)) > stop_at)
 
         ln, ls = gather(states, lanes)
-        _, ls, states, lanes, live, _ = jax.lax.while_loop(cond, body, _Pool(ln, ls, states, lanes, live,
-                                                                               jnp.sum(live)))
-        states = write_back(states, ls, jnp.where(live, lanes, B))
-        return states, lanes, live & ~finished(ls)
+        end = jax.lax.while_loop(cond, body, _Pool(lane_nlps=ln, lane_states=ls, states=states, lanes=lanes,
+                                                   live=live, queued=jnp.sum(live)))
+        states = write_back(end.states, end.lane_states, jnp.where(end.live, end.lanes, B))
+        return states, end.lanes, end.live & ~finished(end.lane_states)
 
     return _LanePrograms(
         pack=jit(lambda nlps, states, rows: (_pad_rows(_packing.pack(nlps, pn), rows),

@@ -25,10 +25,12 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 
 from ..transcription import Transcription
-from .al import run_with_restart
-from .core import finish, initial_guess, ip_result, ip_run, ip_solved, prepare
+from . import ipm, loop
+from .al import ALMethod
+from .core import finish, initial_guess, ip_method, prepare
 from .options import options_jit, static_options
 from .results import Solution
 
@@ -42,11 +44,12 @@ def _start(problem, opts, transcription, init, warm, guess):
 @options_jit()
 def _solve_ip_jit(problem, opts, transcription, init, warm, guess):
     """(Solution, decided, interior-point iterations): the solution is the one to return
-    where ``decided`` (see :func:`jtraj.solver.core.ip_solved`)."""
+    where ``decided`` (see :func:`jtraj.solver.ipm.decided`)."""
     nlp, state, valid = _start(problem, opts, transcription, init, warm, guess)
-    ip = ip_run(nlp, state, opts)
-    sol = finish(nlp, ip_result(nlp, state, ip), opts, valid, light=True)
-    return sol, ip_solved(state, ip), ip.it
+    method = ip_method(opts, jnp.where(state.done, 0, static_options(opts).ip_max_iter))
+    ip = loop.iterate(method, nlp, method.init(nlp, state.z, static_options(opts).ip_mu_init))
+    sol = finish(nlp, method.postprocess(nlp, ip, state), opts, valid, light=True)
+    return sol, ipm.decided(state, ip), ip.it
 
 
 @options_jit()
@@ -55,7 +58,8 @@ def _solve_al_jit(problem, opts, transcription, init, warm, guess, ip_iterations
     ``ip_iterations`` (an interior-point run's that left the problem undecided; None:
     ``method="al"``)."""
     nlp, state, valid = _start(problem, opts, transcription, init, warm, guess)
-    sol = finish(nlp, run_with_restart(nlp, state, opts), opts, valid)
+    al = ALMethod(opts)
+    sol = finish(nlp, al.postprocess(nlp, loop.run(al, nlp, state), state), opts, valid)
     if ip_iterations is None:
         return sol
     return dataclasses.replace(sol, iterations=sol.iterations + ip_iterations)
