@@ -111,7 +111,17 @@ def held_bounds(z, g, lo, hi, hdiag, eps):
             | ((z >= hi - eps) & (g < 0) & (-g >= curv * (hi - z))))
 
 
-def _newton_step(nlp: NLP, z, mult, mu, damping, kink=None):
+class NewtonStep(NamedTuple):
+    """One projected Newton step of the AL loop (:func:`_newton_step`)."""
+
+    z: Array  # the new point (z itself where no trial point was accepted)
+    damping: Array  # the next Levenberg damping
+    pg: Array  # the largest projected-gradient residual at the old point
+    value: Array  # the augmented Lagrangian at the old point
+    moved: Array  # whether a trial point was accepted
+
+
+def _newton_step(nlp: NLP, z, mult, mu, damping, kink=None) -> NewtonStep:
     # the barrier materialises the derivatives once, so that XLA cannot fuse their
     # assembly into each of the shifted factorisations below (a guard: on serial3 the
     # timings with and without it were within the machine's noise)
@@ -179,7 +189,7 @@ def _newton_step(nlp: NLP, z, mult, mu, damping, kink=None):
     used = shifts[jnp.asarray(trial_shift)[best]]
     damping = jnp.where(any_ok, jnp.where(step == 1.0, used * 0.5, used * 2.0), shifts[-1])
     damping = jnp.clip(jnp.where(jnp.isfinite(damping), damping, 1e10), 1e-12, 1e10)
-    return z_new, damping, jnp.max(jnp.abs(pg)), val, any_ok
+    return NewtonStep(z=z_new, damping=damping, pg=jnp.max(jnp.abs(pg)), value=val, moved=any_ok)
 
 
 def with_phase(nlp: NLP, s: "ALState") -> NLP:
@@ -374,7 +384,8 @@ class ALMethod:
         # the kink curvature's margin, zero until the subproblem has run kink_after iterations
         kink = (None if static_options(opts).kink_margin == 0
                 else jnp.where((s.inner >= opts.kink_after) & ~pbm_on, opts.kink_margin, 0.0).astype(s.z.dtype))
-        z, damping, pg, val, moved = _newton_step(nlp, s.z, s.mult, s.mu, s.damping, kink)
+        newton = _newton_step(nlp, s.z, s.mult, s.mu, s.damping, kink)
+        z, damping, val, moved = newton.z, newton.damping, newton.value, newton.moved
         failed = ~jnp.all(jnp.isfinite(z))
         inner = s.inner + 1
         g, ((eq, ineq, glob), cost) = nlp.al_grad_and_parts(z, s.mult, s.mu)

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array
 
 from ..problem import Problem, orientation_error
 from ..transcription import Transcription
@@ -42,9 +44,19 @@ def stagewise_directions(opts: SolverOptions, tr: Transcription, jerk: bool = Fa
     return solver == "riccati" and tr.name == "decoupled"
 
 
-def prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False):
-    """(nlp, starting state, valid) for one problem; invalid samples start from a finite
-    placeholder and are flagged at the end."""
+class Start(NamedTuple):
+    """One problem's start (:func:`prepare`)."""
+
+    nlp: NLP
+    #: the AL state the solve starts from (finished at once where not ``valid``)
+    state: ALState
+    #: whether the problem is a valid input (finite, not infeasible on its face)
+    valid: Array
+
+
+def prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False) -> Start:
+    """The NLP, starting state and validity of one problem; invalid samples start from a
+    finite placeholder and are flagged at the end."""
     layout = tr.layout(problem)
     nlp = NLP(problem=problem, tr=tr, layout=layout, sd=tr.stage_data(problem),
               stagewise=stagewise_directions(opts, tr, problem.jerk),
@@ -58,7 +70,7 @@ def prepare(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm
     z0 = jnp.where(valid, z0, jnp.clip(jnp.zeros_like(z0), layout.z_lo, layout.z_hi))
     # an invalid sample takes no iteration (its lane is free at once in a batch)
     state = ALMethod(opts).init(nlp, z0, warm)
-    return nlp, state._replace(done=state.done | ~valid), valid
+    return Start(nlp=nlp, state=state._replace(done=state.done | ~valid), valid=valid)
 
 
 def solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, warm=False) -> Solution:

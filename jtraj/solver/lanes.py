@@ -358,16 +358,16 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
         method = ALMethod(TracedOptions(split))
         nlps, before = _packing.unpack(nlps, pn), _packing.unpack(states, ps)
         out = _segment(nlps, before, None, steps, method)
-        fin = method.terminate(nlps, out)
+        fin = method.terminate(None, out)
         # the lanes whose run ended in this segment uncertified, to restart
-        need = fin & ~method.terminate(nlps, before) & method.needs_restart(nlps, out)
+        need = fin & ~method.terminate(None, before) & method.needs_restart(None, out)
         return _packing.pack(_packing.arrays(out), ps), fin, need
 
     def restart(nlps, states, need, split):
         method = ALMethod(TracedOptions(split))
         nlps = _packing.unpack(nlps, pn)
         out = _restart_lanes(nlps, _packing.unpack(states, ps), need, method)
-        return _packing.pack(_packing.arrays(out), ps), method.terminate(nlps, out)
+        return _packing.pack(_packing.arrays(out), ps), method.terminate(None, out)
 
     def exchange(nlps, states, sub, lanes, new_lanes):
         states = put(states, sub, lanes)

@@ -13,14 +13,17 @@ looks inside a state:
 * ``step(nlp, state) -> state``: one iteration, branch-free (a finished state comes back
   unchanged or is never stepped);
 * ``terminate(nlp, state) -> bool array``: whether the run is over; it includes the
-  method's own iteration cap, so that every loop here is bounded;
+  method's own iteration cap, so that every loop here is bounded. It reads the state
+  (and the method's options) only, elementwise, so that the batch driver applies it to
+  all its lanes' states at once (``nlp`` None there);
 * ``postprocess(nlp, state, start) -> ALState``: the finished state as the
   augmented-Lagrangian state that :func:`jtraj.solver.core.finish` polishes, verifies
   and certifies (``start``: the state the solve began from).
 
 A method that restarts a run that ended uncertified (the AL method) also has
 ``restarts`` (whether any restart can happen: a static bool), ``needs_restart(nlp,
-state) -> bool array`` and ``restart(nlp, state) -> state``; :func:`run` then runs the
+state) -> bool array`` (elementwise like ``terminate``) and ``restart(nlp, state) ->
+state``; :func:`run` then runs the
 restarts through the same driver (:class:`Restarting`).
 
 :func:`iterate` is the driver: one ``lax.while_loop`` of ``step`` until ``terminate``
