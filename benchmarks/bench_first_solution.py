@@ -12,7 +12,9 @@ inside it from its first import to a returned solution:
   empty private compilation cache and an empty native-kernel directory (a new machine:
   the C++ kernel of :mod:`jtraj._kkt_native` is built too);
 * ``jtraj cold, kernel built``: the same with the kernel already built (a machine that
-  has run jtraj once, caches since cleared);
+  has run jtraj once, caches since cleared); once more with ``JTRAJ_QUICK_FIRST=0`` (the
+  first call's program compiled optimised rather than quickly, see
+  :func:`jtraj._tracecache.tiered`);
 * ``jtraj warm``: a new process with the compilation cache the cold run left;
 * ``jtraj new N``: a new process solving the problem with ``--new-N`` stages, everything
   else (kernel, other programs) cached.
@@ -111,15 +113,18 @@ def main(argv=None) -> int:
     for rep in range(args.repeats):
         print(f"repeat {rep + 1} of {args.repeats}", flush=True)
         record("ipopt", _run(_IPOPT, [str(args.N), ROOT, goal], base))
-        for kernel_built in (False, True):
+        for kernel_built, quick in ((False, True), (True, True), (True, False)):
             cache = tempfile.mkdtemp(prefix="jtraj-first-cache-")
             native = tempfile.mkdtemp(prefix="jtraj-first-native-")
             try:
                 env = dict(base, JTRAJ_CACHE_DIR=cache, JTRAJ_NATIVE_DIR=native)
+                if not quick:
+                    env["JTRAJ_QUICK_FIRST"] = "0"
                 if kernel_built:  # build the kernel in a process of its own first
                     subprocess.run([sys.executable, "-c", "from jtraj import _kkt_native; _kkt_native.available(3)"],
                                    env=env, cwd=ROOT, check=True, capture_output=True)
-                    record("jtraj cold, kernel built", _run(_JTRAJ, [str(args.N)], env))
+                    record("jtraj cold, kernel built" + ("" if quick else ", JTRAJ_QUICK_FIRST=0"),
+                           _run(_JTRAJ, [str(args.N)], env))
                     continue
                 record("jtraj cold", _run(_JTRAJ, [str(args.N)], env))
                 record("jtraj warm", _run(_JTRAJ, [str(args.N)], env))

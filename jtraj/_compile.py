@@ -64,9 +64,10 @@ def cpu_jit(options: dict[str, Any], **jit_kwargs) -> Callable[[Callable], Calla
 #   serial3 lanes spent about a quarter of its time in 38 such calls; see the documentation's
 #   "Performance and compilation" guide).
 # XLA's default LLVM optimisation level stays: level 0 compiles the interior-point
-# program (serial3, N = 20) in about half the time but runs it 2.5x slower; levels 1 to
-# 3 run it alike and their compile times differ by less than a shared 2-core machine's
-# noise (``benchmarks/bench_opt_level.py``, ``benchmarks/profile_compile.py --staged``).
+# program (serial3, N = 20) in about 0.4x the time but runs it 2.4x slower, which only
+# a process's first single solve takes (jtraj._tracecache.tiered); levels 1 to 3 run it
+# alike and their compile times differ by less than a shared 2-core machine's noise
+# (``benchmarks/bench_opt_level.py``, ``benchmarks/profile_compile.py --staged``).
 SOLVER_XLA_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": ""}
 solver_jit = cpu_jit(SOLVER_XLA_OPTIONS)
 

@@ -242,13 +242,78 @@ def key(name: str, static: str, args: tuple, compiler_options: dict | None) -> s
     return f"{name}-{hashlib.sha256(text.encode()).hexdigest()[:32]}"
 
 
+#: XLA CPU options of a quick compilation (see :func:`tiered`)
+QUICK = {"xla_backend_optimization_level": 0}
+
+
+def _level_in_xla_flags() -> bool:
+    return "xla_backend_optimization_level" in os.environ.get("XLA_FLAGS", "")
+
+
+def quick_first_enabled(compiler_options: dict | None) -> bool:
+    """Whether :func:`tiered` compiles a program quickly first: not where
+    ``JTRAJ_QUICK_FIRST`` is ``0``/``off``/``false``/``no``, where the process or the
+    caller already chose an LLVM optimisation level (``XLA_FLAGS``, ``compiler_options``),
+    or where this XLA refuses the option."""
+    if os.environ.get("JTRAJ_QUICK_FIRST", "1").strip().lower() in ("0", "off", "false", "no"):
+        return False
+    if _level_in_xla_flags() or "xla_backend_optimization_level" in (compiler_options or {}):
+        return False
+    from ._compile import supported_options
+
+    return supported_options(QUICK) == QUICK
+
+
+def tiered(make: Callable[[dict], Callable], compiler_options: dict | None, marker: str | None,
+           what: str) -> Callable:
+    """A program that compiles quickly for its first call and optimised from its second.
+
+    ``make(options)`` returns the program (a ``jax.jit`` callable) compiled with XLA
+    ``options``. The first call runs it compiled at LLVM optimisation level 0
+    (:data:`QUICK`): for the solver's single-problem programs that compiles in about
+    0.4x the time and runs about 2.4x slower, with the same iterations and statuses
+    and results equal to rounding (``benchmarks/bench_opt_level.py``). The second call
+    compiles the optimised program and every later call runs it. ``marker``, a file
+    written once the optimised program is compiled (and so in the persistent cache),
+    makes later processes start with the optimised program at once. Without
+    :func:`quick_first_enabled`, simply ``make(compiler_options)``."""
+    options = dict(compiler_options or {})
+    full = make(options)
+    if not quick_first_enabled(options) or (marker is not None and os.path.exists(marker)):
+        return full
+    quick = make({**options, **QUICK})
+    calls = [0]
+
+    def call(*arrays):
+        calls[0] += 1
+        if calls[0] == 1:
+            return quick(*arrays)
+        if calls[0] == 2:
+            from ._setup import logger
+
+            logger.info("jtraj: compiling the optimised %s (the first call ran a quickly compiled one)", what)
+            out = full(*arrays)
+            if marker is not None:
+                try:
+                    with open(marker, "w"):
+                        pass
+                except OSError:
+                    pass
+            return out
+        return full(*arrays)
+
+    call.quick, call.full = quick, full  # (for the tests)
+    return call
+
+
 def program(name: str, fn: Callable, args: tuple, static: str,
-            compiler_options: dict | None = None) -> Callable | None:
+            compiler_options: dict | None = None, quick_first: bool = False) -> Callable | None:
     """``fn(*args)`` as a callable of the arguments' leaves (``jax.tree.leaves(args)``
     of arguments with the same signature) returning ``fn``'s output, compiled from the program
     kept on disk, exported now if missing; None when the cache is off or no stable key
     exists (then trace ``fn`` as usual). ``static`` names what ``fn`` closes over (see
-    the module's docstring); the arguments' non-array leaves are part of the key."""
+    the module's docstring); the arguments' non-array leaves are part of the key.
+    ``quick_first``: compile it quickly for its first call (:func:`tiered`)."""
     folder = directory()
     leaves, tree = jax.tree.flatten(args)
     is_array = [eqx.is_array(x) for x in leaves]
@@ -290,7 +355,11 @@ def program(name: str, fn: Callable, args: tuple, static: str,
         except OSError:
             pass  # an unwritable cache: run it from memory
         exported = jax.export.deserialize(blob)
-    compiled = jax.jit(exported.call, compiler_options=compiler_options)
+    if quick_first:
+        compiled = tiered(lambda options: jax.jit(exported.call, compiler_options=options), compiler_options,
+                          path + ".optimised", f"program {name}")
+    else:
+        compiled = jax.jit(exported.call, compiler_options=compiler_options)
     return _runner(compiled, is_array, lambda: skeleton)
 
 
@@ -342,13 +411,14 @@ def in_memory(fn: Callable, args: tuple, compiler_options: dict | None = None) -
 
 
 def cached(name: str, fn: Callable, static: str, compiler_options: dict | None = None,
-           fallback: Callable | None = None, lean: bool = False) -> Callable:
+           fallback: Callable | None = None, lean: bool = False, quick_first: bool = False) -> Callable:
     """``fn`` as a callable that takes each argument signature's program from
     :func:`program` (after the first call: one flattening and one dictionary lookup), or
     where the cache is off or has no key calls ``fallback`` (default
     ``eqx.filter_jit(fn)``: the same treatment of non-array leaves, as static values);
     with ``lean``, :func:`in_memory`'s program there instead. Called inside another
-    trace it always calls ``fallback``."""
+    trace it always calls ``fallback``. ``quick_first``: a kept program compiles quickly
+    for its first call (:func:`tiered`)."""
     if fallback is None:
         fallback = eqx.filter_jit(fn, compiler_options=compiler_options)
     loaded: dict[Any, Callable | None] = {}
@@ -359,7 +429,7 @@ def cached(name: str, fn: Callable, static: str, compiler_options: dict | None =
         traced = any(isinstance(x, jax.core.Tracer) for x in leaves)
         sig = (tree, tuple(map(_sig, leaves)), traced)
         if sig not in loaded:
-            run = None if traced else program(name, fn, args, static, compiler_options)
+            run = None if traced else program(name, fn, args, static, compiler_options, quick_first)
             if run is None and lean and not traced:
                 run = in_memory(fn, args, compiler_options)
             loaded[sig] = run

@@ -199,3 +199,44 @@ def test_with_the_cache_off_a_program_runs_from_memory_as_eqx_filter_jit_would(m
     # inside another trace: the default fallback (eqx.filter_jit), which traces into it
     inner = jax.jit(lambda x: wrapped(x, jnp.asarray(7), "a")[0])(jnp.asarray(2.0))
     np.testing.assert_array_equal(inner, out[0])
+
+
+def test_a_quick_first_program_runs_its_quick_compilation_once_then_the_optimised_one(cache_dir, monkeypatch):
+    # the tests' XLA_FLAGS fix an optimisation level, which switches the tiers off
+    monkeypatch.setattr(_tracecache, "_level_in_xla_flags", lambda: False)
+    if not _tracecache.quick_first_enabled({}):
+        pytest.skip("this XLA does not take xla_backend_optimization_level per program")
+    args = (jnp.asarray(2.0), jnp.asarray(7))
+    reference = jax.jit(_newton_sqrt)(*args)
+    wrapper = _tracecache.cached("sqrt", _newton_sqrt, "tiers", quick_first=True)
+    outs = [wrapper(*args)]
+    (run,) = [r for r in _quick_runs(wrapper)]
+    assert run.quick._cache_size() == 1 and run.full._cache_size() == 0
+    outs += [wrapper(*args), wrapper(*args)]
+    assert run.quick._cache_size() == 1 and run.full._cache_size() == 1
+    for out in outs:
+        for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(reference)):
+            np.testing.assert_allclose(a, b, rtol=1e-14)
+    markers = [f for f in os.listdir(cache_dir / _tracecache.FOLDER) if f.endswith(".optimised")]
+    assert len(markers) == 1
+    # a later process (a new wrapper) finds the marker and starts with the optimised program
+    again = _tracecache.cached("sqrt", _newton_sqrt, "tiers", quick_first=True)
+    again(*args)
+    assert _quick_runs(again) == []
+    # switched off: one program
+    monkeypatch.setenv("JTRAJ_QUICK_FIRST", "0")
+    assert not _tracecache.quick_first_enabled({})
+    monkeypatch.delenv("JTRAJ_QUICK_FIRST")
+    assert not _tracecache.quick_first_enabled({"xla_backend_optimization_level": 3})
+
+
+def _quick_runs(wrapper):
+    """The tiered programs a cached() wrapper holds (through its closure)."""
+    loaded = next(c.cell_contents for c in wrapper.__closure__ if isinstance(c.cell_contents, dict))
+    found = []
+    for run in loaded.values():
+        compiled = next((c.cell_contents for c in run.__closure__ if callable(c.cell_contents)
+                         and hasattr(c.cell_contents, "quick")), None)
+        if compiled is not None:
+            found.append(compiled)
+    return found

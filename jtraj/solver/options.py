@@ -350,12 +350,14 @@ def _split_cached(opts: SolverOptions, _width) -> SplitOptions:
     return SplitOptions(static=dataclasses.replace(opts, **static), values=values)
 
 
-def options_jit(xla_options: dict | None = None):
+def options_jit(xla_options: dict | None = None, quick_first: bool = False):
     """Like the solver's jit decorator (:func:`jtraj._compile.solver_jit`), but every
     :class:`SolverOptions` argument crosses the boundary split by :func:`split_options`
     and is read inside as :class:`TracedOptions`. On a CPU the traced program is kept
     across processes where the compilation cache is on (:mod:`jtraj._tracecache`).
-    ``xla_options``: the XLA CPU options (default ``SOLVER_XLA_OPTIONS``)."""
+    ``xla_options``: the XLA CPU options (default ``SOLVER_XLA_OPTIONS``);
+    ``quick_first``: a kept program compiles quickly for its first call in a process
+    (:func:`jtraj._tracecache.tiered`)."""
     xla_options = SOLVER_XLA_OPTIONS if xla_options is None else xla_options
 
     def decorate(fn):
@@ -368,7 +370,8 @@ def options_jit(xla_options: dict | None = None):
         def kept():
             # the solver's programs kept across processes (jtraj._tracecache), on a CPU
             return _tracecache.cached(fn.__qualname__, unsplit, f"{fn.__module__}.{fn.__qualname__}",
-                                      supported_options(xla_options), fallback=inner, lean=True)
+                                      supported_options(xla_options), fallback=inner, lean=True,
+                                      quick_first=quick_first)
 
         @functools.wraps(fn)
         def call(*args):

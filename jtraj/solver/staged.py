@@ -17,7 +17,8 @@ compiles both sides). Here the decision is taken on the host, on the concrete re
 The interior-point program is about a third of the single program's size and the
 compiler's time grows faster than its size, so the first solution of a problem that
 needs only the first program comes several times sooner. Both give the results of the
-single program (the same operations, compiled apart).
+single program (the same operations, compiled apart). Both compile quickly for a
+process's first call and optimised from its second (:func:`jtraj._tracecache.tiered`).
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ def _start(problem, opts, transcription, init, warm, guess):
     return prepare(problem, opts, tr, init, warm)
 
 
-@options_jit()
+@options_jit(quick_first=True)
 def _solve_ip_jit(problem, opts, transcription, init, warm, guess):
     """(Solution, decided, interior-point iterations): the solution is the one to return
     where ``decided`` (see :func:`jtraj.solver.ipm.decided`)."""
@@ -52,7 +53,7 @@ def _solve_ip_jit(problem, opts, transcription, init, warm, guess):
     return sol, ipm.decided(state, ip), ip.it
 
 
-@options_jit()
+@options_jit(quick_first=True)
 def _solve_al_jit(problem, opts, transcription, init, warm, guess, ip_iterations):
     """The augmented-Lagrangian solve from the start, its iterations counted after
     ``ip_iterations`` (an interior-point run's that left the problem undecided; None:
