@@ -4,7 +4,7 @@ with their input checks."""
 from __future__ import annotations
 
 import warnings
-from typing import Any
+from typing import Any, Callable
 
 import equinox as eqx
 import jax
@@ -182,7 +182,7 @@ def solve_batch(problem, q_start=None, q_goal=None, *, N: int | None = None, wei
                 qd_start=None, qd_goal=None, T_max=None, solver: Auto | IPM | AugmentedLagrangian | None = None,
                 transcription: str = "decoupled", init: tuple[Any, Any] | None = None,
                 slots: int | None | str = "auto", segment: int = 10, efforts: str | None = None,
-                options: SolverOptions | None = None) -> Solution:
+                progress: Callable[[int, int], Any] | None = None, options: SolverOptions | None = None) -> Solution:
     """Solve B problems sharing one robot, N and weights in one vmapped, compiled call.
 
     ``solve_batch(problem)`` takes a batched :class:`jtraj.Problem` (``q_start`` and
@@ -216,6 +216,11 @@ def solve_batch(problem, q_start=None, q_goal=None, *, N: int | None = None, wei
             iteration costs about its lane count, and more per lane once the lanes'
             working set outgrows the core's cache; on an accelerator lanes are nearly
             free, so larger ``slots`` pay there.
+        progress: optional ``progress(finished, B)``, called on the host as problems
+            finish (a problem counts once its interior-point run ends, also where the
+            AL fallback goes on from it), last with (B, B); not called inside ``jit``,
+            ``vmap`` or a derivative. With it the interior-point pool returns to the
+            host every eighth of the batch (same programs, same results).
         options: deprecated, a :class:`jtraj.SolverOptions`; pass
             ``solver=jtraj.solver.from_options(options)`` instead.
 
@@ -294,6 +299,8 @@ def solve_batch(problem, q_start=None, q_goal=None, *, N: int | None = None, wei
         raise ValueError(f"slots must be a positive integer, 'auto' or None, got {slots!r}")
     if not isinstance(segment, int) or segment < 1:
         raise ValueError(f"segment must be a positive integer, got {segment!r}")
+    if progress is not None and not callable(progress):
+        raise ValueError(f"progress must be a callable progress(finished, B) or None, got {progress!r}")
     _resources.check(N, n, B, lanes=slots or B)  # ValueError naming N or B beyond the memory limit
     # (inside another trace: the programs without their XLA options, see jtraj._compile.nested_jit)
     problems = (nested_jit(_problems_jit) if traced else _problems_jit)(
@@ -311,7 +318,7 @@ def solve_batch(problem, q_start=None, q_goal=None, *, N: int | None = None, wei
         init = (u, h)
     if traced or implicit.any_traced(init):  # derivatives per sample (jtraj.implicit)
         return implicit.solve_batch_traced(problems, opts, transcription, init, warm, slots, segment)
-    sol = solve_problems(problems, opts, transcription, init, warm, slots, segment)
+    sol = solve_problems(problems, opts, transcription, init, warm, slots, segment, progress)
     _setup.compiled(key)
     return sol
 

@@ -134,7 +134,7 @@ def cpu_lanes(nz: int) -> int:
     return int(min(16, max(4, 1280 // max(nz, 1))))
 
 
-def _solve_compacted(problems, opts, transcription, init, warm, slots: int, steps: int):
+def _solve_compacted(problems, opts, transcription, init, warm, slots: int, steps: int, progress=None):
     """Solve B problems (more than the smallest lane count) with a fixed number of
     vmapped slots, refilled as problems finish. A vmapped ``while_loop`` runs every
     member until the slowest is done, so one batch costs max(iterations) per problem;
@@ -146,7 +146,8 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     ends uncertified is restarted on its lane (see :func:`_run_lanes`). With lanes held
     throughout, about a third of the lane-iterations would be idle."""
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
-    states = _run_lanes(nlps, states, np.arange(int(valid.shape[0])), opts, slots, steps)
+    B = int(valid.shape[0])
+    states = _run_lanes(nlps, states, np.arange(B), opts, slots, steps, None if progress is None else (lambda k: progress(k, B)))
     return _finish_all(nlps, states, opts, valid, slots)
 
 
@@ -181,13 +182,17 @@ def _ip_merge_jit(nlps, states, ips):
                         merged, states), solved
 
 
-def _solve_batch_ip(problems, opts, transcription, init, warm, slots: int, steps: int):
+def _solve_batch_ip(problems, opts, transcription, init, warm, slots: int, steps: int, progress=None):
     """``solve_batch`` with ``method="ip"``: the interior-point method on every problem
     through ``slots`` lanes (:func:`_run_pool`), then the AL loop on the problems it left
     unsolved (the same lanes, :func:`_run_lanes`), then the finish."""
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
     ips = _ip_init_batch_jit(nlps, states, opts)
-    ips = _run_pool(nlps, ips, np.flatnonzero(~np.asarray(ips.done)), opts, slots)
+    todo = np.flatnonzero(~np.asarray(ips.done))
+    B = int(valid.shape[0])
+    # (progress counts a problem once its interior-point run ends, also where the AL
+    # loop goes on from it)
+    ips = _run_pool(nlps, ips, todo, opts, slots, None if progress is None else (lambda k: progress(B - todo.size + k, B)))
     states, solved = _ip_merge_jit(nlps, states, ips)
     solved = np.asarray(solved)
     todo = np.flatnonzero(~solved & ~np.asarray(states.done) & np.asarray(valid))
@@ -202,7 +207,7 @@ def _add_ip_iterations(iterations, solved, ip_iterations):
     return iterations + jnp.where(solved, 0, ip_iterations)
 
 
-def _run_pool(nlps, states, todo, opts, slots: int):
+def _run_pool(nlps, states, todo, opts, slots: int, progress=None):
     """The interior-point method on the problems ``todo`` (indices into the batch) through
     ``slots`` vmapped lanes, refilled inside one compiled loop (``_LanePrograms.pool``);
     returns the states.
@@ -213,7 +218,12 @@ def _run_pool(nlps, states, todo, opts, slots: int):
     rest of it, about half a segment per problem (on serial3 at N = 20 about 20-30 % of
     the lane-iterations; refilled at once, 3 %). Once nothing is pending and at most the
     next smaller lane count (:func:`lane_counts`) of problems is left, the loop returns
-    and the rest goes on through that many lanes."""
+    and the rest goes on through that many lanes.
+
+    ``progress(finished)``: called on the host with the number of ``todo`` problems
+    finished so far; the pool then returns every :func:`_round_size` problems handed out
+    and goes on from where it stopped (the same program; each problem takes the same
+    iterates, see :func:`_pool_rounds`)."""
     B = todo.size
     if B == 0:
         return states
@@ -230,24 +240,59 @@ def _run_pool(nlps, states, todo, opts, slots: int):
     all_nlps, all_states = progs.pack(_packing.arrays(nlps), _packing.arrays(states), size)
     queue = todo
     for i, lanes in enumerate(counts):
-        q = np.zeros(size, np.int64)  # the queue (problem indices), padded
-        q[:queue.size] = queue
         first = np.zeros(lanes, np.int64)
         first[:min(lanes, queue.size)] = queue[:lanes]
         stop_at = counts[i + 1] if i + 1 < len(counts) else 0
-        all_states, lane_ids, open_ = progs.pool(all_nlps, all_states, q, np.asarray(queue.size), first,
-                                                 np.arange(lanes) < queue.size, np.asarray(stop_at), split)
+        all_states, lane_ids, open_ = _pool_rounds(progs, all_nlps, all_states, queue, first,
+                                                   np.arange(lanes) < queue.size, stop_at, split, size,
+                                                   None if progress is None else (lambda left: progress(B - left)))
         queue = np.asarray(lane_ids)[np.asarray(open_)]
         if queue.size == 0:
             break
     return _packing.from_arrays(progs.unpack(all_states, total), progs.states)
 
 
+def _round_size(lanes: int, queued: int) -> int:
+    """Problems handed out per round of the pool when progress is reported: an eighth of
+    the queue, at least the lane count (each round ends with one call back to the host
+    and the lanes written back and gathered again)."""
+    return max(lanes, -(-queued // 8))
+
+
+def _pool_rounds(progs, all_nlps, all_states, queue, first, live, stop_at: int, split, size: int, left=None):
+    """One lane count's pool over ``queue`` (the problems on the lanes ``first`` where
+    ``live``, then the pending ones), as one call of the pool program, or with ``left``
+    (called with the number of queued problems not finished yet) in rounds: a round
+    stops once its share of the queue is handed out, leaving the lanes' problems running
+    (``stop_at`` = the lane count), and the next goes on with the same lanes and the rest
+    of the queue. A lane freed in a round's last iteration waits for the next round; no
+    problem's iterates change (lanes are independent), only which iteration starts it."""
+    lanes = first.size
+    q = np.zeros(size, np.int64)  # the queue (problem indices), padded
+    while True:
+        on = int(np.sum(live))  # queue[:on] are on the lanes
+        end = queue.size if left is None else min(queue.size, on + _round_size(lanes, queue.size))
+        last = end == queue.size
+        q[:] = 0
+        q[:queue.size] = queue
+        all_states, lane_ids, open_ = progs.pool(all_nlps, all_states, q, np.asarray(end), first, live,
+                                                 np.asarray(stop_at if last else lanes), split)
+        if left is None:
+            return all_states, lane_ids, open_
+        lane_ids, open_ = np.asarray(lane_ids), np.asarray(open_)
+        left(queue.size - end + int(np.sum(open_)))
+        if last:
+            return all_states, lane_ids, open_
+        # the lanes' unfinished problems first (on their lanes), then the pending ones
+        queue = np.concatenate([lane_ids[open_], queue[end:]])
+        first, live = lane_ids, open_
+
+
 #: the smallest batch size the interior-point pool's programs are compiled for (see _run_pool)
 _POOL_MIN = 64
 
 
-def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
+def _run_lanes(nlps, states, todo, opts, slots: int, steps: int, progress=None):
     """Run the problems ``todo`` (indices into the batch) to the end of their loop through
     ``slots`` vmapped lanes (see :func:`_solve_compacted`); returns the states.
 
@@ -259,7 +304,9 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
     round of lanes after the batch, PHR (3 restarts) unchanged.
     With a gather, a segment and a scatter per segment on the pytrees (``eqx.filter_jit``,
     about 50 leaves), the driver's own work was 14 % of a batch's time (serial3, N = 20,
-    128 pairs, one core: 0.25 s gathering and 0.22 s scattering of 5.2 s)."""
+    128 pairs, one core: 0.25 s gathering and 0.22 s scattering of 5.2 s).
+    ``progress(finished)``: called after each segment with the number of ``todo``
+    problems finished."""
     B = todo.size
     counts = lane_counts(slots)
     while len(counts) > 1 and counts[1] >= B:  # few problems: fewer lanes
@@ -285,6 +332,8 @@ def _run_lanes(nlps, states, todo, opts, slots: int, steps: int):
             sub_states, fin = progs.restart(sub_nlps, sub_states, need, split)
         fin = np.asarray(fin)
         done[idx[fin]] = True
+        if progress is not None:
+            progress(int(done.sum()))
         for j in np.flatnonzero(fin):
             if nxt < B:
                 idx[j] = nxt
@@ -447,15 +496,21 @@ def _lane_programs(pn: _packing.Packing, ps: _packing.Packing, steps: int, backe
         states=ps)
 
 
-def solve_problems(problems, opts, transcription, init, warm: bool, slots, segment: int) -> Solution:
+def solve_problems(problems, opts, transcription, init, warm: bool, slots, segment: int,
+                   progress=None) -> Solution:
     """:func:`jtraj.solve_batch`'s solve of built problems (a batch of :class:`Problem`) from
-    ``init`` (arrays), by the host-driven lane driver (see ``slots`` there)."""
+    ``init`` (arrays), by the host-driven lane driver (see ``slots`` there).
+    ``progress(finished, B)``: called on the host as problems finish, last with (B, B)."""
     B = int(jax.tree.leaves(problems.q_start)[0].shape[0])
     warm = bool(warm)
     if opts.method == "ip":
-        sol = _solve_batch_ip(problems, opts, transcription, init, jax.device_put(warm), slots or B, segment)
+        sol = _solve_batch_ip(problems, opts, transcription, init, jax.device_put(warm), slots or B, segment,
+                              progress)
     elif slots is not None and B > min(lane_counts(slots)):
-        sol = _solve_compacted(problems, opts, transcription, init, jax.device_put(warm), slots, segment)
+        sol = _solve_compacted(problems, opts, transcription, init, jax.device_put(warm), slots, segment, progress)
     else:
         sol = solve_batch_jit(problems, opts, transcription, init, jax.device_put(warm))
+    if progress is not None:
+        jax.block_until_ready(sol.status)
+        progress(B, B)
     return sol
