@@ -7,9 +7,11 @@ runs ``jtraj.solve_batch`` on 8 pairs.
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -566,6 +568,36 @@ def test_ray_real_solver_equals_single_process(tmp_path):
     dataset.build(spec, str(tmp_path / "single"), progress=False)
     dataset.build(spec, str(tmp_path / "ray"), ray="local:2", progress=False)
     assert_same(dataset.load(str(tmp_path / "single")), dataset.load(str(tmp_path / "ray")))
+
+
+def test_progress_bar_counts_pairs_inside_a_chunk(tmp_path, capsys, monkeypatch):
+    """The bar moves while a chunk is solved (the solver's progress), not only when a
+    chunk ends."""
+    monkeypatch.setenv("JTRAJ_FAKE_SOLVER_PAIR_DELAY", "0.25")
+    dataset.build(fake_spec(pairs=16, batch=8), str(tmp_path / "d"), progress=True, workers=1)
+    err = capsys.readouterr().err.replace("\r", "\n")
+    counts = [int(m) for m in re.findall(r"\| *(\d+)/16 ", err)]
+    assert set(counts) - {0, 8, 16}, err  # a count inside a chunk
+    assert counts[-1] == 16 and counts == sorted(counts), err  # never backwards
+
+
+def test_worker_progress_files(tmp_path, monkeypatch):
+    """The worker processes' side of the bar's progress: one file per chunk in flight,
+    summed, dropped when the chunk is done, the folder removed at the end."""
+    import importlib
+
+    build_mod = importlib.import_module("jtraj.dataset.build")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    progress = build_mod._Progress(files=True)
+    assert os.path.dirname(progress.dir) == str(tmp_path)
+    build_mod._Progress.write(progress.dir, 3, 5)
+    build_mod._Progress.write(progress.dir, 4, 2)
+    build_mod._Progress.write(progress.dir, 3, 7)
+    assert progress.partial() == 9
+    progress.done(3)
+    assert progress.partial() == 2
+    progress.close()
+    assert os.listdir(tmp_path) == []
 
 
 def test_progress_bar_says_compiling_until_the_first_chunk(tmp_path, capsys, monkeypatch):

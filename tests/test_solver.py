@@ -687,3 +687,20 @@ def test_batched_problem_equals_the_array_form(robot, batch):
     a = jtraj.solve_batch(problem)
     _identical(a, jtraj.solve_batch(robot, q0, q1, N=N, weights=W))
     assert int(a.status[4]) == Status.INVALID_INPUT and bool(a.converged[3])
+
+
+@pytest.mark.slow  # a batch of 12 on 4 lanes compiles its own preparation and finish programs
+def test_batch_progress_is_reported_as_problems_finish_without_changing_the_results(robot, batch):
+    """``solve_batch(progress=...)``: the interior-point pool returns to the host in rounds
+    (here 12 problems on 4 lanes, rounds of 4) and goes on; the results are the same bits."""
+    rng = np.random.default_rng(5)
+    q0 = rng.uniform(-1.2, 1.2, (12, 3))
+    q1 = q0 + rng.uniform(-0.25, 0.25, (12, 3))
+    calls = []
+    a = jtraj.solve_batch(robot, q0, q1, N=N, weights=W, slots=4, progress=lambda k, B: calls.append((k, B)))
+    _identical(a, jtraj.solve_batch(robot, q0, q1, N=N, weights=W, slots=4))
+    counts = [k for k, B in calls]
+    assert all(B == 12 for _, B in calls) and counts == sorted(counts) and counts[-1] == 12
+    assert len(set(counts) - {0, 12}) >= 2, calls  # reported inside the batch
+    with pytest.raises(ValueError, match="progress"):
+        jtraj.solve_batch(robot, q0, q1, N=N, weights=W, progress="yes")

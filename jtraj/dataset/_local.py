@@ -73,13 +73,14 @@ def worker_pool(workers: int) -> ProcessPoolExecutor:
 
 class ProcessBackend:
     """``run(spec, chunks, finish)`` as :class:`jtraj.dataset._ray.RayBackend`: each chunk
-    ``c`` is ``task(spec, c)`` in a worker process, returning ``(c, arrays)``. ``task`` is
+    ``c`` is ``task(spec, c, *extra)`` in a worker process, returning ``(c, arrays)``. ``task`` is
     a module-level function (the pool sends it by name; the caller passes
     :func:`jtraj.dataset.build.worker_task`, so this backend imports nothing of the build)."""
 
-    def __init__(self, workers: int, task):
+    def __init__(self, workers: int, task, *extra):
         self.workers = workers
         self.task = task
+        self.extra = extra  # more arguments of every task
         self.pool = worker_pool(workers)
 
     def run(self, spec, chunks, finish):
@@ -87,7 +88,7 @@ class ProcessBackend:
         pending = set()
         while todo or pending:
             while todo and len(pending) < self.workers:
-                pending.add(self.pool.submit(self.task, spec, todo.pop(0)))
+                pending.add(self.pool.submit(self.task, spec, todo.pop(0), *self.extra))
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for fut in done:
                 try:

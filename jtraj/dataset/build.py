@@ -19,8 +19,11 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import functools
 import importlib
+import inspect
 import math
+import os
 import platform
 import sys
 import time
@@ -202,8 +205,10 @@ def _get(sol, name):
     return sol[name] if isinstance(sol, dict) else getattr(sol, name)
 
 
-def compute_chunk(spec: Spec, c: int) -> dict:
-    """Sample and solve chunk ``c`` of ``spec``; numpy arrays for pairs of the chunk only."""
+def compute_chunk(spec: Spec, c: int, progress=None) -> dict:
+    """Sample and solve chunk ``c`` of ``spec``; numpy arrays for pairs of the chunk only.
+    ``progress(k)``: called with the number of the chunk's pairs solved so far, where the
+    solve function takes a ``progress`` argument (:func:`jtraj.solve_batch` does)."""
     start, stop = spec.chunk_range(c)
     robot = spec.robot_model()
     qs, qg = sampling.sample_pairs(robot, spec.distribution, spec.seed, start, stop)
@@ -214,9 +219,13 @@ def compute_chunk(spec: Spec, c: int) -> dict:
     qs_p = np.concatenate([qs, np.repeat(qs[-1:], pad, 0)]) if pad else qs
     qg_p = np.concatenate([qg, np.full((pad, qg.shape[1]), np.nan)]) if pad else qg
     extra = {} if spec.efforts == "samples" else {"efforts": spec.efforts}
+    fn = spec.solve_fn()
+    if progress is not None and "progress" in inspect.signature(fn).parameters:
+        # (the padding rows count as finished before any iteration)
+        extra["progress"] = lambda k, B: progress(min(max(k - pad, 0), count))
     from ..solver import from_options
-    sol = spec.solve_fn()(robot, qs_p, qg_p, N=spec.N, weights=spec.weights_obj(),
-                          solver=from_options(spec.options_obj()), **extra)
+    sol = fn(robot, qs_p, qg_p, N=spec.N, weights=spec.weights_obj(), solver=from_options(spec.options_obj()),
+             **extra)
     import jax
 
     sol = jax.device_get(sol)
@@ -254,15 +263,65 @@ def compute_chunk(spec: Spec, c: int) -> dict:
     return out
 
 
-def worker_task(spec: Spec, c: int):
+def worker_task(spec: Spec, c: int, progress_dir: str | None = None):
     """``(c, compute_chunk(spec, c))`` in a worker process (Ray task or local process):
     the process on one CPU (a Ray worker claims one, see :func:`_one_cpu`), then float64
-    and the compilation cache set up as in the CLI process."""
+    and the compilation cache set up as in the CLI process. ``progress_dir``: a folder
+    where the chunk's progress is written (:class:`_Progress`)."""
     _one_cpu()
     from jtraj._setup import setup_jax
 
     setup_jax()
-    return c, compute_chunk(spec, c)
+    progress = None if progress_dir is None else functools.partial(_Progress.write, progress_dir, c)
+    return c, compute_chunk(spec, c, progress)
+
+
+class _Progress:
+    """The pairs solved so far in the chunks being solved, for the progress bar: written
+    by the workers into one small file per chunk in a private temporary folder
+    (:meth:`write`, atomically), or kept in memory for chunks solved in this process."""
+
+    def __init__(self, files: bool):
+        import tempfile
+
+        self.dir = tempfile.mkdtemp(prefix="jtraj-progress-") if files else None
+        self.here: dict[int, int] = {}
+
+    @staticmethod
+    def write(folder: str, c: int, k: int) -> None:
+        path = os.path.join(folder, f"chunk-{c}")
+        try:
+            with open(path + ".tmp", "w") as fh:
+                fh.write(str(int(k)))
+            os.replace(path + ".tmp", path)
+        except OSError:
+            pass  # progress only
+
+    def partial(self) -> int:
+        total = sum(dict(self.here).values())  # (a copy: the solving thread adds entries)
+        if self.dir is not None:
+            for name in os.listdir(self.dir):
+                if name.startswith("chunk-") and not name.endswith(".tmp"):
+                    try:
+                        with open(os.path.join(self.dir, name)) as fh:
+                            total += int(fh.read() or 0)
+                    except (OSError, ValueError):
+                        pass
+        return total
+
+    def done(self, c: int) -> None:
+        self.here.pop(c, None)
+        if self.dir is not None:
+            try:
+                os.remove(os.path.join(self.dir, f"chunk-{c}"))
+            except OSError:
+                pass
+
+    def close(self) -> None:
+        if self.dir is not None:
+            import shutil
+
+            shutil.rmtree(self.dir, ignore_errors=True)
 
 
 def _one_cpu():
@@ -463,6 +522,7 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
     backend = _check_ray(ray) if ray else None  # then the cluster; both before any compute
     writer = store.Writer(out, ident, metadata(spec))
     ticker = None
+    partial = None
     try:
         done = set(writer.finished(spec.n_chunks))
         for c, why in sorted(writer.rejected.items()):  # corrupt, or of another dataset: solved again
@@ -494,9 +554,23 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
             bar = tqdm(total=spec.pairs, initial=pairs_done, unit="pair", desc=COMPILING if todo else "dataset",
                        dynamic_ncols=True, smoothing=0.1, file=sys.stderr)
             bar.set_postfix_str(_postfix(stats))
-            if todo:
-                ticker = _Ticker(bar)
         t0 = time.perf_counter()
+        local = bool(todo) and backend is None
+        if local:
+            k = min(len(todo), _local.default_workers() if workers is None else workers)
+            # by default even one chunk goes to a (pinned) worker process unless this
+            # process solves as one would: its rounding would differ (see _local)
+            if k > 1 or (workers is None and not _local.solves_here()):
+                # the pairs solved inside the chunks in flight, for the bar (not with Ray,
+                # whose workers may run elsewhere: the bar moves per chunk there)
+                partial = None if bar is None else _Progress(files=True)
+                backend = _local.ProcessBackend(k, worker_task, None if partial is None else partial.dir)
+            elif bar is not None:
+                partial = _Progress(files=False)
+        if bar is not None and todo:
+            # until the first pairs are solved the workers compile the solver (or load it
+            # from the compilation cache): the bar says so and its clock runs (ticker)
+            ticker = _Ticker(bar, lambda: _redraw(bar, stats, partial))
 
         def finish(c, arrays):
             start, stop = spec.chunk_range(c)
@@ -506,22 +580,17 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
             stats["new_pairs"] += k
             stats["new_chunks"] += 1
             stats["converged"] += int(np.sum(arrays["converged"]))
+            if partial is not None:
+                partial.done(c)
             if bar is not None:
-                if bar.desc != "dataset":
-                    bar.set_description_str("dataset", refresh=False)
-                bar.update(k)
+                _redraw(bar, stats, partial)
                 bar.set_postfix_str(_postfix(stats))
 
-        if todo and backend is None:
-            k = min(len(todo), _local.default_workers() if workers is None else workers)
-            # by default even one chunk goes to a (pinned) worker process unless this
-            # process solves as one would: its rounding would differ (see _local)
-            if k > 1 or (workers is None and not _local.solves_here()):
-                backend = _local.ProcessBackend(k, worker_task)
         if todo:
             if backend is None:
                 for c in todo:
-                    finish(c, compute_chunk(spec, c))
+                    progress = None if partial is None else functools.partial(partial.here.__setitem__, c)
+                    finish(c, compute_chunk(spec, c, progress))
             else:
                 backend.run(spec, todo, finish)
         wall = time.perf_counter() - t0
@@ -539,26 +608,39 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
         writer.close()
         if backend is not None:
             backend.close()
+        if partial is not None:
+            partial.close()
 
 
 #: the progress bar's label until the first chunk is done
 COMPILING = "dataset: compiling the solver (first chunk; cached afterwards)"
 
 
-class _Ticker:
-    """Redraws a tqdm bar every second (its elapsed time) while no chunk finishes: the
-    first chunk waits for the solver's compilation, a minute or more."""
+def _redraw(bar, stats, partial) -> None:
+    """The bar at the pairs of the finished chunks plus those solved so far inside the
+    chunks in flight; labelled "compiling" until the first pairs are solved."""
+    inside = 0 if partial is None else partial.partial()
+    if bar.desc != "dataset" and (inside or stats["new_chunks"]):
+        bar.set_description_str("dataset", refresh=False)
+    bar.n = min(stats["pairs_done"] + inside, bar.total)
+    bar.refresh()
 
-    def __init__(self, bar, every: float = 1.0):
+
+class _Ticker:
+    """Calls ``redraw`` every second: the bar's clock runs while the first chunk waits for
+    the solver's compilation (a minute or more), and the pairs solved inside the chunks
+    in flight show (:class:`_Progress`)."""
+
+    def __init__(self, bar, redraw, every: float = 1.0):
         import threading
 
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(bar, every), daemon=True)
+        self._thread = threading.Thread(target=self._run, args=(redraw, every), daemon=True)
         self._thread.start()
 
-    def _run(self, bar, every):
+    def _run(self, redraw, every):
         while not self._stop.wait(every):
-            bar.refresh()
+            redraw()
 
     def stop(self):
         self._stop.set()

@@ -3,7 +3,9 @@
 :func:`fake_solve_batch` has the signature and output fields of ``solve_batch`` but no
 optimisation: a straight-line trajectory with constant period, deterministic in the
 inputs, with some pairs flagged as failures (``status`` 1 when ``sum(q_goal) > 1``).
-``JTRAJ_FAKE_SOLVER_DELAY`` (seconds per call) makes it slow enough to be killed mid-run.
+``JTRAJ_FAKE_SOLVER_DELAY`` (seconds per call) makes it slow enough to be killed mid-run;
+``JTRAJ_FAKE_SOLVER_PAIR_DELAY`` (seconds per pair) adds a delay per pair, reported through
+``progress`` as ``solve_batch`` does.
 Use it with ``make_spec(..., solver="jtraj.dataset.testing:fake_solve_batch")`` or the
 hidden CLI option ``--solver``.
 """
@@ -16,12 +18,17 @@ import time
 import numpy as np
 
 
-def fake_solve_batch(robot, q_start, q_goal, *, N=20, weights=None, solver=None):
+def fake_solve_batch(robot, q_start, q_goal, *, N=20, weights=None, solver=None, progress=None):
     delay = float(os.environ.get("JTRAJ_FAKE_SOLVER_DELAY", "0") or 0)
     if delay:
         time.sleep(delay)
     q0, q1 = np.asarray(q_start, float), np.asarray(q_goal, float)
     B, n = q0.shape
+    pair_delay = float(os.environ.get("JTRAJ_FAKE_SOLVER_PAIR_DELAY", "0") or 0)
+    for k in range(B):
+        time.sleep(pair_delay)
+        if progress is not None:
+            progress(k + 1, B)
     s = np.linspace(0.0, 1.0, N + 1)
     q = q0[:, None] + (q1 - q0)[:, None] * s[None, :, None]
     h = np.full((B, N), 0.05) + 0.001 * np.abs(q1 - q0).sum(1, keepdims=True)
