@@ -22,6 +22,8 @@ from jtraj.cli import main as cli_main
 from jtraj.dataset import sampling, store
 from jtraj.dataset.build import H_MAX_FACTOR
 
+from helpers import catalogue
+
 FAKE = "jtraj.dataset.testing:fake_solve_batch"
 FAKE_CPUS = "jtraj.dataset.testing:fake_solve_batch_cpus"  # iterations: the solving process's CPUs
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -616,3 +618,25 @@ def test_progress_bar_says_compiling_until_the_first_chunk(tmp_path, capsys, mon
     # nothing left to solve: no compiling label
     dataset.build(fake_spec(pairs=16, batch=8), str(tmp_path / "d"), progress=True, workers=1)
     assert build_mod.COMPILING not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", catalogue(slow=("gough_stewart", "kinova", "so100", "ur10", "ur5")))
+def test_every_robot_samples_admissible_pairs_and_stores_them(tmp_path, name):
+    """The robot catalogue through sampling and storage (the stand-in solver): every pair
+    inside the joint box and admissible as jtraj.Problem requires, separated, the same
+    pairs on a second build (of the spatial robots, panda by default and the others with
+    -m slow: each compiles its own kinematics)."""
+    from jtraj import robots
+
+    spec = dataset.make_spec(name, 8, 2, N=6, batch=8, solver=FAKE)
+    dataset.build(spec, str(tmp_path / "a"), progress=False, workers=1)
+    data = dataset.load(str(tmp_path / "a"))
+    robot = robots.get(name)
+    for q in (data["q_start"], data["q_goal"]):
+        assert q.shape == (8, robot.n) and np.all(np.isfinite(q))
+        assert np.all(sampling.admissible(robot, q))
+        if robot.limits.q_min is not None:
+            assert np.all(q >= np.asarray(robot.limits.q_min) - 1e-12) and np.all(q <= np.asarray(robot.limits.q_max) + 1e-12)
+    assert np.all(np.linalg.norm(data["q_goal"] - data["q_start"], axis=1) >= 0.05)
+    dataset.build(spec, str(tmp_path / "b"), progress=False, workers=1)
+    np.testing.assert_array_equal(dataset.load(str(tmp_path / "b"))["q_goal"], data["q_goal"])
