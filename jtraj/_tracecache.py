@@ -250,12 +250,23 @@ def _level_in_xla_flags() -> bool:
     return "xla_backend_optimization_level" in os.environ.get("XLA_FLAGS", "")
 
 
+def quick_first_mode() -> str:
+    """``JTRAJ_QUICK_FIRST``: ``"first"`` (default) quick programs for a process's first
+    call and optimised ones from its second, ``"keep"`` quick programs for every call
+    (the CLI's one-shot ``solve`` and ``query``: a process that solves one problem),
+    ``"off"`` (``0``, ``off``, ``false``, ``no``) optimised programs at once."""
+    value = os.environ.get("JTRAJ_QUICK_FIRST", "1").strip().lower()
+    if value in ("0", "off", "false", "no"):
+        return "off"
+    return "keep" if value == "keep" else "first"
+
+
 def quick_first_enabled(compiler_options: dict | None) -> bool:
     """Whether :func:`tiered` compiles a program quickly first: not where
-    ``JTRAJ_QUICK_FIRST`` is ``0``/``off``/``false``/``no``, where the process or the
-    caller already chose an LLVM optimisation level (``XLA_FLAGS``, ``compiler_options``),
-    or where this XLA refuses the option."""
-    if os.environ.get("JTRAJ_QUICK_FIRST", "1").strip().lower() in ("0", "off", "false", "no"):
+    :func:`quick_first_mode` is ``"off"``, where the process or the caller already chose
+    an LLVM optimisation level (``XLA_FLAGS``, ``compiler_options``), or where this XLA
+    refuses the option."""
+    if quick_first_mode() == "off":
         return False
     if _level_in_xla_flags() or "xla_backend_optimization_level" in (compiler_options or {}):
         return False
@@ -276,12 +287,15 @@ def tiered(make: Callable[[dict], Callable], compiler_options: dict | None, mark
     compiles the optimised program and every later call runs it. ``marker``, a file
     written once the optimised program is compiled (and so in the persistent cache),
     makes later processes start with the optimised program at once. Without
-    :func:`quick_first_enabled`, simply ``make(compiler_options)``."""
+    :func:`quick_first_enabled`, simply ``make(compiler_options)``; in the ``"keep"`` mode
+    (:func:`quick_first_mode`) the quick program for every call unless the marker is there."""
     options = dict(compiler_options or {})
     full = make(options)
     if not quick_first_enabled(options) or (marker is not None and os.path.exists(marker)):
         return full
     quick = make({**options, **QUICK})
+    if quick_first_mode() == "keep":
+        return quick
     calls = [0]
 
     def call(*arrays):

@@ -15,6 +15,7 @@ shows the library's log lines (logger "jtraj", INFO: a solver compiling) on stde
 from __future__ import annotations
 
 import argparse
+import os
 import importlib
 import re
 import sys
@@ -133,6 +134,10 @@ def main(argv=None) -> int:
         from jtraj._cpu import pin_to_one_cpu
 
         pin_to_one_cpu()
+    if argv is None and getattr(sys.modules[args._run.__module__], "QUICK_PROGRAMS", False):
+        # a process that solves one problem: the solver's quickly compiled programs serve
+        # all its calls (jtraj._tracecache.quick_first_mode); the user's setting wins
+        os.environ.setdefault("JTRAJ_QUICK_FIRST", "keep")
     show_progress_lines()
     setup_jax()
     try:

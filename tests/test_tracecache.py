@@ -223,6 +223,24 @@ def test_a_quick_first_program_runs_its_quick_compilation_once_then_the_optimise
     again = _tracecache.cached("sqrt", _newton_sqrt, "tiers", quick_first=True)
     again(*args)
     assert _quick_runs(again) == []
+    # kept quick (the CLI's one-shot commands): the quick program for every call
+    monkeypatch.setenv("JTRAJ_QUICK_FIRST", "keep")
+    def markers():
+        return sorted(f for f in os.listdir(cache_dir / _tracecache.FOLDER) if f.endswith(".optimised"))
+
+    before = markers()
+    kept = _tracecache.cached("sqrt", _newton_sqrt, "tiers-kept", quick_first=True)
+    for _ in range(3):
+        kept(*args)
+    assert markers() == before  # never compiled optimised
+    monkeypatch.setenv("JTRAJ_QUICK_FIRST", "1")
+    for _ in range(2):
+        _tracecache.cached("sqrt", _newton_sqrt, "tiers-first", quick_first=True)(*args)
+    assert len(markers()) == len(before)  # (a new wrapper each time: first calls only)
+    tiers = _tracecache.cached("sqrt", _newton_sqrt, "tiers-first", quick_first=True)
+    tiers(*args)
+    tiers(*args)
+    assert len(markers()) == len(before) + 1
     # switched off: one program
     monkeypatch.setenv("JTRAJ_QUICK_FIRST", "0")
     assert not _tracecache.quick_first_enabled({})

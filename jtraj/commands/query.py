@@ -26,6 +26,10 @@ HELP = "plan a trajectory with a trained ANFIS planner (optionally refine it exa
 #: the CLI pins this command to one CPU core before JAX starts (jtraj._cpu)
 PIN_ONE_CPU = True
 
+#: the CLI keeps the solver's quickly compiled programs for this one-shot command
+#: (JTRAJ_QUICK_FIRST=keep, see jtraj._tracecache.quick_first_mode)
+QUICK_PROGRAMS = True
+
 
 def configure(parser):
     from jtraj.commands import add_solver_arguments

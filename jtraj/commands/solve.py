@@ -10,7 +10,10 @@ Negative entries need no quoting: --start-q -10,30,30 works.
 Exit status: 0 when the solution converged (strictly verified), 1 when the solver
 stopped without convergence (the summary, JSON and plot are still written), 2 on bad
 input. Solve time is reported without compilation: the problem is solved twice and the
-second, already compiled call is timed (compile_seconds is the difference).
+second, already compiled call is timed (compile_seconds is the difference). Both calls
+run the solver's quickly compiled programs (about 2.4x slower to run than the optimised
+ones, which take about 2.5x longer to compile) unless the optimised ones are in the cache
+already; ``JTRAJ_QUICK_FIRST=0`` compiles the optimised ones (see the performance guide).
 """
 
 HELP = "solve one trajectory problem (summary, --json, --plot)"
@@ -18,6 +21,10 @@ HELP = "solve one trajectory problem (summary, --json, --plot)"
 
 #: the CLI pins this command to one CPU core before JAX starts (jtraj._cpu)
 PIN_ONE_CPU = True
+
+#: the CLI keeps the solver's quickly compiled programs for this one-shot command
+#: (JTRAJ_QUICK_FIRST=keep, see jtraj._tracecache.quick_first_mode)
+QUICK_PROGRAMS = True
 
 #: transcriptions whose motion between the samples is known exactly (jtraj.resample)
 CONSTANT_ACCELERATION = ("decoupled", "coupled")
