@@ -636,7 +636,8 @@ def test_every_robot_samples_admissible_pairs_and_stores_them(tmp_path, name):
         assert q.shape == (8, robot.n) and np.all(np.isfinite(q))
         assert np.all(sampling.admissible(robot, q))
         if robot.limits.q_min is not None:
-            assert np.all(q >= np.asarray(robot.limits.q_min) - 1e-12) and np.all(q <= np.asarray(robot.limits.q_max) + 1e-12)
+            lo, hi = np.asarray(robot.limits.q_min), np.asarray(robot.limits.q_max)
+            assert np.all(q >= lo - 1e-12) and np.all(q <= hi + 1e-12)
     assert np.all(np.linalg.norm(data["q_goal"] - data["q_start"], axis=1) >= 0.05)
     dataset.build(spec, str(tmp_path / "b"), progress=False, workers=1)
     np.testing.assert_array_equal(dataset.load(str(tmp_path / "b"))["q_goal"], data["q_goal"])

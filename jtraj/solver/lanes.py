@@ -147,7 +147,8 @@ def _solve_compacted(problems, opts, transcription, init, warm, slots: int, step
     throughout, about a third of the lane-iterations would be idle."""
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
     B = int(valid.shape[0])
-    states = _run_lanes(nlps, states, np.arange(B), opts, slots, steps, None if progress is None else (lambda k: progress(k, B)))
+    report = None if progress is None else (lambda k: progress(k, B))
+    states = _run_lanes(nlps, states, np.arange(B), opts, slots, steps, report)
     return _finish_all(nlps, states, opts, valid, slots)
 
 
@@ -189,10 +190,11 @@ def _solve_batch_ip(problems, opts, transcription, init, warm, slots: int, steps
     nlps, states, valid = _prepare_batch_jit(problems, opts, transcription, init, warm)
     ips = _ip_init_batch_jit(nlps, states, opts)
     todo = np.flatnonzero(~np.asarray(ips.done))
-    B = int(valid.shape[0])
+    B, before = int(valid.shape[0]), int(valid.shape[0]) - todo.size
     # (progress counts a problem once its interior-point run ends, also where the AL
     # loop goes on from it)
-    ips = _run_pool(nlps, ips, todo, opts, slots, None if progress is None else (lambda k: progress(B - todo.size + k, B)))
+    report = None if progress is None else (lambda k: progress(before + k, B))
+    ips = _run_pool(nlps, ips, todo, opts, slots, report)
     states, solved = _ip_merge_jit(nlps, states, ips)
     solved = np.asarray(solved)
     todo = np.flatnonzero(~solved & ~np.asarray(states.done) & np.asarray(valid))
