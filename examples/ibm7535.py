@@ -107,7 +107,8 @@ def continue_until_certified(problem, name, sol):
     feasible one, else the smallest violation), history rows (cumulative Newton it., KKT
     error, T, violation, status))."""
     tr = Transcription(name)
-    opts = jtraj.SolverOptions(max_iter=CHUNK, restart_iter=0)  # traced values: same program
+    # traced values: the same compiled program as the default solver's
+    solver = jtraj.Auto(ipm=jtraj.IPM(fallback=jtraj.AugmentedLagrangian(max_iter=CHUNK, restart_iter=0)))
 
     def row(s, total):
         return (total, float(s.kkt_error), float(s.T), float(s.max_violation["overall"]),
@@ -121,7 +122,7 @@ def continue_until_certified(problem, name, sol):
     for _ in range(CHUNKS):
         if bool(cur.converged):
             break
-        cur = jtraj.solve(problem, transcription=name, options=opts, init=(tr.controls_of(cur), cur.h))
+        cur = jtraj.solve(problem, transcription=name, solver=solver, init=(tr.controls_of(cur), cur.h))
         total += int(cur.iterations)
         hist.append(row(cur, total))
         if rank(cur) < rank(best) or (rank(cur) == rank(best) < 2) or (
@@ -268,7 +269,7 @@ def report(data):
     robot = jtraj.robots.get(NAME)
     tau_max = np.asarray(robot.limits.tau_max)
     p_int = jtraj.Problem(robot, Q_START, Q_GOAL, N=N, weights=WEIGHTS, efforts="intervals")
-    tol = jtraj.SolverOptions().tol_optimality
+    tol = jtraj.AugmentedLagrangian().tol_optimality
     feasible_T = {k: slowed(float(r["sol"].T), r["effort"]) for k, r in fine.items()
                   if int(r["sol"].status) in (jtraj.Status.CONVERGED, jtraj.Status.FEASIBLE_NOT_OPTIMAL)}
     feasible_T["decoupled, intervals"] = slowed(float(s_int.T), e_int)
