@@ -24,7 +24,8 @@ T_ref is the shortest such duration among the N = 40 solutions.
 Writes examples/figures/ibm7535_*.png, examples/status/ibm7535.json and the "ibm7535"
 section of examples/RESULTS.md.
 Run: python examples/ibm7535.py [--skip=shooting,...] (leave transcriptions out: the
-shooting programs take minutes of CPU to compile) | --report (redraw from the cached solves)
+shooting programs take minutes of CPU to compile) [--resume] (keep the parts a run cut
+short cached, solve the rest) | --report (redraw from the cached solves)
 """
 
 from __future__ import annotations
@@ -193,14 +194,38 @@ def ratio_figure(points, path):
     plotting.save(fig, str(path))
 
 
-def main(skip=()):
-    """Solve everything (the transcriptions in ``skip`` left out), cache the solves, report."""
+def _save(data):
+    """Write the solves so far to CACHE (``--resume`` continues from them, ``--report``
+    redraws from them)."""
+    try:
+        with open(CACHE, "wb") as f:
+            pickle.dump(jax.tree.map(lambda x: np.asarray(x) if isinstance(x, jax.Array) else x, data), f)
+    except Exception as exc:  # the cache is a convenience; the report does not need it
+        print(f"not cached ({exc})", flush=True)
+
+
+def main(skip=(), resume=False):
+    """Solve everything (the transcriptions in ``skip`` left out), cache the solves after
+    each part, report. ``resume``: keep the parts already in CACHE (a run cut short goes
+    on where it stopped; ``seconds`` adds up the solving time of every run)."""
     t_start = time.perf_counter()
     robot = jtraj.robots.get(NAME)
     tau_max = np.asarray(robot.limits.tau_max)
     problem = jtraj.Problem(robot, Q_START, Q_GOAL, N=N, weights=WEIGHTS)
-    fine, histories, records = {}, {}, []
-    for name in (t for t in TRANSCRIPTIONS if t not in skip):
+    data = dict(fine={}, histories={}, coarse={}, seconds=0.0, skipped=tuple(skip))
+    if resume and CACHE.exists():
+        with open(CACHE, "rb") as f:
+            data = pickle.load(f)
+        data["skipped"] = tuple(t for t in skip if t not in data["fine"])
+        print("resumed:", list(data["fine"]), "intervals" if "s_int" in data else "", list(data["coarse"]), flush=True)
+    fine, histories, coarse = data["fine"], data["histories"], data["coarse"]
+    seconds0 = data["seconds"]
+
+    def checkpoint():
+        data["seconds"] = seconds0 + time.perf_counter() - t_start
+        _save(data)
+
+    for name in (t for t in TRANSCRIPTIONS if t not in skip and t not in fine):
         first, t_first = timed_solve(problem, transcription=name)
         sol, t_solve = timed_solve(problem, transcription=name)
         cold = jtraj.Status(int(sol.status)).name
@@ -208,34 +233,41 @@ def main(skip=()):
         if len(hist) > 1:
             histories[name] = hist
         ratio = np.abs(np.asarray(sol.tau)) / tau_max
+        status = jtraj.Status(int(sol.status)).name
         fine[name] = dict(sol=sol, t_first=t_first, t_solve=t_solve, cold=cold, hist=hist,
                           sat=float(np.mean(np.max(ratio, axis=1) >= 0.9)), peak=ratio.max(axis=0),
                           effort=dense_effort(name, robot, sol), params=n_params(problem, name))
-        status = jtraj.Status(int(sol.status)).name
-        records.append({"run": f"{name}, N = {N}", "status": status, "max_violation": float(sol.max_violation["overall"]),
-                        "effort_between_samples": fine[name]["effort"]})
+        fine[name]["record"] = {"run": f"{name}, N = {N}", "status": status,
+                                "max_violation": float(sol.max_violation["overall"]),
+                                "effort_between_samples": fine[name]["effort"]}
         fig = plotting.plot_solution(problem, sol, title=f"ibm7535, {name}, N = {N}: T = {float(sol.T):.4f} s "
                                                          f"({status})")
         plotting.save(fig, str(FIGURES / f"{NAME}_{name}.png"))
         print(name, cold, status, float(sol.T), t_solve, fine[name]["effort"], flush=True)
+        checkpoint()
 
     # the decoupled transcription with the bound at both ends of every interval
     p_int = jtraj.Problem(robot, Q_START, Q_GOAL, N=N, weights=WEIGHTS, efforts="intervals")
-    s_int, t_int_first = timed_solve(p_int)
-    s_int, t_int = timed_solve(p_int)
-    e_int = dense_effort("decoupled", robot, s_int)
-    records.append({"run": f"decoupled, N = {N}, efforts=intervals", "status": jtraj.Status(int(s_int.status)).name,
-                    "max_violation": float(s_int.max_violation["overall"]), "effort_between_samples": e_int})
-    fig = plotting.plot_solution(p_int, s_int, title=f"ibm7535, decoupled, bound at both ends of every interval: "
-                                                     f"T = {float(s_int.T):.4f} s ({jtraj.Status(int(s_int.status)).name})")
-    plotting.save(fig, str(FIGURES / f"{NAME}_decoupled_intervals.png"))
-    print("intervals", float(s_int.T), e_int, flush=True)
+    if "s_int" not in data:
+        s_int, t_int_first = timed_solve(p_int)
+        s_int, t_int = timed_solve(p_int)
+        e_int = dense_effort("decoupled", robot, s_int)
+        data.update(s_int=s_int, t_int=t_int, t_int_first=t_int_first, e_int=e_int,
+                    int_record={"run": f"decoupled, N = {N}, efforts=intervals",
+                                "status": jtraj.Status(int(s_int.status)).name,
+                                "max_violation": float(s_int.max_violation["overall"]),
+                                "effort_between_samples": e_int})
+        fig = plotting.plot_solution(p_int, s_int, title=f"ibm7535, decoupled, bound at both ends of every "
+                                                         f"interval: T = {float(s_int.T):.4f} s "
+                                                         f"({jtraj.Status(int(s_int.status)).name})")
+        plotting.save(fig, str(FIGURES / f"{NAME}_decoupled_intervals.png"))
+        print("intervals", float(s_int.T), e_int, flush=True)
+        checkpoint()
 
     # Chettibi's coarse parameterisations
     robot_c = jtraj.robots.get(NAME, h_max=H_MAX_COARSE)
-    coarse = {}
     for name, (Nc, p_pub, T_pub, cpu_pub, how) in COARSE.items():
-        if name in skip:
+        if name in skip or name in coarse:
             continue
         pc = jtraj.Problem(robot_c, Q_START, Q_GOAL, N=Nc, weights=WEIGHTS)
         sol, t_first = timed_solve(pc, transcription=name)
@@ -244,21 +276,18 @@ def main(skip=()):
         if len(hist) > 1:
             histories[f"{name}, N = {Nc}"] = hist
         eff = dense_effort(name, robot_c, sol)
-        coarse[name] = dict(sol=sol, t_first=t_first, cold=cold, effort=eff, params=n_params(pc, name), N=Nc)
-        records.append({"run": f"{name}, N = {Nc} (coarse)", "status": jtraj.Status(int(sol.status)).name,
-                        "max_violation": float(sol.max_violation["overall"]), "effort_between_samples": eff})
+        coarse[name] = dict(sol=sol, t_first=t_first, cold=cold, effort=eff, params=n_params(pc, name), N=Nc,
+                            record={"run": f"{name}, N = {Nc} (coarse)", "status": jtraj.Status(int(sol.status)).name,
+                                    "max_violation": float(sol.max_violation["overall"]),
+                                    "effort_between_samples": eff})
         fig = plotting.plot_solution(pc, sol, title=f"ibm7535, {name}, N = {Nc} (Chettibi's {p_pub} parameters): "
                                                     f"T = {float(sol.T):.4f} s ({jtraj.Status(int(sol.status)).name})")
         plotting.save(fig, str(FIGURES / f"{NAME}_{name}_coarse.png"))
         print("coarse", name, cold, jtraj.Status(int(sol.status)).name, float(sol.T), eff, flush=True)
-    data = dict(fine=fine, histories=histories, records=records, s_int=s_int, t_int=t_int,
-                t_int_first=t_int_first, e_int=e_int, coarse=coarse, seconds=time.perf_counter() - t_start,
-                skipped=tuple(skip))
-    try:  # the report can be redrawn from it: python examples/ibm7535.py --report
-        with open(CACHE, "wb") as f:
-            pickle.dump(jax.tree.map(lambda x: np.asarray(x) if isinstance(x, jax.Array) else x, data), f)
-    except Exception as exc:  # the cache is a convenience; the report does not need it
-        print(f"not cached ({exc})", flush=True)
+        checkpoint()
+    data["records"] = ([r["record"] for r in fine.values()] + [data["int_record"]]
+                       + [r["record"] for r in coarse.values()])
+    checkpoint()
     report(data)
 
 
@@ -392,4 +421,4 @@ if __name__ == "__main__":
             report(pickle.load(f))
     else:
         skip = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--skip=")]
-        main(skip=tuple(x for a in skip for x in a.split(",")))
+        main(skip=tuple(x for a in skip for x in a.split(",")), resume="--resume" in sys.argv[1:])
