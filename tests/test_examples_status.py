@@ -70,16 +70,20 @@ def test_batch_records_and_note(tmp_path, monkeypatch):
     assert run_all.status_row("anfis") == ("no trajectory solve", "-", "-")
 
 
-def test_every_experiment_has_a_status_record():
-    """Each experiment run_all lists has a committed record: solver runs, or a note."""
-    for name in run_all.EXPERIMENTS:
-        rec = run_all.read_status(name)
-        assert rec is not None, f"examples/status/{name}.json missing"
-        assert rec["experiment"] == name
-        assert rec["runs"] or rec.get("note"), name
+def test_committed_status_records_are_well_formed():
+    """Each committed record names an experiment run_all lists and holds solver runs with a
+    known status and a finite violation, or a note."""
+    paths = sorted(run_all.STATUS.glob("*.json"))
+    assert paths
+    for path in paths:
+        rec = json.loads(path.read_text())
+        assert rec["experiment"] == path.stem and path.stem in run_all.EXPERIMENTS, path
+        assert rec["runs"] or rec.get("note"), path
         for r in rec["runs"]:
-            assert r["status"] in jtraj.Status.__members__, (name, r)
-            assert np.isfinite(r["max_violation"]) and r["max_violation"] >= 0, (name, r)
+            assert r["status"] in jtraj.Status.__members__, (path, r)
+            assert np.isfinite(r["max_violation"]) and r["max_violation"] >= 0, (path, r)
+            e = r["effort_between_samples"]
+            assert e is None or (np.isfinite(e) and e > 0), (path, r)
 
 
 class _Trajectory(dict):
