@@ -10,8 +10,9 @@ are given by tip points; their joint configurations come from the closed-form in
 kinematics of each design (elbow up), so the start and the goal of every problem move
 with the design and the derivative follows them.
 
-Writes examples/figures/design_by_gradient.png and the "design_by_gradient" section of
-examples/RESULTS.md.
+Writes examples/figures/design_by_gradient.png, examples/status/design_by_gradient.json
+(the final design's and the grid's best design's solves) and the "design_by_gradient"
+section of examples/RESULTS.md.
 Run: python examples/design_by_gradient.py
 """
 
@@ -22,7 +23,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import FIGURES, setup, table, wall_and_cpu, write_section  # noqa: E402
+from run_all import FIGURES, batch_status_records, setup, table, wall_and_cpu, write_section, write_status  # noqa: E402
 
 setup()
 
@@ -50,7 +51,7 @@ GRID = 13  # grid points per length (a step of 0.025 m: the band's edges are gri
 START = (0.62, 0.58)  # m: the initial design of the gradient descent (projected onto the band)
 ITERATIONS = 30
 LEARNING_RATE = 0.03  # m (Adam), x0.95 every iteration
-OPTIONS = jtraj.SolverOptions(tol_feasibility=1e-9, tol_optimality=1e-9, max_iter=1000, method="al")
+SOLVER = jtraj.AugmentedLagrangian(tol_feasibility=1e-9, tol_optimality=1e-9, max_iter=1000)
 _BASE = jtraj.robots.serial_planar((0.5, 0.5), (1.0, 1.0), (0.1, 0.1), limits=LIMITS, name="arm2")
 
 
@@ -91,7 +92,7 @@ def inverse_kinematics(lengths, points):
 def solve(lengths, tips, init=None):
     start, goal = tips
     return jtraj.solve_batch(arm(lengths), inverse_kinematics(lengths, start), inverse_kinematics(lengths, goal),
-                             N=N, weights=WEIGHTS, options=OPTIONS, init=init, slots=None)
+                             N=N, weights=WEIGHTS, solver=SOLVER, init=init, slots=None)
 
 
 def mean_time(lengths, tips, init=None):
@@ -215,6 +216,10 @@ def main():
     final = hist["design"][-1]
     final_value, final_sol = mean_time(jnp.asarray(final), tips)
     final_value = float(final_value)
+    # status records: the final design's solves and the grid's best design's (re-solved)
+    _, best_sol = mean_time(jnp.asarray(best_grid), tips)
+    records = (batch_status_records("gradient's final design, task", final_sol, arm(jnp.asarray(final)))
+               + batch_status_records("grid's best design, task", best_sol, arm(jnp.asarray(best_grid))))
     plot(axis, values, best_grid, hist, FIGURES / "design_by_gradient.png")
 
     iters = len(hist["objective"])
@@ -256,6 +261,7 @@ def main():
         + ". The gradient's first iteration includes the compilation of the derivative program. "
         + wall_and_cpu(t_start)
     )
+    write_status("design_by_gradient", records, t_start)
     write_section("design_by_gradient", text)
     print(text)
 

@@ -5,8 +5,8 @@ trajectories alone, recover (1) the payload mass, knowing the weights, and (2) t
 energy weight, knowing the payload, by Adam (optax) on a trajectory-matching loss whose
 gradient comes from implicit differentiation of the optimum (``jtraj.implicit``).
 
-Writes examples/figures/inverse_payload.png and the "inverse_payload" section of
-examples/RESULTS.md.
+Writes examples/figures/inverse_payload.png, examples/status/inverse_payload.json and the
+"inverse_payload" section of examples/RESULTS.md.
 Run: python examples/inverse_payload.py
 """
 
@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import FIGURES, setup, table, wall_and_cpu, write_section  # noqa: E402
+from run_all import FIGURES, batch_status_records, setup, table, wall_and_cpu, write_section, write_status  # noqa: E402
 
 setup()
 
@@ -37,7 +37,7 @@ ITERATIONS = 50
 LEARNING_RATE = 0.25  # Adam on the logarithm of the parameter, x0.95 every iteration (see _optimiser)
 # tight tolerances: the loss's gradient is the derivative of the optimum, valid at a
 # converged point only (a sample that did not converge contributes a zero gradient)
-OPTIONS = jtraj.SolverOptions(tol_feasibility=1e-9, tol_optimality=1e-9, max_iter=1000, method="al")
+SOLVER = jtraj.AugmentedLagrangian(tol_feasibility=1e-9, tol_optimality=1e-9, max_iter=1000)
 ROBOT = jtraj.robots.get("serial3")
 NAMES = ("payload", "energy")
 
@@ -67,7 +67,7 @@ def solve(params, q_start, q_goal, init=None):
     """The optimal trajectories of the batch for ``params`` = (payload [kg], energy weight)."""
     robot = with_payload(ROBOT, params[0])
     weights = jtraj.Weights(time=1.0, energy=params[1])
-    return jtraj.solve_batch(robot, q_start, q_goal, N=N, weights=weights, options=OPTIONS, init=init, slots=None)
+    return jtraj.solve_batch(robot, q_start, q_goal, N=N, weights=weights, solver=SOLVER, init=init, slots=None)
 
 
 def observe(q_start, q_goal):
@@ -114,7 +114,8 @@ def identify(free: str, observed, q_start, q_goal, known: dict, guess: float, it
 
     Returns the history: "value" (iterations + 1 values, the guess first), "loss"
     (iterations values, at the value before each step), "valid" (samples with a valid
-    derivative at each iteration), "status" (the last solve's statuses), "seconds"."""
+    derivative at each iteration), "status" (the last solve's statuses), "records" (their
+    status records), "seconds"."""
     index = NAMES.index(free)
     mask = jnp.zeros(2).at[index].set(1.0)
     log_theta = jnp.log(jnp.array([known.get(NAMES[0], guess), known.get(NAMES[1], guess)]))
@@ -133,6 +134,7 @@ def identify(free: str, observed, q_start, q_goal, known: dict, guess: float, it
     first = solve(jnp.exp(log_theta), q_start, q_goal)
     init = (first.v, first.h)
     for _ in range(iterations):
+        theta = jnp.exp(log_theta)  # the parameters of this iteration's solve
         (value, sol), grad = value_and_grad(log_theta, init)
         updates, state = opt.update(grad * mask, state)
         log_theta = optax.apply_updates(log_theta, updates)
@@ -141,6 +143,7 @@ def identify(free: str, observed, q_start, q_goal, known: dict, guess: float, it
         history["valid"].append(int(np.sum(np.asarray(jtraj.valid_derivatives(sol)))))
         history["value"].append(float(jnp.exp(log_theta[index])))
     history["status"] = [jtraj.Status(int(s)).name for s in np.asarray(sol.status)]
+    history["records"] = batch_status_records(f"{free}: last iteration, task", sol, with_payload(ROBOT, theta[0]))
     history["seconds"] = time.perf_counter() - t0
     return history
 
@@ -180,11 +183,14 @@ def main():
     statuses = [jtraj.Status(int(s)).name for s in np.asarray(observed.status)]
     if not all(s == "CONVERGED" for s in statuses):
         raise RuntimeError(f"the observed trajectories did not all converge: {statuses}")
+    records = batch_status_records("observed, task", observed, with_payload(ROBOT, TRUE["payload"]))
     results = {}
     for name in NAMES:
         known = {k: v for k, v in TRUE.items() if k != name}
         results[name] = identify(name, observed, q_start, q_goal, known, GUESS[name])
     plot(results, FIGURES / "inverse_payload.png")
+    for name in NAMES:
+        records += results[name]["records"]
 
     rows = []
     for name, what in (("payload", "payload mass [kg]"), ("energy", "energy weight")):
@@ -225,6 +231,7 @@ def main():
                   for n in NAMES if results[n]["loss"][-1] > 1e-10)
         + wall_and_cpu(t_start)
     )
+    write_status("inverse_payload", records, t_start)
     write_section("inverse_payload", text)
     print(text)
 

@@ -15,7 +15,8 @@ trains its own premise copy), and subtractive clustering with the Levenberg-Marq
 and with MATLAB's gradient premise rule. Baseline: the linear autoregressive map fitted
 by least squares on the same four inputs.
 
-Writes examples/figures/mackey_glass.png and the "mackey_glass" section of examples/RESULTS.md.
+Writes examples/figures/mackey_glass.png, examples/status/mackey_glass.json (no trajectory
+solves: a note) and the "mackey_glass" section of examples/RESULTS.md.
 Run: python examples/mackey_glass.py
 """
 
@@ -28,7 +29,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import FIGURES, machine, setup, table, wall_and_cpu, write_section  # noqa: E402
+from run_all import FIGURES, machine, setup, table, wall_and_cpu, write_section, write_status  # noqa: E402
 
 T_START = time.perf_counter()
 setup()
@@ -189,6 +190,8 @@ def main():
         "training.", "",
         f"{wall_and_cpu(T_START)} {machine()}; a machine shared with other jobs.",
     ])
+    write_status("mackey_glass", [], T_START,
+                 note=f"no trajectory solve (ANFIS check: grid model check RMSE {g['check']:.2e})")
     write_section("mackey_glass", text)
 
 

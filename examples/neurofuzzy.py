@@ -5,7 +5,8 @@ samples, 90 / 10 split by trajectory), their RMSE and training times beside Tabl
 training (Fig. 6.12), and new start/goal pairs planned online (Figs. 5.13-5.14, 6.14-6.15)
 with the planner's feasibility and the gap to the exact optimum.
 
-Writes examples/figures/neurofuzzy_*.png and the "neurofuzzy" section of examples/RESULTS.md.
+Writes examples/figures/neurofuzzy_*.png, examples/status/neurofuzzy.json (the status of
+every exact solve) and the "neurofuzzy" section of examples/RESULTS.md.
 Run: python examples/neurofuzzy.py
 """
 
@@ -16,7 +17,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import FIGURES, machine, setup, table, wall_and_cpu, write_section  # noqa: E402
+from run_all import (FIGURES, batch_status_records, machine, setup, table, wall_and_cpu, write_section,  # noqa: E402
+                     write_status)
 
 T_START = time.perf_counter()
 setup()
@@ -72,12 +74,17 @@ def draw_pairs(q0, qg, count, seed, spread):
     return q0 + rng.uniform(-spread, spread, (count, 3)), qg + rng.uniform(-spread, spread, (count, 3))
 
 
-def solve_pairs(robot, qs, qg):
-    """One solve_batch call; a dataset-shaped dict (jtraj.dataset fields) and the seconds."""
+def solve_pairs(robot, qs, qg, record=None):
+    """One solve_batch call; a dataset-shaped dict (jtraj.dataset fields) and the seconds.
+    ``record``: ``(records, [(run name, rows), ...])``, status records of those rows appended."""
     t0 = time.perf_counter()
     sol = jtraj.solve_batch(robot, qs, qg, N=N, weights=jtraj.Weights.parse(WEIGHTS_TEXT), T_max=T_MAX)
     jax.block_until_ready(sol.T)
     secs = time.perf_counter() - t0
+    if record is not None:
+        records, groups = record
+        for run, rows in groups:
+            records += batch_status_records(run, sol, robot, rows)
     data = {k: np.asarray(getattr(sol, k), float) for k in ("q", "qd", "v", "tau", "h", "T", "cost")}
     data.update(index=np.arange(len(qs)), q_start=np.asarray(qs), q_goal=np.asarray(qg),
                 converged=np.asarray(sol.converged, bool), status=np.asarray(sol.status),
@@ -217,13 +224,17 @@ def plot_generalisation(robot, plans, raw, exact, idx, path):
 
 # ----------------------------------------------------------------------------- main
 def main():
+    t_start = time.perf_counter()
+    records = []
     robot = robots.get("serial3")
     q0, qg = scenario(robot)
     qs, qgs = draw_pairs(q0, qg, PAIRS, SEED, SPREAD)
     ns, ngs = draw_pairs(q0, qg, NEW_PAIRS, SEED + 1, SPREAD)
     ws, wgs = draw_pairs(q0, qg, WIDE_PAIRS, SEED + 2, 2 * SPREAD)
     # the new pairs' exact optima come from the same compiled batch as the training set
-    all_data, solve_s = solve_pairs(robot, np.r_[qs, ns, ws], np.r_[qgs, ngs, wgs])
+    all_data, solve_s = solve_pairs(robot, np.r_[qs, ns, ws], np.r_[qgs, ngs, wgs], record=(records, [
+        ("training pair", range(PAIRS)), ("new pair", range(PAIRS, PAIRS + NEW_PAIRS)),
+        ("wide pair", range(PAIRS + NEW_PAIRS, PAIRS + NEW_PAIRS + WIDE_PAIRS))]))
     data = take(all_data, np.arange(PAIRS))
     new = take(all_data, np.arange(PAIRS, PAIRS + NEW_PAIRS + WIDE_PAIRS))
     n_conv = int(data["converged"].sum())
@@ -236,7 +247,8 @@ def main():
     narrow = {}
     for k, spread in enumerate(SPREADS):
         a, b = draw_pairs(q0, qg, PAIRS, SEED + 10 + k, spread)
-        d_s, _ = solve_pairs(robot, np.r_[a, ns, ws], np.r_[b, ngs, wgs])
+        d_s, _ = solve_pairs(robot, np.r_[a, ns, ws], np.r_[b, ngs, wgs],
+                             record=(records, [(f"+- {spread:g} rad pair", range(PAIRS))]))
         d_s = take(d_s, np.arange(PAIRS))
         X, Y, traj, _, _ = view(d_s, "nefotc")
         tr, te = split(traj, 0.1)
@@ -333,6 +345,7 @@ def main():
     plot_generalisation(robot, plan_traj, raw_traj, exact_traj, [0, 1, NEW_PAIRS],
                         FIGURES / "neurofuzzy_generalisation.png")
 
+    write_status("neurofuzzy", records, t_start)
     write_section("neurofuzzy", report(robot, q0, qg, data, n_conv, solve_s, res, interleaved, warm, noisy,
                                        tip_err, new, plans, raw, feasible, recheck, exact_cost, plan_cost,
                                        otc_rep, mop_rep, planner_s, plan_ms, null_share, narrow, tsuk))

@@ -4,7 +4,8 @@ history; time-energy versus energy-only (Figs. 4.5-4.6) and the trapezoidal gues
 mass 200 -> 300 kg; singularity distances along the path. Table 4.2 and annex B's
 N = 10 line are in pkm2_table42.py.
 
-Writes examples/figures/pkm2_*.png and the "pkm2" section of examples/RESULTS.md.
+Writes examples/figures/pkm2_*.png, examples/status/pkm2.json and the "pkm2" section of
+examples/RESULTS.md.
 Run: python examples/pkm2.py
 """
 
@@ -16,7 +17,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import FIGURES, setup, solve_with_restart, status_text, table, timed_solve, wall_and_cpu, write_section  # noqa: E402
+from run_all import (FIGURES, setup, solve_with_restart, status_record, status_text, table, timed_solve,  # noqa: E402
+                     wall_and_cpu, write_section, write_status)
 
 setup()
 
@@ -250,6 +252,11 @@ def main():
     ph = make_problem(heavy, N_MAIN, W_TE, passages_active=False)
     sh, _, t_h, htries = solve_with_restart(ph, init=(sol.v, sol.h))
     sh_cold, _, _, hctries = solve_with_restart(ph)
+    records = [status_record("time-energy", sol, robot), status_record("energy only, free periods", se, robot),
+               status_record("time-energy from the trapezoidal guess", st, robot),
+               status_record("energy only, periods fixed at the trapezoid's", sf, fixed),
+               status_record("passages", sp, robot), status_record("platform 300 kg, warm-started", sh, heavy),
+               status_record("platform 300 kg, cold", sh_cold, heavy)]
 
     # ---------------------------------------------------------------- singularities
     t_d, q_d = dense_q(sol)
@@ -367,6 +374,7 @@ def main():
             + "\n\n### Other experiments (N = 20)\n\n"
             + table(rows2, header=("quantity", "jtraj", "published", "verdict", "explanation")))
     text += "\n\n" + wall_and_cpu(t_start)
+    write_status(NAME, records, t_start)
     write_section(NAME, text)
     print(text)
 

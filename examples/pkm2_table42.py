@@ -4,8 +4,8 @@ against N beside the published rows; the table's inconsistency with its own boun
 why the model is horizontal (holding forces under gravity against the force limits);
 annex B's N = 10 line with its published iterations, precision and CPU time.
 
-Writes examples/figures/pkm2_table42.png, examples/figures/pkm2_gravity.png and the
-"pkm2_table42" section of examples/RESULTS.md.
+Writes examples/figures/pkm2_table42.png, examples/figures/pkm2_gravity.png,
+examples/status/pkm2_table42.json and the "pkm2_table42" section of examples/RESULTS.md.
 Run: python examples/pkm2_table42.py
 """
 
@@ -16,7 +16,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import FIGURES, machine, setup, status_text, table, timed_solve, wall_and_cpu, write_section  # noqa: E402
+from run_all import (FIGURES, machine, setup, status_record, status_text, table, timed_solve, wall_and_cpu,  # noqa: E402
+                     write_section, write_status)
 
 setup()
 
@@ -111,7 +112,7 @@ def main():
         published_bound = f"rejected before solving: {err}"
 
     # ------------------------------------------------ Table 4.2
-    res, res07, rows = {}, {}, []
+    res, res07, rows, records = {}, {}, [], []
     for N in N_TABLE:
         pr = line_problem(robot, N, P_START, P_GOAL)
         sol, t_first = timed_solve(pr)
@@ -120,6 +121,10 @@ def main():
         # the same N with the published h_max = 0.7 s (same compiled solver)
         s07, _ = timed_solve(line_problem(pkm2(), N, P_START, P_GOAL))
         res07[N] = s07
+        records += [status_record(f"N = {N}, h_max = {H_MAX:g} s", sol, robot),
+                    status_record(f"N = {N}, published h_max = {H_MAX_PUBLISHED:g} s"
+                                  + (" (N h_max below the minimum time: no motion exists)"
+                                     if N * H_MAX_PUBLISHED < T_low else ""), s07, pkm2())]
         eq, ineq = precisions(sol)
         h = np.asarray(sol.h)
         pubs = [p for p in TABLE_42 if p[0] == N]
@@ -150,6 +155,7 @@ def main():
     f_centre = np.asarray(heavy.inverse_dynamics(jnp.asarray([0.0, -1.22]), jnp.zeros(2), jnp.zeros(2)))
     printed_term = G * (200.0 + 570.5)
     sg, t_g = timed_solve(line_problem(heavy, 20, P_START, P_GOAL))
+    records.append(status_record("N = 20 under gravity (beyond the force limits: no motion exists)", sg, heavy))
 
     # ------------------------------------------------ annex B, N = 10
     d = np.subtract(ANNEX_PRINTED_GOAL, ANNEX_START)
@@ -158,6 +164,7 @@ def main():
     annex_robot = pkm2(leg=575.0, slider=60.0)  # annex B masses, published h_max
     pa = line_problem(annex_robot, 10, ANNEX_START, annex_goal)
     sa, t_a = timed_solve(pa)
+    records.append(status_record("annex B, N = 10", sa, annex_robot))
 
     def annex_row(label, sol, t):
         eq, ineq = precisions(sol)
@@ -320,6 +327,7 @@ def main():
               f"reused. The thesis' 75 s is Matlab on "
               f"an unstated machine (its serial3 runs name a Pentium III at 1 GHz). " + annex_verdict)
     text += "\n\n" + wall_and_cpu(t_start)
+    write_status(NAME, records, t_start)
     write_section(NAME, text)
     print(text)
 

@@ -25,8 +25,9 @@ motion of |tau_i(t)| / tau_max_i, 1 = at the bound; null where it does not apply
 :func:`status_record` builds one run's entry from a solution. run_all's table (the
 last section of RESULTS.md) lists, per experiment, the statuses, the worst violation
 and the largest effort between samples, read from these files; a script that writes
-none shows "no status reported". ``python examples/run_all.py --table`` rebuilds the
-table from the files without running anything.
+none shows "no status reported", one without trajectory solves its record's ``note``.
+``python examples/run_all.py --table`` rebuilds the table from the files without running
+anything.
 """
 
 from __future__ import annotations
@@ -98,13 +99,37 @@ def status_record(run: str, sol, robot=None) -> dict:
     return rec
 
 
-def write_status(name: str, runs: list[dict], t_start: float | None = None) -> Path:
+def batch_status_records(run: str, sol, robot=None, rows=None) -> list[dict]:
+    """:func:`status_record` entries of a batched solution (``jtraj.solve_batch``), one per
+    trajectory (``rows``: the trajectories to keep, default all), named ``"<run> <n>"``, n
+    counting the kept rows from 1."""
+    import numpy as np
+
+    import jtraj
+
+    status = np.asarray(sol.status)
+    viol = np.asarray(sol.max_violation["overall"], float)
+    rows = range(len(status)) if rows is None else rows
+    effort = None
+    if robot is not None and robot.limits.tau_max is not None:
+        from jtraj.resample import intersample_effort
+
+        effort = np.asarray(intersample_effort(sol, robot), float)
+    return [{"run": f"{run} {n}", "status": jtraj.Status(int(status[i])).name, "max_violation": float(viol[i]),
+             "effort_between_samples": None if effort is None else float(effort[i])}
+            for n, i in enumerate(rows, 1)]
+
+
+def write_status(name: str, runs: list[dict], t_start: float | None = None, note: str | None = None) -> Path:
     """Write ``examples/status/<name>.json``: the runs (:func:`status_record` entries) and,
-    with ``t_start`` (a perf_counter value), the script's wall time so far."""
+    with ``t_start`` (a perf_counter value), the script's wall time so far; ``note`` says
+    what the table shows for a script without trajectory solves (``runs`` empty)."""
     import json
 
     STATUS.mkdir(exist_ok=True)
     record = {"experiment": name, "runs": list(runs)}
+    if note is not None:
+        record["note"] = note
     if t_start is not None:
         record["script_wall_s"] = round(time.perf_counter() - t_start, 1)
     path = STATUS / f"{name}.json"
@@ -131,8 +156,10 @@ def status_row(name: str) -> tuple[str, str, str]:
     """(statuses, worst violation, largest effort between samples) of experiment ``name``
     for run_all's table, from its status record."""
     rec = read_status(name)
-    if rec is None or not rec.get("runs"):
+    if rec is None:
         return "no status reported", "-", "-"
+    if not rec.get("runs"):
+        return rec.get("note", "no status reported"), "-", "-"
     runs = rec["runs"]
     counts = {}
     for r in runs:

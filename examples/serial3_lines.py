@@ -2,8 +2,8 @@
 published 1.4 s, Figs. 5.9-5.12) and annex A's second straight line to (0.64, 0.45) m
 (Fig. A.8).
 
-Writes examples/figures/serial3_min_time_ch5.png, examples/figures/serial3_line2_*.png and
-the "serial3_lines" section of examples/RESULTS.md.
+Writes examples/figures/serial3_min_time_ch5.png, examples/figures/serial3_line2_*.png,
+examples/status/serial3_lines.json and the "serial3_lines" section of examples/RESULTS.md.
 Run: python examples/serial3_lines.py
 """
 
@@ -14,7 +14,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import FIGURES, setup, solve_with_restart, status_text, table, wall_and_cpu, write_section  # noqa: E402
+from run_all import (FIGURES, setup, solve_with_restart, status_record, status_text, table, wall_and_cpu,  # noqa: E402
+                     write_section, write_status)
 
 setup()
 
@@ -79,6 +80,7 @@ def main():
     pr5 = jtraj.Problem.from_task(robot5, p0, p_goal5, q_init=Q_START, N=N, weights=W_TIME, T_max=T_MAX)
     s5, *rest5 = solve_with_restart(pr5)
     r5 = describe(robot5, pr5, s5, *rest5)
+    records = [status_record("ch. 5 minimum time", s5, robot5)]
     fig = plotting.plot_solution(pr5, s5, title=f"serial3, minimum time, a {MOVE} m move (ch. 5): "
                                                 f"T = {r5['T']:.3f} s ({jtraj.Status(int(s5.status)).name})")
     plotting.save(fig, str(FIGURES / "serial3_min_time_ch5.png"))
@@ -98,6 +100,7 @@ def main():
     for key, label, pr in variants:
         sol, *rest = solve_with_restart(pr)
         r = describe(robotA, pr, sol, *rest)
+        records.append(status_record(f"second line, {key}", sol, robotA))
         r.update(key=key, label=label, q0=np.rad2deg(np.asarray(pr.q_start)), qT=np.rad2deg(np.asarray(pr.q_goal)),
                  p0=fk(robotA, pr.q_start), pT=fk(robotA, pr.q_goal),
                  straight=float(np.linalg.norm(fk(robotA, pr.q_goal) - fk(robotA, pr.q_start))))
@@ -157,6 +160,7 @@ def main():
             + table(rowsA, header=("reading", "move", "T [s]", "energy [s]", "tip path / straight [m]",
                                    "status", "worst violation", "max |tau|/tau_max between samples", "figure")))
     text += "\n\n" + wall_and_cpu(t_start)
+    write_status(NAME, records, t_start)
     write_section(NAME, text)
     print(text)
 

@@ -45,6 +45,47 @@ def test_status_record_and_table(tmp_path, monkeypatch):
     assert lines[3].startswith("| other | 12 | exit 0 | no status reported |")
 
 
+def test_batch_records_and_note(tmp_path, monkeypatch):
+    """One entry per kept trajectory of a batch, numbered within its group; the effort
+    between samples of each trajectory equals that of the trajectory solved alone; a record
+    without runs shows its note."""
+    monkeypatch.setattr(run_all, "STATUS", tmp_path)
+    robot = robots.get("serial3")
+    problem = jtraj.Problem(robot, jnp.zeros(3), jnp.asarray([0.02, -0.01, 0.03]), N=4)
+    v = jnp.asarray([[1.0, -0.5, 1.5], [0.5, 0.0, 0.5], [-0.5, 0.0, -0.5], [-1.0, 0.5, -1.5]])
+    trajs = [_recursion_solution(problem, scale * v, jnp.full(4, 0.2)) for scale in (0.5, 2.0, 8.0)]
+    batch = _Trajectory({k: jnp.stack([t[k] for t in trajs]) for k in trajs[0]})
+    batch.update(status=np.array([0, 2, 6], np.int32), max_violation={"overall": np.array([1e-9, 2e-7, 0.3])})
+    recs = run_all.batch_status_records("pair", batch, robot, rows=range(1, 3))
+    assert [r["run"] for r in recs] == ["pair 1", "pair 2"]
+    assert [r["status"] for r in recs] == [jtraj.Status(2).name, jtraj.Status(6).name]
+    assert [r["max_violation"] for r in recs] == [2e-7, 0.3]
+    from jtraj.resample import intersample_effort
+
+    for r, t in zip(recs, trajs[1:]):
+        assert r["effort_between_samples"] == pytest.approx(float(intersample_effort(t, robot)), rel=1e-12)
+    assert recs[0]["effort_between_samples"] < recs[1]["effort_between_samples"]  # 16x the accelerations
+    assert run_all.batch_status_records("x", batch)[2]["effort_between_samples"] is None  # no robot
+    run_all.write_status("anfis", [], note="no trajectory solve")
+    assert run_all.status_row("anfis") == ("no trajectory solve", "-", "-")
+
+
+def test_committed_status_records_are_well_formed():
+    """Each committed record names an experiment run_all lists and holds solver runs with a
+    known status and a finite violation, or a note."""
+    paths = sorted(run_all.STATUS.glob("*.json"))
+    assert paths
+    for path in paths:
+        rec = json.loads(path.read_text())
+        assert rec["experiment"] == path.stem and path.stem in run_all.EXPERIMENTS, path
+        assert rec["runs"] or rec.get("note"), path
+        for r in rec["runs"]:
+            assert r["status"] in jtraj.Status.__members__, (path, r)
+            assert np.isfinite(r["max_violation"]) and r["max_violation"] >= 0, (path, r)
+            e = r["effort_between_samples"]
+            assert e is None or (np.isfinite(e) and e > 0), (path, r)
+
+
 class _Trajectory(dict):
     """A trajectory as a mapping (what jtraj.resample takes) with attribute access (what
     jtraj.plotting reads)."""
