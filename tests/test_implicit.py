@@ -215,13 +215,17 @@ def test_traced_problem_infeasible_on_its_face_gives_nan():
         assert np.all(np.isnan(leaf))
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the gradients of T_max and of the time weight of an INVALID_INPUT "
-                                       "solve are 0, not NaN")
-def test_traced_problem_infeasible_on_its_face_every_gradient_is_nan():
-    status, g = _face_invalid_gradient()
-    for leaf in jax.tree.leaves(g):
-        assert np.all(np.isnan(leaf))
+def test_traced_problem_infeasible_on_its_face_every_gradient_is_nan(grads, base):
+    """Every entry of every gradient of such a problem is NaN, including those of the
+    leaves that enter only rows the failed point leaves inactive (T_max, the time
+    weight). (The problem differs from ``grads``' and ``base``'s in leaf values only:
+    their programs.)"""
+    p = _problem(T_max=0.05, validate=False)
+    assert int(jtraj.solve(p, options=TIGHT).status) == jtraj.Status.INVALID_INPUT
+    g = _reverse(p)
+    for out in ("T", "cost"):
+        for leaf in jax.tree.leaves(g[out]):
+            assert np.all(np.isnan(np.asarray(leaf)))
 
 
 @pytest.mark.slow  # the forward-mode tangent program is a compilation of its own
