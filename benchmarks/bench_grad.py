@@ -22,7 +22,8 @@ Measurements on the serial3 benchmark family (time = 1, energy = 0.1, float64):
 
    Steps are absolute for configurations, velocities and positions, relative to the
    value otherwise. The forward-mode
-   derivative (``jax.jvp`` through ``jtraj.solve``) of T and of the cost against central
+   derivative (``jax.jvp`` through ``jtraj.solve``, warm-started at the base optimum so
+   that it is that optimum's derivative, not another local optimum's) of T and of the cost against central
    differences of warm re-solves (AL method, tolerances 1e-10). Two estimates: the
    central difference with step ``--step / 2`` and its Richardson extrapolation from
    steps ``--step`` and ``--step / 2`` (truncation O(step^4), so a longer step that keeps
@@ -215,7 +216,8 @@ def main(argv=None):
         errs = {(k, o, e): [] for k in kinds for o in ("T", "cost") for e in ("central", "richardson")}
         cases = []  # (error, kind, output, pair index, closure) for the sweep
         skipped, t0 = 0, time.perf_counter()
-        failed, unconverged = {}, {}  # per kind: pairs whose problem raised / did not converge
+        failed, unconverged, nan_jvp = {}, {}, {}  # per kind: pairs whose problem raised / did not converge /
+        # whose converged optimum has a NaN derivative (left out of the error statistics, counted)
         for ip, (q0, q1) in enumerate(zip(q0s, q1s)):
             try:
                 free = jtraj.Problem(robot, q0, q1, N=args.N, weights=w)
@@ -260,12 +262,16 @@ def main(argv=None):
 
                     tangent = eqx.tree_at(get, zero, jax.tree.unflatten(tdef, pieces))
 
-                    def out_of(d, static=static):
-                        s = jtraj.solve(eqx.combine(d, static), options=tight)
+                    def out_of(d, static=static, base=base):  # at the base optimum: warm from it
+                        s = jtraj.solve(eqx.combine(d, static), options=tight, init=(base.v, base.h))
                         return jnp.stack([s.T, s.cost])
 
                     _, jvp = jax.jvp(out_of, (dyn,), (tangent,))
                     jvp = np.asarray(jvp)
+                    if not np.all(np.isfinite(jvp)):  # a converged base with an invalid derivative
+                        nan_jvp[kind] = nan_jvp.get(kind, 0) + 1
+                        print(f"   pair {ip} {kind}: NaN derivative at a converged optimum", flush=True)
+                        continue
 
                     def central(step, options=tight, dyn=dyn, static=static, get=get, along=along, base=base):
                         vals = []
@@ -293,7 +299,7 @@ def main(argv=None):
                     print(f"   pair {ip} {kind}: {type(err).__name__}: {err}"[:400], flush=True)
             print(f"   pair {ip}: {time.perf_counter() - t0:.0f} s", flush=True)
             figures["fd_partial"] = {"pairs_done": ip + 1, "seconds": time.perf_counter() - t0,
-                                     "failed": failed, "unconverged": unconverged,
+                                     "failed": failed, "unconverged": unconverged, "nan_derivative": nan_jvp,
                                      "errors": {f"{k}/d{o}/{e}": _stats(v) for (k, o, e), v in errs.items()}}
             dump()
         elapsed = time.perf_counter() - t0
@@ -313,7 +319,7 @@ def main(argv=None):
         figures.pop("fd_partial", None)
         figures["fd"] = {"pairs": args.fd_pairs, "skipped": skipped, "step": args.step, "seconds": elapsed,
                          "errors": fd_fig, "all_richardson": _stats(allr), "failed": failed,
-                         "unconverged": unconverged,
+                         "unconverged": unconverged, "nan_derivative": nan_jvp,
                          "above_1e-5": int(np.sum(np.asarray(allr) > 1e-5))}
         # the worst cases: error against the step, and with tighter re-solves
         sweep = []
