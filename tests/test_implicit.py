@@ -220,7 +220,8 @@ def test_traced_problem_infeasible_on_its_face_every_gradient_is_nan(grads, base
     leaves that enter only rows the failed point leaves inactive (T_max, the time
     weight). (The problem differs from ``grads``' and ``base``'s in leaf values only:
     their programs.)"""
-    p = _problem(T_max=0.05, validate=False)
+    # (T_max put in place keeps the weak type of the default T_max: the same programs)
+    p = eqx.tree_at(lambda q: q.T_max, _problem(), jnp.full_like(_problem().T_max, 0.05))
     assert int(jtraj.solve(p, options=TIGHT).status) == jtraj.Status.INVALID_INPUT
     g = _reverse(p)
     for out in ("T", "cost"):
