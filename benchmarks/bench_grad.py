@@ -22,13 +22,18 @@ Measurements on the serial3 benchmark family (time = 1, energy = 0.1, float64):
 
    Steps are absolute for configurations, velocities and positions, relative to the
    value otherwise. The forward-mode
-   derivative (``jax.jvp`` through ``jtraj.solve``) of T and of the cost against central
+   derivative (``jax.jvp`` through ``jtraj.solve``, warm-started at the base optimum so
+   that it is that optimum's derivative, not another local optimum's) of T and of the cost against central
    differences of warm re-solves (AL method, tolerances 1e-10). Two estimates: the
    central difference with step ``--step / 2`` and its Richardson extrapolation from
    steps ``--step`` and ``--step / 2`` (truncation O(step^4), so a longer step that keeps
    the re-solves' noise, about 1e-9 in T, small against it). Prints the distribution
    (median, 90th percentile, max) of the relative errors per kind and output over the
-   pairs whose solves all converged. For the ``--sweep`` worst cases, the error against
+   pairs whose solves all converged. Where the active set (:func:`jtraj.implicit.active_set`)
+   of a shifted re-solve differs from the base optimum's, the differences straddle a
+   change of active set and are no reference for the derivative (of the base's active
+   set): such pairs are counted per kind, and the errors on the other pairs reported on
+   their own. For the ``--sweep`` worst cases among those other pairs, the error against
    the step (1e-2 ... 1e-6) and against a re-solve tolerance of 1e-12: the evidence on
    whether a miss is the derivative's or the differences' (noise grows as the step
    shrinks, truncation as it grows).
@@ -133,18 +138,52 @@ def _setup(kind, jtraj, robot, q0, q1, free, free_sol, N, w, solver, pkm2_pair):
     return p, base, get, absolute
 
 
+def _active_signature(problem, sol):
+    """The active set at a solution (:func:`jtraj.implicit.active_set`) as host arrays:
+    (active constraint rows, variables held at their lower bound, at their upper bound)."""
+    import equinox as eqx
+
+    global _SIGNATURE
+    if _SIGNATURE is None:
+        import jax.numpy as jnp
+
+        from jtraj import implicit
+        from jtraj.transcription import Transcription
+
+        @eqx.filter_jit
+        def sig(p, s):
+            tr = Transcription("decoupled")
+            z = implicit.z_of(p, tr, s)
+            act = implicit.active_set(p, tr, z)
+            nc = implicit._rows(implicit._nlp(p, tr), z)[0].shape[0]
+            rows = jnp.zeros(nc, jnp.int32).at[act.idx].max(act.on.astype(jnp.int32))
+            return rows, act.at_lo, act.at_hi
+
+        _SIGNATURE = sig
+    return tuple(np.asarray(x) for x in _SIGNATURE(problem, sol))
+
+
+_SIGNATURE = None
+
+
 def _table(fd_fig, kinds):
     """The markdown table of part 1 (docs/benchmarks.md) from its figures."""
     lines = ["", "| input kind | pairs | dT*: median / p90 / max | dJ*: median / p90 / max | "
-             "central differences alone, max (dT* / dJ*) |", "|---|---|---|---|---|"]
+             "central differences alone, max (dT* / dJ*) | active set changes within the step | "
+             "max on the other pairs (dT* / dJ*) |", "|---|---|---|---|---|---|---|"]
     for kind in kinds:
         r = [fd_fig[f"{kind}/d{o}"]["richardson"] for o in ("T", "cost")]
         c = [fd_fig[f"{kind}/d{o}"]["central"] for o in ("T", "cost")]
         if r[0] is None:
-            lines.append(f"| {kind} | 0 | | | |")
+            lines.append(f"| {kind} | 0 | | | | | |")
             continue
         cells = [" / ".join(f"{st[q]:.1e}" for q in ("median", "p90", "max")) for st in r]
-        lines.append(f"| {kind} | {r[0]['n']} | {cells[0]} | {cells[1]} | {c[0]['max']:.1e} / {c[1]['max']:.1e} |")
+        same = [fd_fig[f"{kind}/d{o}"].get("richardson_same_active") for o in ("T", "cost")]
+        n_changed = fd_fig[f"{kind}/dT"].get("active_set_changed")
+        ch = "" if n_changed is None else f"{n_changed} of {r[0]['n']}"
+        other = " / ".join("n/a" if st is None else f"{st['max']:.1e}" for st in same) if n_changed is not None else ""
+        lines.append(f"| {kind} | {r[0]['n']} | {cells[0]} | {cells[1]} | {c[0]['max']:.1e} / {c[1]['max']:.1e} "
+                     f"| {ch} | {other} |")
     return "\n".join(lines) + "\n"
 
 
@@ -213,9 +252,11 @@ def main(argv=None):
             u = np.random.default_rng([args.seed, i]).uniform(0.2, 0.8, (2, 2))
             return pk_lo + u[0] * (pk_hi - pk_lo), pk_lo + u[1] * (pk_hi - pk_lo)
         errs = {(k, o, e): [] for k in kinds for o in ("T", "cost") for e in ("central", "richardson")}
+        changed = {k: [] for k in kinds}  # per kind and pair: the active set changes within the step
         cases = []  # (error, kind, output, pair index, closure) for the sweep
         skipped, t0 = 0, time.perf_counter()
-        failed, unconverged = {}, {}  # per kind: pairs whose problem raised / did not converge
+        failed, unconverged, nan_jvp = {}, {}, {}  # per kind: pairs whose problem raised / did not converge /
+        # whose converged optimum has a NaN derivative (left out of the error statistics, counted)
         for ip, (q0, q1) in enumerate(zip(q0s, q1s)):
             try:
                 free = jtraj.Problem(robot, q0, q1, N=args.N, weights=w)
@@ -260,14 +301,19 @@ def main(argv=None):
 
                     tangent = eqx.tree_at(get, zero, jax.tree.unflatten(tdef, pieces))
 
-                    def out_of(d, static=static):
-                        s = jtraj.solve(eqx.combine(d, static), solver=tight)
+                    def out_of(d, static=static, base=base):  # at the base optimum: warm from it
+                        s = jtraj.solve(eqx.combine(d, static), solver=tight, init=(base.v, base.h))
                         return jnp.stack([s.T, s.cost])
 
                     _, jvp = jax.jvp(out_of, (dyn,), (tangent,))
                     jvp = np.asarray(jvp)
+                    if not np.all(np.isfinite(jvp)):  # a converged base with an invalid derivative
+                        nan_jvp[kind] = nan_jvp.get(kind, 0) + 1
+                        print(f"   pair {ip} {kind}: NaN derivative at a converged optimum", flush=True)
+                        continue
 
-                    def central(step, solver=tight, dyn=dyn, static=static, get=get, along=along, base=base):
+                    def central(step, solver=tight, dyn=dyn, static=static, get=get, along=along, base=base,
+                                acts=None):
                         vals = []
                         for sign in (1.0, -1.0):
                             d_ = eqx.tree_at(get, dyn, along(sign * step))
@@ -275,26 +321,35 @@ def main(argv=None):
                             if not bool(s.converged):
                                 return None
                             vals.append(np.array([float(s.T), float(s.cost)]))
+                            if acts is not None:
+                                acts.append(_active_signature(eqx.combine(d_, static), s))
                         return (vals[0] - vals[1]) / (2 * step)
 
-                    d1, d2 = central(args.step), central(args.step / 2)
+                    acts = []
+                    d1, d2 = central(args.step, acts=acts), central(args.step / 2, acts=acts)
                     if d1 is None or d2 is None:
                         unconverged[kind] = unconverged.get(kind, 0) + 1
                         continue
                     rich = (4 * d2 - d1) / 3
+                    # does the active set of a shifted re-solve differ from the base optimum's?
+                    # (then the differences straddle a change of active set: not a reference)
+                    sig0 = _active_signature(p, base)
+                    moved = any(not all(np.array_equal(a, b) for a, b in zip(sig, sig0)) for sig in acts)
+                    changed[kind].append(moved)
                     for i, o in enumerate(("T", "cost")):
                         for name, fd in (("central", d2), ("richardson", rich)):
                             e = abs(jvp[i] - fd[i]) / max(abs(fd[i]), 1e-6)
                             errs[(kind, o, name)].append(e)
                         e = abs(jvp[i] - rich[i]) / max(abs(rich[i]), 1e-6)
-                        cases.append((e, kind, o, ip, i, jvp[i], central))
+                        cases.append((e, kind, o, ip, i, jvp[i], central, moved))
                 except Exception as err:  # counted and printed, as above
                     failed[kind] = failed.get(kind, 0) + 1
                     print(f"   pair {ip} {kind}: {type(err).__name__}: {err}"[:400], flush=True)
             print(f"   pair {ip}: {time.perf_counter() - t0:.0f} s", flush=True)
             figures["fd_partial"] = {"pairs_done": ip + 1, "seconds": time.perf_counter() - t0,
-                                     "failed": failed, "unconverged": unconverged,
-                                     "errors": {f"{k}/d{o}/{e}": _stats(v) for (k, o, e), v in errs.items()}}
+                                     "failed": failed, "unconverged": unconverged, "nan_derivative": nan_jvp,
+                                     "errors": {f"{k}/d{o}/{e}": _stats(v) for (k, o, e), v in errs.items()},
+                                     "active_set_changed": {k: int(np.sum(v)) for k, v in changed.items()}}
             dump()
         elapsed = time.perf_counter() - t0
         print(f"1. finite differences of re-solves, {args.fd_pairs} pairs ({skipped} skipped: invalid or "
@@ -304,20 +359,27 @@ def main(argv=None):
         for kind in kinds:
             for o in ("T", "cost"):
                 c, r = _stats(errs[(kind, o, "central")]), _stats(errs[(kind, o, "richardson")])
-                fd_fig[f"{kind}/d{o}"] = {"central": c, "richardson": r}
+                moved = np.asarray(changed[kind], bool)
+                same = _stats(np.asarray(errs[(kind, o, "richardson")])[~moved]) if moved.size else None
+                fd_fig[f"{kind}/d{o}"] = {"central": c, "richardson": r, "active_set_changed": int(moved.sum()),
+                                          "richardson_same_active": same}
                 print(f"   {kind:8s} d{o:4s} central:    {_fmt(c)}")
                 print(f"   {'':8s} {'':5s} Richardson: {_fmt(r)}")
+                print(f"   {'':8s} {'':5s} active set changes within the step on {int(moved.sum())} pairs; "
+                      f"Richardson on the others: {_fmt(same)}")
         print(_table(fd_fig, kinds))  # the benchmarks page's table (docs/benchmarks.md)
         allr = [e for (k, o, n), v in errs.items() if n == "richardson" for e in v]
         print(f"   all kinds, Richardson: {_fmt(_stats(allr))}; above 1e-5: {int(np.sum(np.asarray(allr) > 1e-5))}")
         figures.pop("fd_partial", None)
         figures["fd"] = {"pairs": args.fd_pairs, "skipped": skipped, "step": args.step, "seconds": elapsed,
                          "errors": fd_fig, "all_richardson": _stats(allr), "failed": failed,
-                         "unconverged": unconverged,
+                         "unconverged": unconverged, "nan_derivative": nan_jvp,
                          "above_1e-5": int(np.sum(np.asarray(allr) > 1e-5))}
         # the worst cases: error against the step, and with tighter re-solves
         sweep = []
-        for e, kind, o, ip, i, jv, central in sorted(cases, key=lambda c: -c[0])[:args.sweep]:
+        # (the worst cases among the pairs whose active set stays: the others' differences are no reference)
+        for e, kind, o, ip, i, jv, central, _ in sorted([c for c in cases if not c[-1]],
+                                                        key=lambda c: -c[0])[:args.sweep]:
             rows = []
             for step in (1e-2, 1e-3, 1e-4, 1e-5, 1e-6):
                 fd = central(step)

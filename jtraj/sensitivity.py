@@ -8,6 +8,15 @@ and time of :func:`jtraj.solve` with the parameter substituted into the robot by
 ``eqx.tree_at``; see :mod:`jtraj.implicit` for the mathematics (active set, bordered KKT
 system, weakly active constraints).
 
+The derivative is that of the active set at the optimum (:mod:`jtraj.implicit`), so the
+optimum must be known to the precision of the derivative: a solve at the default
+tolerances (the interior-point method's, about 1e-5) ends on the barrier's central path,
+with the slack of a constraint about ``mu / multiplier``, and a constraint with a small
+multiplier can lie too far inside its bound to be recognised as active (the reduced
+Hessian of the remaining set is then indefinite and the derivative invalid: NaN).
+:func:`sensitivity` therefore refines the solution with the augmented-Lagrangian method
+at tolerances 1e-10 (:data:`REFINE`), warm-started at it, and differentiates there.
+
 Parameters are the robot's array parameters (``masses``, ``lengths``, ``inertias``,
 ``com``, ...) and its limit fields (``tau_max``, ``qd_max``, ``qdd_max``, ``h_min``,
 ``h_max``, ...); see :func:`jtraj.robots.parameter_names`. Use float64
@@ -27,14 +36,18 @@ from . import implicit
 from ._compile import solver_jit
 from .problem import Problem
 from .robots import Limits, parameter_names
-from .solver import SolverOptions, Status
+from .solver import AugmentedLagrangian, SolverOptions, Status
 from .solver.al import run_al as _run
 from .solver.core import finish as _finish
 from .solver.nlp import NLP as _NLP
 from .solver.options import to_options
 from .transcription import Transcription
 
-__all__ = ["sensitivity", "solve_with_multipliers"]
+__all__ = ["REFINE", "sensitivity", "solve_with_multipliers"]
+
+#: the solver of the refinement (warm-started at the first solve's optimum) at whose
+#: optimum :func:`sensitivity` differentiates
+REFINE = AugmentedLagrangian(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2000)
 
 # ----------------------------------------------------------------------------------------
 # solving with the final multipliers exposed
@@ -136,7 +149,9 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
         solution: optional converged :class:`jtraj.Solution` of ``problem`` (same
             transcription); it warm-starts the solve.
         solver: the solver of that solve: :class:`jtraj.Auto` (None: the default),
-            :class:`jtraj.IPM` or :class:`jtraj.AugmentedLagrangian`.
+            :class:`jtraj.IPM` or :class:`jtraj.AugmentedLagrangian`. Its optimum is
+            then refined by :data:`REFINE` (warm-started), and the derivatives are those
+            of the refined optimum.
         transcription: "decoupled" (default) or another transcription.
         details: also return the chain-rule cost derivative (``"cost_chain"``, through
             the implicit tangent; ``"cost"`` is the envelope theorem's, see
@@ -151,7 +166,8 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
 
     Raises:
         ValueError: unknown parameter name (the message lists the accepted ones), or
-            the solve did not converge (sensitivities need a converged KKT point).
+            the solve or its refinement did not converge (sensitivities need a converged
+            KKT point).
     """
     from .solver import solve
     from .solver.api import solver_argument
@@ -172,11 +188,17 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
     if not bool(sol.converged):
         raise ValueError(f"the solve did not converge (status {Status(int(sol.status)).name}: "
                          f"{Status(int(sol.status)).message}); sensitivities need a converged KKT point")
+    # the active set needs the optimum to the derivative's precision (the module doc)
+    refine = REFINE
+    sol = solve(problem, solver=refine, transcription=tr.name, init=(tr.controls_of(sol), sol.h))
+    if not bool(sol.converged):
+        raise ValueError(f"the refinement of the optimum (REFINE: the AL method at tolerances 1e-10) did not "
+                         f"converge (status {Status(int(sol.status)).name}); sensitivities need a converged KKT point")
     theta0 = jnp.asarray(_getter(wrt)(problem), dtype=float)
     warm = (tr.controls_of(sol), sol.h)
 
-    def optimum(theta):
-        s = solve(_with_param(problem, wrt, theta), solver=solver, transcription=tr.name, init=warm)
+    def optimum(theta):  # warm at the refined optimum: its derivative
+        s = solve(_with_param(problem, wrt, theta), solver=refine, transcription=tr.name, init=warm)
         return {"cost": s.cost, "T": s.T}
 
     jac = jax.jacrev(optimum)(theta0)

@@ -80,3 +80,44 @@ def test_masses_against_central_differences_of_jtraj_solve():
     """The same check with the public jtraj.solve for every solve (a second compilation)."""
     _check_against_resolves(lambda p: jtraj.solve(p, options=TIGHT),
                             lambda p, init: jtraj.solve(p, options=TIGHT, init=init))
+
+
+@pytest.mark.slow  # N = 20, the default solver, the refinement and the reverse program: minutes
+def test_time_dominant_serial3_task_against_central_differences():
+    """The serial3 example's time-dominant case (a tip-to-point task, time 1 / energy 0.1,
+    N = 20): the default solve ends on the interior point's central path, where the
+    torque bounds with small multipliers lie up to 2e-3 inside their bounds; the
+    derivatives (of the refined optimum) are finite and agree with central differences
+    of re-solves."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from jtraj.sensitivity import REFINE
+
+    robot = jtraj.robots.get("serial3")
+    q0 = np.deg2rad([0.0, 30.0, 30.0])
+
+    problem = jtraj.Problem.from_task(robot, robot.forward_kinematics(jnp.asarray(q0)), (1.35, 1.30), q_init=q0,
+                                      N=20, weights=WEIGHTS, T_max=3.0)
+
+    def make(masses):  # the same start and goal (an IK per mass would add its own noise)
+        return eqx.tree_at(lambda p: p.robot.masses, problem, jnp.asarray(masses))
+
+    m0 = np.asarray(robot.masses)
+    d = sensitivity(problem, "masses", details=True)
+    assert np.all(np.isfinite(d["cost"])) and np.all(np.isfinite(d["T"]))
+    base = d["solution"]
+    fd = np.zeros((2, 3))
+    for i in range(3):
+        out = []
+        for sign in (1.0, -1.0):
+            m = m0.copy()
+            m[i] += sign * 1e-4 * m0[i]
+            s = jtraj.solve(make(m), solver=jtraj.solver.from_options(REFINE), init=(base.v, base.h))
+            assert bool(s.converged), s.status_message
+            out.append((float(s.cost), float(s.T)))
+        fd[:, i] = (np.array(out[0]) - np.array(out[1])) / (2e-4 * m0[i])
+    np.testing.assert_allclose(d["cost"], fd[0], rtol=1e-5, atol=1e-9)
+    # the re-solves' T carries about 5e-9 of noise: 5e-9 / (2 * 8e-4) = 3e-6 in the
+    # differences of the 8 kg link's mass
+    np.testing.assert_allclose(d["T"], fd[1], rtol=1e-4, atol=5e-6)
