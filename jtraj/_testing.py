@@ -10,6 +10,7 @@ This is the one module of ``jtraj`` that imports private names of the others (th
 layout test, ``tests/test_layout.py``, exempts it by name).
 """
 
+from .dataset.build import _Progress as DatasetProgress
 from .solver import ipm, loop, staged  # modules whose internals tests check
 from .solver.al import (ALMethod, ALState, al_finished, al_loop, held_bounds, init_state, next_inner_tol,
                         restart_state, run_al, run_with_restart, with_phase)

@@ -586,15 +586,14 @@ def test_progress_bar_counts_pairs_inside_a_chunk(tmp_path, capsys, monkeypatch)
 def test_worker_progress_files(tmp_path, monkeypatch):
     """The worker processes' side of the bar's progress: one file per chunk in flight,
     summed, dropped when the chunk is done, the folder removed at the end."""
-    import importlib
+    from jtraj._testing import DatasetProgress
 
-    build_mod = importlib.import_module("jtraj.dataset.build")
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    progress = build_mod._Progress(files=True)
+    progress = DatasetProgress(files=True)
     assert os.path.dirname(progress.dir) == str(tmp_path)
-    build_mod._Progress.write(progress.dir, 3, 5)
-    build_mod._Progress.write(progress.dir, 4, 2)
-    build_mod._Progress.write(progress.dir, 3, 7)
+    DatasetProgress.write(progress.dir, 3, 5)
+    DatasetProgress.write(progress.dir, 4, 2)
+    DatasetProgress.write(progress.dir, 3, 7)
     assert progress.partial() == 9
     progress.done(3)
     assert progress.partial() == 2
