@@ -26,6 +26,7 @@ import math
 import os
 import platform
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -567,23 +568,25 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
                 backend = _local.ProcessBackend(k, worker_task, None if partial is None else partial.dir)
             elif bar is not None:
                 partial = _Progress(files=False)
+        counting = threading.Lock()
         if bar is not None and todo:
             # until the first pairs are solved the workers compile the solver (or load it
             # from the compilation cache): the bar says so and its clock runs (ticker)
-            ticker = _Ticker(bar, lambda: _redraw(bar, stats, partial))
+            ticker = _Ticker(bar, lambda: _redraw(bar, stats, partial, counting))
 
         def finish(c, arrays):
             start, stop = spec.chunk_range(c)
             writer.write_chunk(c, start, arrays)
             k = stop - start
-            stats["pairs_done"] += k
-            stats["new_pairs"] += k
-            stats["new_chunks"] += 1
-            stats["converged"] += int(np.sum(arrays["converged"]))
-            if partial is not None:
-                partial.done(c)
+            with counting:  # a chunk moves from "in flight" to "done" at once for the bar
+                stats["pairs_done"] += k
+                stats["new_pairs"] += k
+                stats["new_chunks"] += 1
+                stats["converged"] += int(np.sum(arrays["converged"]))
+                if partial is not None:
+                    partial.done(c)
             if bar is not None:
-                _redraw(bar, stats, partial)
+                _redraw(bar, stats, partial, counting)
                 bar.set_postfix_str(_postfix(stats))
 
         if todo:
@@ -616,14 +619,17 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
 COMPILING = "dataset: compiling the solver (first chunk; cached afterwards)"
 
 
-def _redraw(bar, stats, partial) -> None:
+def _redraw(bar, stats, partial, counting) -> None:
     """The bar at the pairs of the finished chunks plus those solved so far inside the
-    chunks in flight; labelled "compiling" until the first pairs are solved."""
-    inside = 0 if partial is None else partial.partial()
-    if bar.desc != "dataset" and (inside or stats["new_chunks"]):
-        bar.set_description_str("dataset", refresh=False)
-    bar.n = min(stats["pairs_done"] + inside, bar.total)
-    bar.refresh()
+    chunks in flight (read together under ``counting``, never counting a chunk twice or
+    going backwards); labelled "compiling" until the first pairs are solved."""
+    with counting:
+        inside = 0 if partial is None else partial.partial()
+        done = stats["pairs_done"]
+        if bar.desc != "dataset" and (inside or stats["new_chunks"]):
+            bar.set_description_str("dataset", refresh=False)
+        bar.n = max(bar.n, min(done + inside, bar.total))
+        bar.refresh()
 
 
 class _Ticker:
