@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import (FIGURES, setup, solve_with_restart, status_record, status_text, table, wall_and_cpu,  # noqa: E402
-                     write_section, write_status)
+from run_all import (publish, FIGURES, setup, solve_with_restart, status_record, status_text, table, # noqa: E402
+                     write_status)
 
 setup()
 
@@ -179,10 +179,7 @@ def main():
             f"inactive). Figure: `figures/{NAME}_move.png` (leg lengths, speeds and forces against their bounds, "
             f"in m, m/s and N; forces: steps at the samples, thin lines between them). The `efforts=intervals` "
             f"rows bound the leg forces at both ends of every interval as well.\n\n" + table(rows, header=header))
-    text += "\n\n" + wall_and_cpu(t_start)
-    write_status(NAME, records, t_start)
-    write_section(NAME, text)
-    print(text)
+    publish(NAME, text, records, t_start)
 
 
 if __name__ == "__main__":

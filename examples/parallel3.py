@@ -20,8 +20,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import (FIGURES, setup, solve_with_restart, status_record, status_text, table, wall_and_cpu,  # noqa: E402
-                     write_section, write_status)
+from run_all import (publish, FIGURES, setup, solve_with_restart, status_record, status_text, table, # noqa: E402
+                     write_status)
 
 setup()
 
@@ -168,10 +168,7 @@ def main():
               f"on {100 * sat1:.0f} % of the samples (the bang-bang signature). The last column checks that jtraj's cost is exactly Chettibi's J "
               f"with E = sum_k h_k sum_i (tau_ik/tau_max)^2. First calls {t_first['samples']:.0f} s (samples) and "
               f"{t_first['intervals']:.0f} s (intervals), compilation included; the other rows reuse them.")
-    text += "\n\n" + wall_and_cpu(t_start)
-    write_status(NAME, records, t_start)
-    write_section(NAME, text)
-    print(text)
+    publish(NAME, text, records, t_start)
 
 
 if __name__ == "__main__":

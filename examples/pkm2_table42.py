@@ -16,8 +16,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import (FIGURES, machine, setup, status_record, status_text, table, timed_solve, wall_and_cpu,  # noqa: E402
-                     write_section, write_status)
+from run_all import (publish, FIGURES, machine, setup, status_record, status_text, table, timed_solve) # noqa: E402
 
 setup()
 
@@ -326,10 +325,7 @@ def main():
             + f"\n\nOur times: {machine()}, shared with other jobs (noisy), compiled solver of the N = 10 row "
               f"reused. The thesis' 75 s is Matlab on "
               f"an unstated machine (its serial3 runs name a Pentium III at 1 GHz). " + annex_verdict)
-    text += "\n\n" + wall_and_cpu(t_start)
-    write_status(NAME, records, t_start)
-    write_section(NAME, text)
-    print(text)
+    publish(NAME, text, records, t_start)
 
 
 if __name__ == "__main__":

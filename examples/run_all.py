@@ -250,6 +250,15 @@ def status_text(sol, seconds=None) -> str:
     return text + ("" if seconds is None else f", {seconds:.2f} s") + ")"
 
 
+def publish(name: str, text: str, records: list[dict], t_start: float) -> None:
+    """An experiment's end: its section (``text`` with the wall and CPU time appended)
+    written to RESULTS.md, its status record, and the section printed."""
+    text += "\n\n" + wall_and_cpu(t_start)
+    write_status(name, records, t_start)
+    write_section(name, text)
+    print(text)
+
+
 def wall_and_cpu(t_start: float) -> str:
     """``Script wall time W s (process CPU C s)`` since ``t_start`` (a perf_counter value)."""
     return f"Script wall time {time.perf_counter() - t_start:.0f} s (process CPU {time.process_time():.0f} s)."

@@ -14,8 +14,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import (FIGURES, setup, solve_with_restart, status_record, status_text, table, wall_and_cpu,  # noqa: E402
-                     write_section, write_status)
+from run_all import (publish, FIGURES, setup, solve_with_restart, status_record, status_text, table) # noqa: E402
 
 setup()
 
@@ -159,10 +158,7 @@ def main():
               f"term dominate: the periods run to h_max and T to about N h_max = 2 s.\n\n"
             + table(rowsA, header=("reading", "move", "T [s]", "energy [s]", "tip path / straight [m]",
                                    "status", "worst violation", "max |tau|/tau_max between samples", "figure")))
-    text += "\n\n" + wall_and_cpu(t_start)
-    write_status(NAME, records, t_start)
-    write_section(NAME, text)
-    print(text)
+    publish(NAME, text, records, t_start)
 
 
 if __name__ == "__main__":

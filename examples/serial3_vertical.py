@@ -17,8 +17,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import (FIGURES, setup, solve_with_restart, status_record, status_text, table, timed_solve,  # noqa: E402
-                     wall_and_cpu, write_section, write_status)
+from run_all import (publish, FIGURES, setup, solve_with_restart, status_record, status_text, table, timed_solve)  # noqa: E402
 
 setup()
 
@@ -293,10 +292,7 @@ def main():
             f"transcription, default solver options unless stated. Line and passages: N = {N}, T_max = {T_MAX} s. "
             f"Figures: `figures/{NAME}_line.png`, `figures/{NAME}_passages.png`, `figures/{NAME}_circle.png`."
             f"\n\n" + table(rows, header=header))
-    text += "\n\n" + wall_and_cpu(t_start)
-    write_status(NAME, records, t_start)
-    write_section(NAME, text)
-    print(text)
+    publish(NAME, text, records, t_start)
 
 
 if __name__ == "__main__":

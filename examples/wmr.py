@@ -17,8 +17,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import (FIGURES, setup, solve_with_restart, status_record, status_text, table, wall_and_cpu,  # noqa: E402
-                     write_section, write_status)
+from run_all import (publish, FIGURES, setup, solve_with_restart, status_record, status_text, table, # noqa: E402
+                     write_status)
 
 setup()
 
@@ -134,10 +134,7 @@ def main():
             f"Task {Q_START} -> (23, 23, pi/6) at rest; weights time = 1, energy = 0; N = {N}; decoupled "
             f"transcription. Figure: `figures/{NAME}.png` (grey: obstacles; dotted: obstacle + chassis radius)."
             f"\n\n" + table(rows))
-    text += "\n\n" + wall_and_cpu(t_start)
-    write_status(NAME, records, t_start)
-    write_section(NAME, text)
-    print(text)
+    publish(NAME, text, records, t_start)
 
 
 if __name__ == "__main__":
