@@ -136,7 +136,8 @@ def _resolve(name: str):
 def encode(x):
     """A JSON-able form of a skeleton (see :func:`decode`); TypeError where it holds
     something else than plain values, NumPy scalars, tuples, lists, dicts, and
-    dataclasses (equinox modules), named tuples and enums defined in jtraj."""
+    dataclasses (equinox modules), named tuples, enums and instances holding no data (the
+    transcriptions) of classes defined in jtraj."""
     if isinstance(x, _Slot):
         return {"$": "slot"}
     if x is None or type(x) in (bool, int, str):
@@ -156,6 +157,9 @@ def encode(x):
     if dataclasses.is_dataclass(x) and not isinstance(x, type):
         return {"$": "dc", "cls": _class_name(type(x)),
                 "f": {f.name: encode(getattr(x, f.name)) for f in dataclasses.fields(x)}}
+    if getattr(x, "__dict__", None) == {} and not hasattr(type(x), "__slots__"):
+        # an instance that holds no data (a transcription): rebuilt by its constructor
+        return {"$": "obj", "cls": _class_name(type(x))}
     raise TypeError(f"cannot keep a {type(x).__name__} in a trace's skeleton")
 
 
@@ -188,6 +192,11 @@ def decode(d):
         return cls(decode(d["v"]))
     if tag == "nt" and issubclass(cls, tuple) and hasattr(cls, "_fields"):
         return cls(*[decode(v) for v in d["v"]])
+    if tag == "obj" and not dataclasses.is_dataclass(cls):
+        obj = cls()
+        if getattr(obj, "__dict__", None) != {}:
+            raise ValueError(f"{d['cls']} holds data: it cannot be kept as a bare instance")
+        return obj
     if tag == "dc" and dataclasses.is_dataclass(cls):
         names = {f.name for f in dataclasses.fields(cls)}
         if set(d["f"]) != names:

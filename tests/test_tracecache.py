@@ -145,6 +145,11 @@ def test_solve_batch_is_the_same_with_and_without_kept_programs(monkeypatch):
     w = jtraj.Weights(time=1.0, energy=0.1)
     assert _tracecache.directory() is not None  # the tests run with a compilation cache
     kept = jtraj.solve_batch(robot, q0, q1, N=20, weights=w)
+    # every program of the batch is kept (one whose output cannot be kept is traced again
+    # by every worker process: a few seconds per chunk)
+    names = {f.split("-")[0] for f in os.listdir(_tracecache.directory())
+             if f.endswith(".jaxexport")}
+    assert {"_guess_batch_jit", "_prepare_batch_jit", "_ip_init_batch_jit", "pool", "_finish_batch_jit"} <= names
     monkeypatch.setenv("JTRAJ_TRACE_CACHE", "0")
     _testing.lane_programs.cache_clear()
     try:
@@ -154,6 +159,26 @@ def test_solve_batch_is_the_same_with_and_without_kept_programs(monkeypatch):
     assert np.all(np.asarray(kept.converged))
     for name in ("v", "h", "cost", "iterations", "status"):
         np.testing.assert_array_equal(np.asarray(getattr(kept, name)), np.asarray(getattr(traced, name)), err_msg=name)
+
+
+@pytest.mark.parametrize("name", jtraj.transcription.TRANSCRIPTIONS)
+def test_a_transcription_in_a_skeleton_is_kept_and_rebuilt(name):
+    """The solver's NLP carries its transcription object: a skeleton holding it must be
+    kept (else the program is exported again by every process) and come back equal."""
+    import json
+
+    tr = jtraj.transcription.Transcription(name)
+    skeleton = {"nlp": (tr, _tracecache._Slot())}
+    back = _tracecache.decode(json.loads(json.dumps(_tracecache.encode(skeleton))))
+    assert back["nlp"][0] == tr and type(back["nlp"][0]) is type(tr)
+    assert isinstance(back["nlp"][1], _tracecache._Slot)
+
+
+def test_a_skeleton_keeps_no_object_that_holds_data():
+    tr = jtraj.transcription.Transcription("decoupled")
+    tr.extra = 1  # a jtraj class, but this instance holds data its constructor does not give
+    with pytest.raises(TypeError, match="cannot keep"):
+        _tracecache.encode(tr)
 
 
 def test_without_flatbuffers_the_program_is_traced(cache_dir, monkeypatch):
