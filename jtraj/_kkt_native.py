@@ -24,8 +24,13 @@ once per machine, into ``$JTRAJ_NATIVE_DIR`` (default ``$XDG_CACHE_HOME/jtraj/na
 :func:`jtraj._setup.untrusted`), under a name that hashes the source, the flags, the
 compiler's and jaxlib's versions and the CPU's model and flags, so that a cache shared
 between machines never hands one a build for another. :func:`prefetch` starts a build
-in a background thread when a solve begins, so that the compiler runs while JAX traces
-the solver; the trace waits for it only where it reaches the KKT solve.
+in a background thread when a :class:`~jtraj.Problem` is made or a solve begins, so that
+the compiler runs while JAX traces the solver. A trace exported into the kept traces
+(:mod:`jtraj._tracecache`) runs inside :func:`deferred`: it calls the kernel without
+waiting for its build, and the export waits only before the program is compiled (XLA
+needs the FFI target registered to compile it); where the build then fails, the
+program is exported again with the XLA version. Other traces wait where they reach the
+KKT solve.
 
 The kernel is used where all of these hold: the backend is the CPU, the arrays are
 float64, the robot has 1 to 7 joints, and the build succeeded; elsewhere (no compiler,
@@ -40,10 +45,12 @@ kernels they call, which a process registers before running one.
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import ctypes
 import hashlib
 import os
 import platform
+import shlex
 import shutil
 import subprocess
 import tempfile
@@ -93,7 +100,9 @@ def _directory() -> str:
     return base
 
 
-_state: dict = {"libs": {}, "futures": {}, "failed": {}}
+_state: dict = {"libs": {}, "futures": {}, "failed": {}, "compiling": set()}
+#: per thread: ``on`` inside :func:`deferred`, ``off`` inside :func:`without`
+_deferring = threading.local()
 _lock = threading.Lock()
 
 
@@ -136,26 +145,57 @@ def _hash() -> str:
     return h.hexdigest()[:16]
 
 
+def _library(n: int) -> str:
+    """The path of the library for ``n`` joints (the kernel can be used: see :func:`_family`)."""
+    return os.path.join(_directory(), f"jtraj_kkt-{_family()[0]}-n{n}.so")
+
+
+def building() -> bool:
+    """Whether the compiler is building a kernel for this process now (started by
+    :func:`prefetch`; loading a library built before does not count)."""
+    return bool(_state["compiling"])
+
+
+@contextlib.contextmanager
+def without():
+    """Within this context :func:`active` is False: a trace uses the XLA version."""
+    before = getattr(_deferring, "off", False)
+    _deferring.off = True
+    try:
+        yield
+    finally:
+        _deferring.off = before
+
+
 def _build(n: int) -> None:
     """Compile (unless already built) and register the kernel for ``n`` joints."""
     ident, why = _family()
     if ident is None:
         raise RuntimeError(why)
-    folder = _directory()
-    path = os.path.join(folder, f"jtraj_kkt-{ident}-n{n}.so")
+    path = _library(n)
+    folder = os.path.dirname(path)
     if not os.path.exists(path):
         fd, tmp = tempfile.mkstemp(dir=folder, suffix=".so.tmp")
         os.close(fd)
-        try:
-            proc = subprocess.run([_compiler(), *_flags(n), "-I", jax.ffi.include_dir(), _SOURCE, "-o", tmp],
-                                  capture_output=True, text=True)
-            if proc.returncode != 0:
-                raise RuntimeError(f"{os.path.basename(_compiler())} failed on {_SOURCE}:\n{proc.stderr[-2000:]}")
-            os.chmod(tmp, 0o755)
-            os.replace(tmp, path)  # atomic: concurrent builders (dataset workers) each write whole files
-        finally:
-            if os.path.exists(tmp):
-                os.remove(tmp)
+        # the compiler, the chmod and the atomic rename run in their own session, so that
+        # a build outlives a process that ends first (a one-shot solve that ran the XLA
+        # version meanwhile): the next process finds the library; concurrent builders
+        # (dataset workers) each rename a whole file
+        command = " ".join(shlex.quote(x) for x in (_compiler(), *_flags(n), "-I", jax.ffi.include_dir(), _SOURCE,
+                                                      "-o", tmp))
+        q = {k: shlex.quote(v) for k, v in (("tmp", tmp), ("log", tmp + ".log"), ("path", path))}
+        script = (f"{command} >/dev/null 2>{q['log']} && chmod 755 {q['tmp']} && mv -f {q['tmp']} {q['path']}; "
+                  f"status=$?; rm -f {q['tmp']}; [ $status -eq 0 ] && rm -f {q['log']}; exit $status")
+        proc = subprocess.run(["/bin/sh", "-c", script], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL, start_new_session=True)
+        if proc.returncode != 0 or not os.path.exists(path):
+            try:
+                with open(tmp + ".log") as fh:
+                    errors = fh.read()[-2000:]
+                os.remove(tmp + ".log")
+            except OSError:
+                errors = ""
+            raise RuntimeError(f"{os.path.basename(_compiler())} failed on {_SOURCE}:\n{errors}")
     lib = ctypes.CDLL(path)
     jax.ffi.register_ffi_target(target(n), jax.ffi.pycapsule(lib.JtrajKkt), platform="cpu")
     _state["libs"][n] = lib  # kept alive with the process
@@ -173,14 +213,54 @@ def prefetch(n: int) -> None:
         fut = concurrent.futures.Future()
         _state["futures"][n] = fut
 
+    if not os.path.exists(_library(n)):
+        _state["compiling"].add(n)  # (set before the thread starts: building() sees it at once)
+
     def work():
         try:
             _build(n)
             fut.set_result(True)
         except BaseException as err:  # reported by available(), in the caller's thread
             fut.set_exception(err)
+        finally:
+            _state["compiling"].discard(n)
 
     threading.Thread(target=work, name=f"jtraj-kkt-build-{n}", daemon=True).start()
+
+
+
+@contextlib.contextmanager
+def deferred():
+    """Within this context :func:`active` does not wait for a build in progress: it
+    answers whether the kernel is built or being built (and has not failed). The caller
+    must call :func:`available` for the kernels its program names before compiling it,
+    and trace again where one is not available."""
+    before = getattr(_deferring, "on", False)
+    _deferring.on = True
+    try:
+        yield
+    finally:
+        _deferring.on = before
+
+
+def _pending_or_built(n: int) -> bool:
+    n = int(n)
+    if n in _state["libs"]:
+        return True
+    if n not in JOINTS or n in _state["failed"] or _family()[0] is None:
+        return False
+    prefetch(n)
+    fut = _state["futures"].get(n)
+    if fut is None:
+        return False
+    if fut.done():
+        return available(n)
+    return True
+
+
+def _usable(n: int) -> bool:
+    """:func:`available`, or inside :func:`deferred` whether it is built or being built."""
+    return _pending_or_built(n) if getattr(_deferring, "on", False) else available(n)
 
 
 def available(n: int) -> bool:
@@ -228,8 +308,9 @@ def active(dtype, n: int, r: int) -> bool:
     """Whether :func:`kkt_directions` is used for arrays of ``dtype``, ``n`` joints and
     ``r`` terminal rows (decided at trace time; the kernel is compiled for 1 to 7 joints
     and the 2n rows of a goal state)."""
-    return (jnp.dtype(dtype) == jnp.float64 and 1 <= n <= 7 and r == 2 * n and jax.default_backend() == "cpu"
-            and available(n))
+    if not (jnp.dtype(dtype) == jnp.float64 and 1 <= n <= 7 and r == 2 * n and jax.default_backend() == "cpu"):
+        return False
+    return not getattr(_deferring, "off", False) and _usable(n)
 
 
 def kkt_directions(model, shifts, terminal, ladder: bool = False):
@@ -242,7 +323,7 @@ def kkt_directions(model, shifts, terminal, ladder: bool = False):
     definite direction is the same, at about half the work (on the benchmark family
     shift 0 is positive definite in about 60 % of the iterations)."""
     N, nx, m = model.B.shape[-3:]
-    if not available(m - 1):
+    if not _usable(m - 1):
         raise RuntimeError(status(m - 1))
     r = terminal.shape[-1]
     L = shifts.shape[-1]

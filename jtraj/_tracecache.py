@@ -285,7 +285,7 @@ def quick_first_enabled(compiler_options: dict | None) -> bool:
 
 
 def tiered(make: Callable[[dict], Callable], compiler_options: dict | None, marker: str | None,
-           what: str) -> Callable:
+           what: str, make_quick: Callable[[dict], Callable] | None = None) -> Callable:
     """A program that compiles quickly for its first call and optimised from its second.
 
     ``make(options)`` returns the program (a ``jax.jit`` callable) compiled with XLA
@@ -297,15 +297,18 @@ def tiered(make: Callable[[dict], Callable], compiler_options: dict | None, mark
     written once the optimised program is compiled (and so in the persistent cache),
     makes later processes start with the optimised program at once. Without
     :func:`quick_first_enabled`, simply ``make(compiler_options)``; in the ``"keep"`` mode
-    (:func:`quick_first_mode`) the quick program for every call unless the marker is there."""
+    (:func:`quick_first_mode`) the quick program for every call unless the marker is there.
+    ``make_quick``: the quick program, where it is another program computing the same
+    (the solver's XLA version while the native kernel is built); ``make`` is then called
+    only when the second call needs it."""
     options = dict(compiler_options or {})
-    full = make(options)
     if not quick_first_enabled(options) or (marker is not None and os.path.exists(marker)):
-        return full
-    quick = make({**options, **QUICK})
+        return make(options)
+    quick = (make if make_quick is None else make_quick)({**options, **QUICK})
     if quick_first_mode() == "keep":
         return quick
     calls = [0]
+    full = [] if make_quick is not None else [make(options)]
 
     def call(*arrays):
         calls[0] += 1
@@ -315,7 +318,9 @@ def tiered(make: Callable[[dict], Callable], compiler_options: dict | None, mark
             from ._setup import logger
 
             logger.info("jtraj: compiling the optimised %s (the first call ran a quickly compiled one)", what)
-            out = full(*arrays)
+            if not full:
+                full.append(make(options))
+            out = full[0](*arrays)
             if marker is not None:
                 try:
                     with open(marker, "w"):
@@ -323,10 +328,63 @@ def tiered(make: Callable[[dict], Callable], compiler_options: dict | None, mark
                 except OSError:
                     pass
             return out
-        return full(*arrays)
+        return full[0](*arrays)
 
-    call.quick, call.full = quick, full  # (for the tests)
+    call.quick = quick  # (for the tests)
+    if full:
+        call.full = full[0]
     return call
+
+
+#: what a kept program's file may fail with when read (then it is exported again)
+_UNREADABLE = (OSError, ValueError, KeyError, ImportError, TypeError, AttributeError, RecursionError)
+
+
+def _load(path: str):
+    """``(exported, skeleton)`` of the kept program at ``path``, its native kernels
+    registered (a missing or unreadable file raises one of :data:`_UNREADABLE`)."""
+    skeleton, blob, natives = _read(path)
+    for n in natives:  # the native kernels it calls, registered before it runs
+        _kkt_native.available(n)
+    return jax.export.deserialize(bytearray(blob)), skeleton
+
+
+def _export(path: str, flat: Callable, kept: dict, arrays: list, native: bool):
+    """Export ``flat`` on ``arrays`` and keep it at ``path``: ``(exported, skeleton)``, or
+    None where it cannot be kept. ``native``: with the native KKT kernel where it is
+    built or being built (the trace does not wait for the build, the compilation will:
+    the compiler runs while JAX traces; where the build fails, the XLA version), else
+    the XLA version."""
+    if native:
+        with _kkt_native.deferred():
+            exported = jax.export.export(jax.jit(flat), disabled_checks=_NATIVE_CALLS)(*arrays)
+    else:
+        with _kkt_native.without():
+            exported = jax.export.export(jax.jit(flat), disabled_checks=_NATIVE_CALLS)(*arrays)
+    # the native kernel's FFI call is registered by every process whose file names it
+    natives = sorted({int(n) for n in re.findall(rf"{_kkt_native.TARGET}([1-7])", exported.mlir_module())})
+    if not all([_kkt_native.available(n) for n in natives]):  # a build failed: the XLA version
+        exported = jax.export.export(jax.jit(flat), disabled_checks=_NATIVE_CALLS)(*arrays)
+        natives = []
+    try:
+        blob = exported.serialize()
+    except ImportError:  # jax.export's serialisation needs the flatbuffers package
+        return None
+    skeleton = kept["skeleton"]
+    try:
+        payload = _payload(skeleton, blob, natives)
+    except (TypeError, ValueError):
+        return None  # an output that cannot be kept: trace as usual
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix=".tmp")
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(payload)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)  # atomic: a concurrent reader sees no file or the whole file
+    except OSError:
+        pass  # an unwritable cache: run it from memory
+    return jax.export.deserialize(blob), skeleton
 
 
 def program(name: str, fn: Callable, args: tuple, static: str,
@@ -336,7 +394,13 @@ def program(name: str, fn: Callable, args: tuple, static: str,
     kept on disk, exported now if missing; None when the cache is off or no stable key
     exists (then trace ``fn`` as usual). ``static`` names what ``fn`` closes over (see
     the module's docstring); the arguments' non-array leaves are part of the key.
-    ``quick_first``: compile it quickly for its first call (:func:`tiered`)."""
+
+    ``quick_first``: compile it quickly for its first call (:func:`tiered`). Where the
+    native KKT kernel is still being built when the program is exported (a machine's
+    first solve), the first call runs the program's XLA version (kept beside it, with
+    ``.xla`` in its name) instead of waiting for the compiler; the second call exports
+    the native version. A later process without the native version starts from the
+    kept XLA version likewise."""
     folder = directory()
     leaves, tree = jax.tree.flatten(args)
     is_array = [eqx.is_array(x) for x in leaves]
@@ -345,45 +409,43 @@ def program(name: str, fn: Callable, args: tuple, static: str,
     if k is None:
         return None
     path = os.path.join(folder, k + ".jaxexport")
-    try:
-        skeleton, blob, natives = _read(path)
-        for n in natives:  # the native kernels it calls, registered before it runs
-            _kkt_native.available(n)
-        exported = jax.export.deserialize(bytearray(blob))
-    except (OSError, ValueError, KeyError, ImportError, TypeError, AttributeError, RecursionError):
-        # missing (or unreadable: written by another version or format): export it now
-        kept = {}
-        flat = _flat(fn, tree, is_array, fixed, kept)
-        # the native kernel's FFI call (jtraj._kkt_native) is registered by every process
-        # whose key names it
-        exported = jax.export.export(jax.jit(flat), disabled_checks=_NATIVE_CALLS)(
-            *[x for x, a in zip(leaves, is_array) if a])
+    arrays = [x for x, a in zip(leaves, is_array) if a]
+    marker = path + ".optimised"
+
+    def native_version():
         try:
-            blob = exported.serialize()
-        except ImportError:  # jax.export's serialisation needs the flatbuffers package
-            return None
-        skeleton = kept["skeleton"]
-        try:
-            natives = sorted({int(n) for n in re.findall(rf"{_kkt_native.TARGET}([1-7])", exported.mlir_module())})
-            payload = _payload(skeleton, blob, natives)
-        except (TypeError, ValueError):
-            return None  # an output that cannot be kept: trace as usual
-        try:
-            os.makedirs(folder, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=folder, suffix=".tmp")
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(payload)
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, path)  # atomic: a concurrent reader sees no file or the whole file
-        except OSError:
-            pass  # an unwritable cache: run it from memory
-        exported = jax.export.deserialize(blob)
+            return _load(path)
+        except _UNREADABLE:  # missing (or written by another version or format): export it now
+            kept = {}
+            return _export(path, _flat(fn, tree, is_array, fixed, kept), kept, arrays, native=True)
+
+    def runner(made):
+        exported, skeleton = made
+        return lambda options: _runner(jax.jit(exported.call, compiler_options=options), is_array,
+                                       lambda: skeleton)
+
+    quick_xla = None
+    if quick_first and quick_first_enabled(compiler_options) and not os.path.exists(marker) \
+            and not os.path.exists(path):
+        xla_path = os.path.join(folder, k + ".xla.jaxexport")
+        if os.path.exists(xla_path) or _kkt_native.building():
+            try:
+                quick_xla = _load(xla_path)
+            except _UNREADABLE:
+                kept = {}
+                quick_xla = _export(xla_path, _flat(fn, tree, is_array, fixed, kept), kept, arrays, native=False)
+    if quick_xla is not None:
+        def full(options):  # the native version, exported when the second call needs it
+            made = native_version()
+            return runner(quick_xla if made is None else made)(options)
+
+        return tiered(full, compiler_options, marker, f"program {name}", make_quick=runner(quick_xla))
+    made = native_version()
+    if made is None:
+        return None
     if quick_first:
-        compiled = tiered(lambda options: jax.jit(exported.call, compiler_options=options), compiler_options,
-                          path + ".optimised", f"program {name}")
-    else:
-        compiled = jax.jit(exported.call, compiler_options=compiler_options)
-    return _runner(compiled, is_array, lambda: skeleton)
+        return tiered(runner(made), compiler_options, marker, f"program {name}")
+    return runner(made)(compiler_options)
 
 
 def _flat(fn, tree, is_array, fixed, kept):
@@ -415,6 +477,7 @@ def _runner(compiled, is_array, skeleton):
         it = iter(arrays)
         return jax.tree.unflatten(out_tree, [next(it) if s else x for s, x in zip(slots, out_leaves)])
 
+    run.compiled = compiled  # (for the tests)
     return run
 
 

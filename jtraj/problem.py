@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from . import _kkt_native
 from ._checks import as_vector, check_state, is_concrete
 from .robots import Robot
 
@@ -295,6 +296,9 @@ class Problem(eqx.Module):
             raise ValueError(f"N must be an integer >= 2, got {N!r}")
         if not isinstance(efforts, str) or efforts not in EFFORTS:
             raise ValueError(f"efforts must be one of {EFFORTS}, got {efforts!r}")
+        # the native KKT kernel's build (once per machine) starts now, in a background
+        # thread, so that it is ready or nearly so when the solve needs it
+        _kkt_native.prefetch(robot.n)
         has_jerk = robot.limits.qddd_max is not None
         if jerk is None:
             jerk = default_jerk(robot)

@@ -236,9 +236,9 @@ def test_a_quick_first_program_runs_its_quick_compilation_once_then_the_optimise
     wrapper = _tracecache.cached("sqrt", _newton_sqrt, "tiers", quick_first=True)
     outs = [wrapper(*args)]
     (run,) = [r for r in _quick_runs(wrapper)]
-    assert run.quick._cache_size() == 1 and run.full._cache_size() == 0
+    assert run.quick.compiled._cache_size() == 1 and run.full.compiled._cache_size() == 0
     outs += [wrapper(*args), wrapper(*args)]
-    assert run.quick._cache_size() == 1 and run.full._cache_size() == 1
+    assert run.quick.compiled._cache_size() == 1 and run.full.compiled._cache_size() == 1
     for out in outs:
         for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(reference)):
             np.testing.assert_allclose(a, b, rtol=1e-14)
@@ -278,8 +278,55 @@ def _quick_runs(wrapper):
     loaded = next(c.cell_contents for c in wrapper.__closure__ if isinstance(c.cell_contents, dict))
     found = []
     for run in loaded.values():
+        if hasattr(run, "quick"):
+            found.append(run)
+            continue
         compiled = next((c.cell_contents for c in run.__closure__ if callable(c.cell_contents)
                          and hasattr(c.cell_contents, "quick")), None)
         if compiled is not None:
             found.append(compiled)
     return found
+
+
+def _kernel_or_xla(x):
+    # a stand-in for the solver: its trace takes the native kernel where
+    # jtraj._kkt_native.active says so (x 2 here), else the XLA version (x 3)
+    from jtraj import _kkt_native
+
+    return x * (2.0 if _kkt_native.active(jnp.float64, 3, 6) else 3.0)
+
+
+def test_while_the_kernel_is_built_a_first_call_runs_the_xla_version(cache_dir, monkeypatch):
+    """A machine's first solve does not wait for the native kernel's compiler: the quick
+    first call runs the XLA version (kept as .xla), the second exports the native one."""
+    from jtraj import _kkt_native
+
+    monkeypatch.setattr(_tracecache, "_level_in_xla_flags", lambda: False)
+    if not _tracecache.quick_first_enabled({}):
+        pytest.skip("this XLA does not take xla_backend_optimization_level per program")
+    monkeypatch.setattr(_kkt_native, "_usable", lambda n: True)  # the kernel "built or being built"
+    monkeypatch.setattr(_kkt_native, "available", lambda n: True)
+    monkeypatch.setattr(_kkt_native, "building", lambda: True)
+    x = jnp.asarray(1.5)
+
+    def files():
+        return sorted(f.split("-")[0] + f[f.index("."):] for f in os.listdir(cache_dir / _tracecache.FOLDER))
+
+    wrapper = _tracecache.cached("kern", _kernel_or_xla, "v1", quick_first=True)
+    assert float(wrapper(x)) == 4.5  # the XLA version, quickly compiled
+    assert files() == ["kern.xla.jaxexport"]
+    assert float(wrapper(x)) == 3.0  # the second call: the native version, exported and kept
+    assert files() == ["kern.jaxexport", "kern.jaxexport.optimised", "kern.xla.jaxexport"]
+    # a later process: the native version at once (marker), kernel built or not
+    monkeypatch.setattr(_kkt_native, "building", lambda: False)
+    assert float(_tracecache.cached("kern", _kernel_or_xla, "v1", quick_first=True)(x)) == 3.0
+    # a later process that finds only the XLA version starts from it without tracing
+    for f in os.listdir(cache_dir / _tracecache.FOLDER):
+        if not f.endswith(".xla.jaxexport"):
+            os.remove(cache_dir / _tracecache.FOLDER / f)
+
+    def no_trace(*args):
+        raise AssertionError("traced again")
+
+    monkeypatch.setattr(_tracecache, "_flat", no_trace)
+    assert float(_tracecache.cached("kern", _kernel_or_xla, "v1", quick_first=True)(x)) == 4.5
