@@ -181,8 +181,10 @@ def _build(n: int) -> None:
         # a build outlives a process that ends first (a one-shot solve that ran the XLA
         # version meanwhile): the next process finds the library; concurrent builders
         # (dataset workers) each rename a whole file
-        command = " ".join(shlex.quote(x) for x in (_compiler(), *_flags(n), "-I", jax.ffi.include_dir(), _SOURCE,
-                                                      "-o", tmp))
+        # (at a lower priority: where cores are short, the solve the user waits for goes first)
+        nice = ("nice", "-n", "10") if shutil.which("nice") else ()
+        command = " ".join(shlex.quote(x) for x in (*nice, _compiler(), *_flags(n), "-I", jax.ffi.include_dir(),
+                                                      _SOURCE, "-o", tmp))
         q = {k: shlex.quote(v) for k, v in (("tmp", tmp), ("log", tmp + ".log"), ("path", path))}
         script = (f"{command} >/dev/null 2>{q['log']} && chmod 755 {q['tmp']} && mv -f {q['tmp']} {q['path']}; "
                   f"status=$?; rm -f {q['tmp']}; [ $status -eq 0 ] && rm -f {q['log']}; exit $status")
