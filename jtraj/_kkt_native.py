@@ -156,17 +156,6 @@ def building() -> bool:
     return bool(_state["compiling"])
 
 
-@contextlib.contextmanager
-def without():
-    """Within this context :func:`active` is False: a trace uses the XLA version."""
-    before = getattr(_deferring, "off", False)
-    _deferring.off = True
-    try:
-        yield
-    finally:
-        _deferring.off = before
-
-
 def _build(n: int) -> None:
     """Compile (unless already built) and register the kernel for ``n`` joints."""
     ident, why = _family()
@@ -230,7 +219,6 @@ def prefetch(n: int) -> None:
     threading.Thread(target=work, name=f"jtraj-kkt-build-{n}", daemon=True).start()
 
 
-
 @contextlib.contextmanager
 def deferred():
     """Within this context :func:`active` does not wait for a build in progress: it
@@ -243,6 +231,17 @@ def deferred():
         yield
     finally:
         _deferring.on = before
+
+
+@contextlib.contextmanager
+def without():
+    """Within this context :func:`active` is False: a trace uses the XLA version."""
+    before = getattr(_deferring, "off", False)
+    _deferring.off = True
+    try:
+        yield
+    finally:
+        _deferring.off = before
 
 
 def _pending_or_built(n: int) -> bool:
