@@ -8,7 +8,9 @@ Run in a fresh process with private caches, e.g.::
 ``--full``: the single traced program (``jtraj.solver.core.solve_jit``, what a solve under
 an outer jit runs); ``--staged``: the two programs of a concrete single solve
 (:mod:`jtraj.solver.staged`), and the interior-point one again at XLA's LLVM optimisation
-level 1 (see ``bench_opt_level.py``); ``--pieces``: the parts of the single program
+levels 1 and 0 (see ``bench_opt_level.py``; level 0 is a process's quick first call, also
+with the XLA version of the KKT solve that a machine's first solve runs while the native
+kernel is built); ``--pieces``: the parts of the single program
 compiled apart. Each program is traced and lowered by ``jax.jit`` in this process (the
 first trace of a process also pays JAX's one-time set-up), then compiled; HLO ops
 counts the instructions of the optimised module.
@@ -105,6 +107,18 @@ def main():
         measure("staged: AL fallback", al_program, problem, split, init, options=xla)
         if "xla_backend_optimization_level" in staged:
             measure("staged: interior point, O1", ip_program, problem, split, init, options=staged)
+        quick = supported_options({**SOLVER_XLA_OPTIONS, "xla_backend_optimization_level": 0})
+        if "xla_backend_optimization_level" in quick:
+            # the quick first call (jtraj._tracecache.tiered), and on a machine whose native
+            # kernel is still being built, its XLA version
+            measure("staged: interior point, O0 (quick first call)", ip_program, problem, split, init,
+                    options=quick)
+            def ip_program_xla(problem, split, init):  # (another function: traced anew)
+                return ip_program(problem, split, init)
+
+            with _kkt_native.without():
+                measure("staged: interior point, O0, XLA KKT (kernel being built)", ip_program_xla, problem, split,
+                        init, options=quick)
 
     if args.pieces:
         def prep(problem, split):
