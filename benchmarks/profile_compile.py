@@ -19,7 +19,6 @@ counts the instructions of the optimised module.
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import sys
 import time
@@ -67,7 +66,6 @@ def main():
     ap.add_argument("--staged", action="store_true", help="the staged single solve's two programs")
     args = ap.parse_args()
     t0 = time.perf_counter()
-    import jax.numpy as jnp
     import numpy as np
 
     from jtraj import _kkt_native
