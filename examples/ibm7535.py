@@ -30,15 +30,11 @@ short cached, solve the rest) | --report (redraw from the cached solves)
 
 from __future__ import annotations
 
-import json
-import pickle
 import sys
-import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_all import FIGURES, setup, table, timed_solve, write_section, write_status  # noqa: E402
+from run_all import FIGURES, SolveCache, setup, table, timed_solve, write_section, write_status  # noqa: E402
 
 setup()
 
@@ -52,7 +48,6 @@ from jtraj.resample import intersample_effort  # noqa: E402
 from jtraj.transcription import TRANSCRIPTIONS, Transcription  # noqa: E402
 
 NAME = "ibm7535"
-CACHE = Path(tempfile.gettempdir()) / "jtraj_ibm7535_solves.pkl"
 N = 40
 WEIGHTS = jtraj.Weights(time=1.0, energy=0.0)
 Q_START, Q_GOAL = (0.0, 0.0), (0.0, np.pi / 4)
@@ -194,37 +189,23 @@ def ratio_figure(points, path):
     plotting.save(fig, str(path))
 
 
-def _save(data):
-    """Write the solves so far to CACHE (``--resume`` continues from them, ``--report``
-    redraws from them)."""
-    try:
-        with open(CACHE, "wb") as f:
-            pickle.dump(jax.tree.map(lambda x: np.asarray(x) if isinstance(x, jax.Array) else x, data), f)
-    except Exception as exc:  # the cache is a convenience; the report does not need it
-        print(f"not cached ({exc})", flush=True)
-
-
 def main(skip=(), resume=False):
     """Solve everything (the transcriptions in ``skip`` left out), cache the solves after
-    each part, report. ``resume``: keep the parts already in CACHE (a run cut short goes
-    on where it stopped; ``seconds`` adds up the solving time of every run)."""
-    t_start = time.perf_counter()
+    each part (:class:`run_all.SolveCache`), report. ``resume``: keep the parts already
+    cached (a run cut short goes on where it stopped; ``seconds`` adds up the solving time
+    of every run)."""
     robot = jtraj.robots.get(NAME)
     tau_max = np.asarray(robot.limits.tau_max)
     problem = jtraj.Problem(robot, Q_START, Q_GOAL, N=N, weights=WEIGHTS)
-    data = dict(fine={}, histories={}, coarse={}, seconds=0.0, skipped=tuple(skip))
-    if resume and CACHE.exists():
-        with open(CACHE, "rb") as f:
-            data = pickle.load(f)
+    cache = SolveCache(NAME, resume=resume)
+    data = cache.data
+    if cache.resumed:
         data["skipped"] = tuple(t for t in skip if t not in data["fine"])
         print("resumed:", list(data["fine"]), "intervals" if "s_int" in data else "", list(data["coarse"]), flush=True)
+    else:
+        data.update(fine={}, histories={}, coarse={}, skipped=tuple(skip))
     fine, histories, coarse = data["fine"], data["histories"], data["coarse"]
-    seconds0, cpu0 = data["seconds"], data.get("cpu", 0.0)
-
-    def checkpoint():
-        data["seconds"] = seconds0 + time.perf_counter() - t_start
-        data["cpu"] = cpu0 + time.process_time()
-        _save(data)
+    checkpoint = cache.save
 
     for name in (t for t in TRANSCRIPTIONS if t not in skip and t not in fine):
         first, t_first = timed_solve(problem, transcription=name)
@@ -442,18 +423,14 @@ def report(data):
               "Table 1's.")
     text += (f"\n\nScript wall time {data['seconds']:.0f} s (solving, summed over the runs that filled the cache"
              + (f"; process CPU {data['cpu']:.0f} s" if "cpu" in data else "") + ").")
-    status = write_status(NAME, records)
-    rec = json.loads(status.read_text())
-    rec["script_wall_s"] = round(data["seconds"], 1)
-    status.write_text(json.dumps(rec, indent=1) + "\n")
+    write_status(NAME, records, wall_s=data["seconds"])
     write_section(NAME, text)
     print(text)
 
 
 if __name__ == "__main__":
     if sys.argv[1:] == ["--report"]:
-        with open(CACHE, "rb") as f:
-            report(pickle.load(f))
+        report(SolveCache(NAME, must_exist=True).data)
     else:
         skip = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--skip=")]
         main(skip=tuple(x for a in skip for x in a.split(",")), resume="--resume" in sys.argv[1:])

@@ -37,6 +37,7 @@ import platform
 import re
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -120,18 +121,22 @@ def batch_status_records(run: str, sol, robot=None, rows=None) -> list[dict]:
             for n, i in enumerate(rows, 1)]
 
 
-def write_status(name: str, runs: list[dict], t_start: float | None = None, note: str | None = None) -> Path:
-    """Write ``examples/status/<name>.json``: the runs (:func:`status_record` entries) and,
-    with ``t_start`` (a perf_counter value), the script's wall time so far; ``note`` says
-    what the table shows for a script without trajectory solves (``runs`` empty)."""
+def write_status(name: str, runs: list[dict], t_start: float | None = None, note: str | None = None,
+                 wall_s: float | None = None) -> Path:
+    """Write ``examples/status/<name>.json``: the runs (:func:`status_record` entries) and
+    the script's wall time: ``wall_s`` seconds, else, with ``t_start`` (a perf_counter
+    value), the time since then; ``note`` says what the table shows for a script without
+    trajectory solves (``runs`` empty)."""
     import json
 
     STATUS.mkdir(exist_ok=True)
     record = {"experiment": name, "runs": list(runs)}
     if note is not None:
         record["note"] = note
-    if t_start is not None:
-        record["script_wall_s"] = round(time.perf_counter() - t_start, 1)
+    if wall_s is None and t_start is not None:
+        wall_s = time.perf_counter() - t_start
+    if wall_s is not None:
+        record["script_wall_s"] = round(wall_s, 1)
     path = STATUS / f"{name}.json"
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(record, indent=1) + "\n")
@@ -222,24 +227,118 @@ def timed_solve(problem, **kwargs):
     return sol, time.perf_counter() - t0
 
 
-def solve_with_restart(problem, init=None, restarts: int = 1):
+def solve_with_restart(problem, init=None, restarts: int = 1, cache: "SolveCache | None" = None,
+                       key: str | None = None):
     """Solve, then, while the status is not CONVERGED, re-solve warm-started from the last
     point (same compiled solver: a warm start is a traced flag). Returns (solution, wall
     seconds of the first call (compilation included), of the last call, and a list of
     the statuses of every try). The last try is kept unless an earlier one is better
-    (converged, or a smaller violation)."""
+    (converged, or a smaller violation).
+
+    With a :class:`SolveCache` and a ``key``, every try is saved as it ends (under
+    ``"<key>, try <i>"``) and a try already in the cache is taken from it instead of
+    solved, so a run cut short during a long restart resumes at that restart."""
     import jtraj
 
-    sol, t_first = timed_solve(problem, init=init)
+    def attempt(i, start):
+        name = f"{key}, try {i}"
+        if cache is not None and name in cache:
+            return cache[name]
+        out = timed_solve(problem, init=start)
+        if cache is not None:
+            cache.put(name, out)
+        return out
+
+    sol, t_first = attempt(0, init)
     tries, t_last = [jtraj.Status(int(sol.status)).name], t_first
-    for _ in range(restarts):
+    for i in range(1, restarts + 1):
         if bool(sol.converged):
             break
-        new, t_last = timed_solve(problem, init=(sol.v, sol.h))
+        new, t_last = attempt(i, (sol.v, sol.h))
         tries.append(jtraj.Status(int(new.status)).name)
         if bool(new.converged) or float(new.max_violation["overall"]) <= float(sol.max_violation["overall"]):
             sol = new
     return sol, t_first, t_last, tries
+
+
+class SolveCache:
+    """An example's solves saved to a file as each part ends, so that a run cut short
+    (a time limit, a crash) goes on where it stopped: ``--resume`` keeps the parts already
+    saved, ``--report`` redraws from them without solving.
+
+    The file is ``<tmp>/jtraj_<name>_solves.pkl``; JAX arrays are stored as NumPy arrays
+    and come back as arrays committed to the default device, as a solver's outputs are, so
+    that a warm start from a loaded solution reuses the compiled solver. The cache also
+    adds up the wall and CPU time of every run that filled it (:attr:`seconds`,
+    :attr:`cpu`): the script's time when its parts ran in several processes.
+
+    ``cache[key]``, ``key in cache`` and :meth:`put` (store and write at once) address
+    the parts; :attr:`data` is the whole mapping."""
+
+    def __init__(self, name: str, resume: bool = False, must_exist: bool = False):
+        self.path = Path(tempfile.gettempdir()) / f"jtraj_{name}_solves.pkl"
+        self.data = {}
+        self.resumed = False
+        if (resume or must_exist) and self.path.exists():
+            self.data, self.resumed = self._load(), True
+        elif must_exist:
+            raise FileNotFoundError(f"no saved solves of {name} ({self.path}); run the script first")
+        self._t0, self._cpu0 = time.perf_counter(), time.process_time()
+        self._seconds0, self._cpu_before = self.data.get("seconds", 0.0), self.data.get("cpu", 0.0)
+
+    def _load(self) -> dict:
+        import pickle
+
+        import jax
+        import numpy as np
+
+        with open(self.path, "rb") as f:
+            data = pickle.load(f)
+        device = jax.devices()[0]
+        return jax.tree.map(lambda x: jax.device_put(x, device) if isinstance(x, np.ndarray) else x, data)
+
+    @property
+    def seconds(self) -> float:
+        """Wall seconds of every run that filled the cache, this one up to now."""
+        return self._seconds0 + time.perf_counter() - self._t0
+
+    @property
+    def cpu(self) -> float:
+        """Process CPU seconds of every run that filled the cache, this one up to now."""
+        return self._cpu_before + time.process_time() - self._cpu0
+
+    def __contains__(self, key) -> bool:
+        return key in self.data
+
+    def __getitem__(self, key):
+        return self.data[key]
+
+    def put(self, key, value) -> None:
+        """Store ``value`` under ``key`` and write the cache."""
+        self.data[key] = value
+        self.save()
+
+    def save(self) -> None:
+        """Write the cache (with the times so far); a failure to write is printed, not
+        raised: the cache is a convenience, the results do not need it."""
+        import pickle
+
+        import jax
+        import numpy as np
+
+        self.data["seconds"], self.data["cpu"] = self.seconds, self.cpu
+        try:
+            tmp = self.path.with_suffix(".pkl.tmp")
+            with open(tmp, "wb") as f:
+                pickle.dump(jax.tree.map(lambda x: np.asarray(x) if isinstance(x, jax.Array) else x, self.data), f)
+            os.replace(tmp, self.path)
+        except Exception as exc:
+            print(f"solves not cached ({exc})", flush=True)
+
+    def time_text(self) -> str:
+        """``Script wall time W s (process CPU C s)``, summed over the runs that filled the cache."""
+        return (f"Script wall time {self.seconds:.0f} s (process CPU {self.cpu:.0f} s)"
+                + (", summed over the runs that filled the solve cache." if self.resumed else "."))
 
 
 def status_text(sol, seconds=None) -> str:
@@ -250,11 +349,16 @@ def status_text(sol, seconds=None) -> str:
     return text + ("" if seconds is None else f", {seconds:.2f} s") + ")"
 
 
-def publish(name: str, text: str, records: list[dict], t_start: float) -> None:
+def publish(name: str, text: str, records: list[dict], t_start: float, cache: SolveCache | None = None) -> None:
     """An experiment's end: its section (``text`` with the wall and CPU time appended)
-    written to RESULTS.md, its status record, and the section printed."""
-    text += "\n\n" + wall_and_cpu(t_start)
-    write_status(name, records, t_start)
+    written to RESULTS.md, its status record, and the section printed. With a
+    :class:`SolveCache` the times are the cache's (summed over resumed runs)."""
+    if cache is None:
+        text += "\n\n" + wall_and_cpu(t_start)
+        write_status(name, records, t_start)
+    else:
+        text += "\n\n" + cache.time_text()
+        write_status(name, records, wall_s=cache.seconds)
     write_section(name, text)
     print(text)
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import json
 import sys
+import tempfile
 import types
+import typing
 from pathlib import Path
 
 import jax
@@ -127,3 +129,64 @@ def test_figure_units_and_one_legend_entry_per_kind():
     # the guess's duration is drawn beside the optimum's
     h_texts = [t.get_text() for t in axes["sampling periods"].get_legend().get_texts()]
     assert any(t.startswith("guess (T = ") for t in h_texts) and any(t.startswith("optimum (T = 0.600") for t in h_texts)
+
+
+class _FakeSolution(typing.NamedTuple):
+    """What run_all.solve_with_restart reads of a solution (a pytree of arrays)."""
+
+    status: jax.Array
+    converged: jax.Array
+    v: jax.Array
+    h: jax.Array
+    max_violation: dict
+
+
+def _fake(status, v, viol):
+    return _FakeSolution(jnp.asarray(int(status)), jnp.asarray(status == jtraj.Status.CONVERGED),
+                         jnp.asarray(v), jnp.full(3, 0.1), {"overall": jnp.asarray(viol)})
+
+
+def test_solve_cache_resumes_each_try(tmp_path, monkeypatch):
+    """solve_with_restart with a SolveCache: a run cut short during the restart keeps its
+    first try; the resumed run solves only the restart, warm-started from the saved first
+    try's end; a run with every try saved solves nothing and returns the same; the wall
+    time adds up over the runs; loaded arrays are committed device arrays."""
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    first = _fake(jtraj.Status.MAX_ITERATIONS, [[1.0, 2.0]] * 3, 1e-3)
+    second = _fake(jtraj.Status.CONVERGED, [[3.0, 4.0]] * 3, 1e-12)
+    calls = []
+
+    def fake_solve(problem, init=None):
+        calls.append(init)
+        if init is None:  # the cold first try
+            return first, 5.0
+        if cut_short:
+            raise RuntimeError("time limit")
+        return second, 2.0
+
+    monkeypatch.setattr(run_all, "timed_solve", fake_solve)
+    cut_short = True
+    cache = run_all.SolveCache("demo")
+    assert not cache.resumed and cache.path.parent == tmp_path
+    with pytest.raises(RuntimeError):
+        run_all.solve_with_restart(None, cache=cache, key="move")
+    assert len(calls) == 2 and calls[0] is None
+    saved_seconds = cache.data["seconds"]  # written with the first try
+
+    cut_short, calls[:] = False, []
+    assert not run_all.SolveCache("demo").data  # without resume: a fresh cache
+    cache = run_all.SolveCache("demo", resume=True)
+    assert cache.resumed and "move, try 0" in cache and "move, try 1" not in cache
+    assert cache.seconds >= saved_seconds
+    sol, t_first, t_last, tries = run_all.solve_with_restart(None, cache=cache, key="move")
+    assert len(calls) == 1  # only the restart, from the saved first try's end
+    np.testing.assert_array_equal(np.asarray(calls[0][0]), np.asarray(first.v))
+    assert isinstance(calls[0][0], jax.Array) and calls[0][0].committed
+    assert (t_first, t_last, tries) == (5.0, 2.0, ["MAX_ITERATIONS", "CONVERGED"])
+    np.testing.assert_array_equal(np.asarray(sol.v), np.asarray(second.v))
+
+    calls[:] = []
+    again = run_all.solve_with_restart(None, cache=run_all.SolveCache("demo", resume=True), key="move")
+    assert not calls and again[1:] == (5.0, 2.0, ["MAX_ITERATIONS", "CONVERGED"])
+    with pytest.raises(FileNotFoundError, match="other"):
+        run_all.SolveCache("other", must_exist=True)
