@@ -294,8 +294,8 @@ def main(resume=False, parts=PARTS):
             ("circle: status", status_text(cs, t_csolve) + "; tries: " + " -> ".join(ctries), "-",
              f"the default cycloidal guess is degenerate for start = goal (zero motion), so the solve starts from "
              f"a cycloidal-in-angle traversal of {T_CIRCLE:g} s obtained by IK. From it the default solver ends "
-             f"{status_of(cold).name} ({status_text(cold, t_cold)}, via points missed by up to "
-             f"{np.max(via_errors(circle, cold)):.1e} m): its interior-point method finds its Newton matrix positive "
+             f"{status_text(cold, t_cold)} with via points missed by up to "
+             f"{np.max(via_errors(circle, cold)):.1e} m: its interior-point method finds its Newton matrix positive "
              f"definite at no shift and stops at its first barrier parameter, a verdict about the method, not the "
              f"problem. The AL method alone from the same guess ends {status_text(al, t_cfirst)} with every via point "
              f"within {np.max(via_errors(circle, al)):.1e} m (worst violation "
