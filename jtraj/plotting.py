@@ -188,9 +188,9 @@ def plot_path(problem, solution, ax=None, *, guess: dict | None = None, instants
     ps, pg_ = _np(robot.forward_kinematics(problem.q_start)), _np(robot.forward_kinematics(problem.q_goal))
     ax.plot(ps[0], ps[1], "s", color="k", ms=6, zorder=4, label="start")
     ax.plot(pg_[0], pg_[1], "*", color="k", ms=11, zorder=4, label="goal")
-    for vp in problem.via_points:
+    for i, vp in enumerate(problem.via_points):  # (one legend entry for all)
         pt = _np(vp.point)
-        ax.plot(pt[0], pt[1], "x", color="C2", ms=9, mew=2, zorder=4, label="via point")
+        ax.plot(pt[0], pt[1], "x", color="C2", ms=9, mew=2, zorder=4, label="via point" if i == 0 else None)
     ws = problem.robot.limits.workspace
     if ws is not None and _np(ws).shape[1] >= 2:
         lo, hi = _np(ws)
@@ -222,9 +222,9 @@ def _plot_path_3d(problem, ax, sol, p, guess, instants, fig):
     for q, marker, label in ((problem.q_start, "s", "start"), (problem.q_goal, "*", "goal")):
         pt = _np(robot.forward_kinematics(q))
         ax.plot([pt[0]], [pt[1]], [pt[2]], marker, color="k", ms=8, label=label)
-    for vp in problem.via_points:
+    for i, vp in enumerate(problem.via_points):
         pt = _np(vp.point)
-        ax.plot([pt[0]], [pt[1]], [pt[2]], "x", color="C2", ms=9, mew=2, label="via point")
+        ax.plot([pt[0]], [pt[1]], [pt[2]], "x", color="C2", ms=9, mew=2, label="via point" if i == 0 else None)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_zlabel("z [m]")

@@ -190,3 +190,17 @@ def test_solve_cache_resumes_each_try(tmp_path, monkeypatch):
     assert not calls and again[1:] == (5.0, 2.0, ["MAX_ITERATIONS", "CONVERGED"])
     with pytest.raises(FileNotFoundError, match="other"):
         run_all.SolveCache("other", must_exist=True)
+
+
+def test_the_tip_path_names_via_points_once():
+    """Several via points: one legend entry for all of them."""
+    from jtraj.plotting import plot_path
+
+    robot = robots.get("serial3")
+    q0, q1 = jnp.asarray([0.2, 0.4, 0.3]), jnp.asarray([0.4, 0.3, 0.4])
+    tip = np.asarray(robot.forward_kinematics((q0 + q1) / 2))
+    problem = jtraj.Problem(robot, q0, q1, N=8, via_points=[tip, tip + 0.01, tip - 0.01])
+    v = jnp.concatenate([jnp.tile(q1 - q0, (4, 1)), jnp.tile(-(q1 - q0), (4, 1))])
+    fig = plot_path(problem, _recursion_solution(problem, v, jnp.full(8, 0.1)))
+    texts = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert texts.count("via point") == 1, texts
