@@ -1,7 +1,7 @@
 """Derivatives through the solve (jtraj.implicit): accuracy, cost and failures.
 
     python benchmarks/bench_grad.py [--fd-pairs 64] [--time-pairs 64] [--pairs 1024] [--N 20]
-                                    [--seed 1] [--step 4e-3] [--steps 6] [--ratio 4] [--tol 1e-10]
+                                    [--seed 1] [--step 4e-3] [--steps 4] [--ratio 4] [--tol 1e-10]
                                     [--kinds ...] [--json PATH] [--table JSON]
 
 Measurements on the serial3 benchmark family (time = 1, energy = 0.1, float64):
@@ -357,7 +357,7 @@ def main(argv=None):
     ap.add_argument("--N", type=int, default=20)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--step", type=float, default=4e-3, help="the longest step of the differences")
-    ap.add_argument("--steps", type=int, default=6, help="steps of the differences, each --ratio times shorter")
+    ap.add_argument("--steps", type=int, default=4, help="steps of the differences, each --ratio times shorter")
     ap.add_argument("--ratio", type=float, default=4.0)
     ap.add_argument("--tol", type=float, default=1e-10, help="the re-solves' (and base solves') AL tolerances")
     ap.add_argument("--slots", type=int, default=16, help="lanes of the batched re-solves")
