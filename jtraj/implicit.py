@@ -74,7 +74,10 @@ optimum to the refinement's tolerance. With concrete primal values (a derivative
 outside ``jit``) the check is read on the host and the refinement is the ordinary solve;
 inside ``jit`` or ``vmap`` it is a ``lax.cond`` on the traced flag (under ``vmap`` both
 sides run, the lanes that need no refinement starting finished). The primal outputs stay
-those of the returned solve.
+those of the returned solve. Where the stage-wise solve still fails its self-check at a
+converged point (its iteration on the multipliers not converging in ``MAX_ITER`` steps),
+the derivative comes from the dense LU of the same system where that is regular (with
+concrete values; inside a trace the derivative stays invalid).
 
 Failures are never silent. A derivative is valid where the solve converged
 (``Status.CONVERGED``), the active set fits (``r`` slots) and the KKT system is
@@ -408,12 +411,13 @@ def _primal_batch(cfg: _Config, dyn, init):
     return _solve_problems(problems, cfg.opts, cfg.transcription, init, cfg.warm, slots, segment)
 
 
-def _tangent_solution(cfg: _Config, dyn, ddyn, sol, at):
+def _tangent_solution(cfg: _Config, dyn, ddyn, sol, at, method=None):
     """The Solution-shaped tangent of one solve (floats everywhere, see _to_float) at the
-    point ``at`` = (u, h), and whether it is valid."""
+    point ``at`` = (u, h), and whether it is valid (``method``: default KKT_SOLVE)."""
     # "raise" is "nan" plus a run-time check outside (one program for both)
     on_failure = "zero" if cfg.on_failure == "zero" else "nan"
-    return _tangent_program(cfg.static, cfg.transcription, on_failure, KKT_SOLVE, dyn, ddyn, sol, at)
+    return _tangent_program(cfg.static, cfg.transcription, on_failure, KKT_SOLVE if method is None else method,
+                            dyn, ddyn, sol, at)
 
 
 def _nan_where_invalid(dout, ddyn, valid):
@@ -496,10 +500,10 @@ def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
     tr = Transcription(cfg.transcription)
     at = _point(tr, sol)
 
-    def tangent(point):
+    def tangent(point, method=None):
         if batch:
-            return jax.vmap(lambda d, dd, s, a: _tangent_solution(cfg, d, dd, s, a))(dyn, ddyn, sol, point)
-        return _tangent_solution(cfg, dyn, ddyn, sol, point)
+            return jax.vmap(lambda d, dd, s, a: _tangent_solution(cfg, d, dd, s, a, method))(dyn, ddyn, sol, point)
+        return _tangent_solution(cfg, dyn, ddyn, sol, point, method)
 
     dsol, valid = tangent(at)
     need = (sol.status == 0) & ~valid
@@ -514,7 +518,20 @@ def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
 
         batched = (lambda: jax.vmap(run)(dyn, at, need)) if batch else (lambda: run(dyn, at, need))
         at = jax.lax.cond(jnp.any(need), batched, lambda: at)
-    return tangent(at)
+    dsol, valid = tangent(at)
+    # a stage-wise solve that still fails its self-check at a converged point (an iteration on
+    # the multipliers that does not converge in MAX_ITER steps): with concrete values, the
+    # dense LU of the same KKT system where it is regular
+    still = _concrete((sol.status == 0) & ~valid)
+    if still is None or not np.any(still) or _method(tr, KKT_SOLVE) != "stagewise":
+        return dsol, valid
+    dense, ok = tangent(at, "dense")
+    use = still & np.asarray(ok)
+    if not batch:  # (a host choice: the NaN-masked stage-wise tangent must not enter the graph)
+        return (dense, ok) if bool(use) else (dsol, valid)
+    # a batch masks by selection (zero, not NaN): a per-sample choice is safe in reverse mode
+    pick = lambda a, b: jnp.where(jnp.reshape(use, use.shape + (1,) * (jnp.ndim(a) - use.ndim)), a, b)  # noqa: E731
+    return jax.tree.map(pick, dense, dsol), valid | use
 
 
 def _refine_host(cfg: _Config, dyn, at, flags, batch: bool):
