@@ -1,7 +1,8 @@
 """Derivatives through the solve (jtraj.implicit): accuracy, cost and failures.
 
     python benchmarks/bench_grad.py [--fd-pairs 64] [--time-pairs 64] [--pairs 1024] [--N 20]
-                                    [--seed 1] [--step 1e-3] [--sweep 3] [--json PATH]
+                                    [--seed 1] [--step 4e-3] [--steps 4] [--ratio 4] [--tol 1e-10]
+                                    [--kinds ...] [--json PATH] [--table JSON]
 
 Measurements on the serial3 benchmark family (time = 1, energy = 0.1, float64):
 
@@ -21,22 +22,24 @@ Measurements on the serial3 benchmark family (time = 1, energy = 0.1, float64):
      q_goal and tau_max.
 
    Steps are absolute for configurations, velocities and positions, relative to the
-   value otherwise. The forward-mode
-   derivative (``jax.jvp`` through ``jtraj.solve``, warm-started at the base optimum so
-   that it is that optimum's derivative, not another local optimum's) of T and of the cost against central
-   differences of warm re-solves (AL method, tolerances 1e-10). Two estimates: the
-   central difference with step ``--step / 2`` and its Richardson extrapolation from
-   steps ``--step`` and ``--step / 2`` (truncation O(step^4), so a longer step that keeps
-   the re-solves' noise, about 1e-9 in T, small against it). Prints the distribution
-   (median, 90th percentile, max) of the relative errors per kind and output over the
-   pairs whose solves all converged. Where the active set (:func:`jtraj.implicit.active_set`)
-   of a shifted re-solve differs from the base optimum's, the differences straddle a
-   change of active set and are no reference for the derivative (of the base's active
-   set): such pairs are counted per kind, and the errors on the other pairs reported on
-   their own. For the ``--sweep`` worst cases among those other pairs, the error against
-   the step (1e-2 ... 1e-6) and against a re-solve tolerance of 1e-12: the evidence on
-   whether a miss is the derivative's or the differences' (noise grows as the step
-   shrinks, truncation as it grows).
+   value otherwise. The forward-mode derivative (``jax.jvp`` through ``jtraj.solve``,
+   warm-started at the base optimum so that it is that optimum's derivative, not another
+   local optimum's) of T and of the cost against central differences of re-solves
+   warm-started at the base optimum (AL method, tolerances ``--tol``). All pairs' shifted
+   problems of a kind (``--steps`` steps from ``--step`` down, each ``--ratio`` times
+   shorter, both signs) are solved in ONE batch (a batched ``Problem`` whose every leaf,
+   the robot's and the weights' included, carries the batch axis, by the lane driver of
+   :func:`jtraj.solver.lanes.solve_problems`). The reference is a Richardson
+   extrapolation: from steps h and h / ratio, ``(ratio^2 D(h / ratio) - D(h)) /
+   (ratio^2 - 1)`` (truncation O(h^4)); its step is chosen per pair and output where two
+   successive Richardson estimates agree best (noise grows as the step shrinks,
+   truncation as it grows; the choice never looks at the derivative under test), and the
+   disagreement of the two is reported as the reference's uncertainty. Where the active
+   set (:func:`jtraj.implicit.active_set`) of a shifted re-solve used by the reference
+   differs from the base optimum's, the differences straddle a change of active set and
+   are no reference for the derivative (of the base's active set): such pairs are
+   counted per kind and reported apart. Prints the distribution (median, 90th
+   percentile, max) of the relative errors per kind and output.
 2. **The backward pass of grad(sum of T over a batch)** on ``--time-pairs`` pairs against
    the batched forward solve (``jtraj.solve_batch``, warm): ``jax.vjp`` splits the work
    into the forward part (the solve plus the linearisation: active sets, stage models)
@@ -138,53 +141,212 @@ def _setup(kind, jtraj, robot, q0, q1, free, free_sol, N, w, solver, pkm2_pair):
     return p, base, get, absolute
 
 
+def _signature(p, s):
+    """The active set at a solution (:func:`jtraj.implicit.active_set`): (active
+    constraint rows, variables held at their lower bound, at their upper bound)."""
+    import jax.numpy as jnp
+
+    from jtraj import implicit
+    from jtraj.transcription import Transcription
+
+    tr = Transcription("decoupled")
+    z = implicit.z_of(p, tr, s)
+    act = implicit.active_set(p, tr, z)
+    nc = implicit._rows(implicit._nlp(p, tr), z)[0].shape[0]
+    rows = jnp.zeros(nc, jnp.int32).at[act.idx].max(act.on.astype(jnp.int32))
+    return rows, act.at_lo, act.at_hi
+
+
+_PROGRAMS = {}
+
+
 def _active_signature(problem, sol):
-    """The active set at a solution (:func:`jtraj.implicit.active_set`) as host arrays:
-    (active constraint rows, variables held at their lower bound, at their upper bound)."""
+    """:func:`_signature` as host arrays."""
     import equinox as eqx
 
-    global _SIGNATURE
-    if _SIGNATURE is None:
-        import jax.numpy as jnp
-
-        from jtraj import implicit
-        from jtraj.transcription import Transcription
-
-        @eqx.filter_jit
-        def sig(p, s):
-            tr = Transcription("decoupled")
-            z = implicit.z_of(p, tr, s)
-            act = implicit.active_set(p, tr, z)
-            nc = implicit._rows(implicit._nlp(p, tr), z)[0].shape[0]
-            rows = jnp.zeros(nc, jnp.int32).at[act.idx].max(act.on.astype(jnp.int32))
-            return rows, act.at_lo, act.at_hi
-
-        _SIGNATURE = sig
-    return tuple(np.asarray(x) for x in _SIGNATURE(problem, sol))
+    run = _PROGRAMS.setdefault("one", eqx.filter_jit(_signature))
+    return tuple(np.asarray(x) for x in run(problem, sol))
 
 
-_SIGNATURE = None
+def _signatures(batch, sols):
+    """:func:`_signature` of every problem of a batch (one vmapped program)."""
+    import equinox as eqx
+
+    run = _PROGRAMS.setdefault("batch", eqx.filter_jit(eqx.filter_vmap(_signature)))
+    return tuple(np.asarray(x) for x in run(batch, sols))
 
 
-def _table(fd_fig, kinds):
+def _table(fig, kinds):
     """The markdown table of part 1 (docs/benchmarks.md) from its figures."""
-    lines = ["", "| input kind | pairs | dT*: median / p90 / max | dJ*: median / p90 / max | "
-             "central differences alone, max (dT* / dJ*) | active set changes within the step | "
-             "max on the other pairs (dT* / dJ*) |", "|---|---|---|---|---|---|---|"]
+    lines = ["", "| input kind | pairs | active set changes within the steps | dT*: median / p90 / max | "
+             "dJ*: median / p90 / max | reference uncertainty, max (dT* / dJ*) | above 1e-5 (dT* / dJ*) | "
+             "all pairs, max (dT* / dJ*) |", "|---|---|---|---|---|---|---|---|"]
     for kind in kinds:
-        r = [fd_fig[f"{kind}/d{o}"]["richardson"] for o in ("T", "cost")]
-        c = [fd_fig[f"{kind}/d{o}"]["central"] for o in ("T", "cost")]
-        if r[0] is None:
-            lines.append(f"| {kind} | 0 | | | | | |")
+        res = fig["kinds"].get(kind)
+        if res is None or "dT" not in res:
+            lines.append(f"| {kind} | 0 | | | | | | |")
             continue
-        cells = [" / ".join(f"{st[q]:.1e}" for q in ("median", "p90", "max")) for st in r]
-        same = [fd_fig[f"{kind}/d{o}"].get("richardson_same_active") for o in ("T", "cost")]
-        n_changed = fd_fig[f"{kind}/dT"].get("active_set_changed")
-        ch = "" if n_changed is None else f"{n_changed} of {r[0]['n']}"
-        other = " / ".join("n/a" if st is None else f"{st['max']:.1e}" for st in same) if n_changed is not None else ""
-        lines.append(f"| {kind} | {r[0]['n']} | {cells[0]} | {cells[1]} | {c[0]['max']:.1e} / {c[1]['max']:.1e} "
-                     f"| {ch} | {other} |")
+        T, C = res["dT"], res["dcost"]
+        n = max(T["pairs"], C["pairs"])
+        moved = max(T["moved"], C["moved"])
+        cell = lambda st: "n/a" if st is None else " / ".join(f"{st[q]:.1e}" for q in ("median", "p90", "max"))  # noqa: E731
+        mx = lambda st: "n/a" if st is None else f"{st['max']:.1e}"  # noqa: E731
+        lines.append(f"| {kind} | {n} | {moved} of {n} ({100 * moved / max(n, 1):.0f} %) | {cell(T['same_active'])} | "
+                     f"{cell(C['same_active'])} | {mx(T['uncertainty_same_active'])} / "
+                     f"{mx(C['uncertainty_same_active'])} | {T['above_1e-5_same_active']} / "
+                     f"{C['above_1e-5_same_active']} | {mx(T['all'])} / {mx(C['all'])} |")
     return "\n".join(lines) + "\n"
+
+
+def _fd_part(args, jtraj, robot, w, tight, kinds, figures, dump):
+    """Part 1: the derivatives against finite differences of batched re-solves (see the
+    module doc); fills ``figures["fd"]``."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from jtraj.solver.core import resolve_method
+    from jtraj.solver.lanes import solve_problems
+    from jtraj.solver.options import to_options
+    from jtraj_peers.pairs import benchmark_pairs
+
+    q0s, q1s = benchmark_pairs(args.fd_pairs, seed=args.seed)
+    pk = jtraj.robots.get("pkm2").limits
+    pk_lo, pk_hi = np.asarray(pk.q_min), np.asarray(pk.q_max)
+    steps = args.step * args.ratio ** -np.arange(args.steps, dtype=float)  # h_0 > h_1 > ...
+    r2 = args.ratio**2
+
+    def pkm2_pair(i):  # start and goal drawn in the middle 60 % of pkm2's joint box
+        u = np.random.default_rng([args.seed, i]).uniform(0.2, 0.8, (2, 2))
+        return pk_lo + u[0] * (pk_hi - pk_lo), pk_lo + u[1] * (pk_hi - pk_lo)
+
+    t0 = time.perf_counter()
+    # the free optima of every pair: one batched solve (pairs refused on their face: INVALID_INPUT)
+    free_all = jtraj.solve_batch(robot, q0s, q1s, N=args.N, weights=w, solver=tight)
+    rng = np.random.default_rng(args.seed)
+    fig = {"pairs": args.fd_pairs, "steps": steps.tolist(), "tol": args.tol, "kinds": {},
+           "date": time.strftime("%Y-%m-%d", time.gmtime()), "load_average": os.getloadavg()[0]}
+    for kind in kinds:
+        tk = time.perf_counter()
+        counts = {"setup_failed": 0, "not_converged": 0, "nan_derivative": 0, "resolve_failed": 0}
+        entries = []  # per pair: (pair, problem, base, dyn, static, get, along, jvp)
+        for ip, (q0, q1) in enumerate(zip(q0s, q1s)):
+            free_sol = jax.tree.map(lambda x, ip=ip: x[ip], free_all)
+            if int(free_sol.status) != 0:
+                counts["not_converged"] += 1
+                continue
+            try:
+                free = jtraj.Problem(robot, q0, q1, N=args.N, weights=w)
+                setup = _setup(kind, jtraj, robot, q0, q1, free, free_sol, args.N, w, tight, pkm2_pair(ip))
+            except Exception as err:  # counted and printed: a kind that fails is a finding, not a crash
+                counts["setup_failed"] += 1
+                print(f"   pair {ip} {kind}: {type(err).__name__}: {err}"[:300], flush=True)
+                continue
+            if setup is None:
+                counts["not_converged"] += 1
+                continue
+            p, base, get, absolute = setup
+            dyn, static = eqx.partition(p, eqx.is_inexact_array)
+            leaves, tdef = jax.tree.flatten(get(p))
+            flat = np.concatenate([np.ravel(np.asarray(v, float)) for v in leaves])
+            u = rng.standard_normal(flat.size)
+            u /= np.linalg.norm(u)
+            # an absolute step (rad, rad/s, m) for configurations, velocities and positions,
+            # a relative one otherwise
+            scale = np.concatenate([np.ones(np.size(v)) if a else np.abs(np.ravel(np.asarray(v, float)))
+                                    for v, a in zip(leaves, absolute)])
+            direction, pieces, pos = u * scale, [], 0
+            for v in leaves:
+                pieces.append(jnp.asarray(direction[pos:pos + np.size(v)]).reshape(np.shape(v)))
+                pos += np.size(v)
+
+            def along(t, leaves=leaves, tdef=tdef, pieces=pieces):
+                return jax.tree.unflatten(tdef, [jnp.asarray(v) + t * d for v, d in zip(leaves, pieces)])
+
+            tangent = eqx.tree_at(get, jax.tree.map(jnp.zeros_like, dyn), jax.tree.unflatten(tdef, pieces))
+
+            def out_of(d, static=static, base=base):  # warm at the base optimum: its derivative
+                s = jtraj.solve(eqx.combine(d, static), solver=tight, init=(base.v, base.h))
+                return jnp.stack([s.T, s.cost])
+
+            jvp = np.asarray(jax.jvp(out_of, (dyn,), (tangent,))[1])
+            if not np.all(np.isfinite(jvp)):  # a converged base with an invalid derivative
+                counts["nan_derivative"] += 1
+                print(f"   pair {ip} {kind}: NaN derivative at a converged optimum", flush=True)
+                continue
+            entries.append((ip, p, base, dyn, static, get, along, jvp))
+        if not entries:
+            fig["kinds"][kind] = {"counts": counts}
+            continue
+        # every pair's shifted problems (steps x signs) in one batched solve, warm at the base
+        shifted, inits = [], []
+        for ip, p, base, dyn, static, get, along, jvp in entries:
+            for h in steps:
+                for sign in (1.0, -1.0):
+                    shifted.append(eqx.combine(eqx.tree_at(get, dyn, along(sign * h)), static))
+                    inits.append((base.v, base.h))
+        stack = lambda *xs: jnp.stack(xs)  # noqa: E731
+        batch = jax.tree.map(stack, *shifted)
+        init = jax.tree.map(stack, *inits)
+        opts = resolve_method(to_options(tight), "decoupled", entries[0][1].robot)
+        ts = time.perf_counter()
+        sols = solve_problems(batch, opts, "decoupled", init, True, args.slots, 10)
+        t_solve = time.perf_counter() - ts
+        sig = _signatures(batch, sols)
+        out = np.stack([np.asarray(sols.T), np.asarray(sols.cost)], axis=1).reshape(len(entries), len(steps), 2, 2)
+        ok = (np.asarray(sols.status) == 0).reshape(len(entries), len(steps), 2)
+        rows = []
+        for e, (ip, p, base, dyn, static, get, along, jvp) in enumerate(entries):
+            sig0 = _active_signature(p, base)
+            moved = np.array([[not all(np.array_equal(a[(e * len(steps) + j) * 2 + k], b) for a, b in zip(sig, sig0))
+                               for k in range(2)] for j in range(len(steps))])
+            D = (out[e, :, 0] - out[e, :, 1]) / (2 * steps[:, None])  # (steps, outputs) central differences
+            R = (r2 * D[1:] - D[:-1]) / (r2 - 1)  # Richardson from steps j and j+1
+            good = ok[e].all(axis=1)
+            row = {"pair": ip, "jvp": jvp.tolist()}
+            for i, o in enumerate(("T", "cost")):
+                # the step: where two successive Richardson estimates (from converged re-solves)
+                # agree best; the reference is the first of the two, the disagreement its
+                # uncertainty (chosen without looking at the derivative under test)
+                usable = [j for j in range(len(steps) - 2) if good[j:j + 3].all()]
+                if not usable:
+                    row[o] = None
+                    continue
+                spread = np.array([abs(R[j, i] - R[j + 1, i]) for j in usable])
+                j = usable[int(np.argmin(spread))]
+                ref = R[j, i]
+                denom = max(abs(ref), 1e-6)
+                row[o] = {"error": abs(jvp[i] - ref) / denom, "uncertainty": float(spread.min()) / denom,
+                          "step": float(steps[j]), "moved": bool(moved[j:j + 3].any()),
+                          "central": abs(jvp[i] - D[1, i]) / max(abs(D[1, i]), 1e-6) if good[1] else None}
+            if row["T"] is None and row["cost"] is None:
+                counts["resolve_failed"] += 1
+            rows.append(row)
+        res = {"counts": counts, "seconds": time.perf_counter() - tk, "resolve_seconds": t_solve,
+               "resolves": len(shifted), "rows": rows}
+        for o in ("T", "cost"):
+            rs = [r[o] for r in rows if r[o] is not None]
+            same = [r for r in rs if not r["moved"]]
+            res[f"d{o}"] = {"all": _stats([r["error"] for r in rs]), "same_active": _stats([r["error"] for r in same]),
+                            "uncertainty_same_active": _stats([r["uncertainty"] for r in same]),
+                            "central_all": _stats([r["central"] for r in rs if r["central"] is not None]),
+                            "pairs": len(rs), "moved": len(rs) - len(same),
+                            "above_1e-5_same_active": int(sum(r["error"] > 1e-5 for r in same))}
+        fig["kinds"][kind] = res
+        print(f"   {kind}: {len(entries)} pairs, {len(shifted)} re-solves in {t_solve:.0f} s "
+              f"({time.perf_counter() - tk:.0f} s in all); {counts}", flush=True)
+        for o in ("T", "cost"):
+            r = res[f"d{o}"]
+            print(f"      d{o}: same active set ({r['pairs'] - r['moved']} pairs): {_fmt(r['same_active'])}; "
+                  f"reference uncertainty {_fmt(r['uncertainty_same_active'])}; active set changes on "
+                  f"{r['moved']} of {r['pairs']}; all pairs {_fmt(r['all'])}", flush=True)
+        fig["seconds"] = time.perf_counter() - t0
+        figures["fd"] = fig
+        dump()
+    print(_table(fig, kinds))
+    fig["seconds"] = time.perf_counter() - t0
+    figures["fd"] = fig
+    dump()
 
 
 def main(argv=None):
@@ -194,26 +356,21 @@ def main(argv=None):
     ap.add_argument("--pairs", type=int, default=1024, help="pairs of the NaN count")
     ap.add_argument("--N", type=int, default=20)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--step", type=float, default=1e-3, help="longer step of the differences (relative)")
-    ap.add_argument("--sweep", type=int, default=3, help="worst cases whose error is swept over the step")
+    ap.add_argument("--step", type=float, default=4e-3, help="the longest step of the differences")
+    ap.add_argument("--steps", type=int, default=4, help="steps of the differences, each --ratio times shorter")
+    ap.add_argument("--ratio", type=float, default=4.0)
+    ap.add_argument("--tol", type=float, default=1e-10, help="the re-solves' (and base solves') AL tolerances")
+    ap.add_argument("--slots", type=int, default=16, help="lanes of the batched re-solves")
     ap.add_argument("--kinds", default=",".join(KINDS))
     ap.add_argument("--json", default=os.path.join(HERE, "figures", "grad.json"))
     ap.add_argument("--table", metavar="JSON", help="print part 1's table from the figures of an earlier run and exit")
     args = ap.parse_args(argv)
     if args.table:
         with open(args.table) as f:
-            fig = json.load(f)
-        if "fd" in fig:
-            fd_fig = fig["fd"]["errors"]
-        else:  # a run cut short: the pairs done
-            part = fig["fd_partial"]["errors"]
-            print(f"(a run cut short: {fig['fd_partial']['pairs_done']} pairs done)")
-            fd_fig = {f"{k}/d{o}": {e: part[f"{k}/d{o}/{e}"] for e in ("central", "richardson")}
-                      for k in KINDS for o in ("T", "cost") if f"{k}/d{o}/central" in part}
-        print(_table(fd_fig, [k for k in KINDS if f"{k}/dT" in fd_fig]))
+            fig = json.load(f)["fd"]
+        print(_table(fig, [k for k in KINDS if k in fig["kinds"]]))
         return
 
-    import equinox as eqx
     import jax
     import jax.numpy as jnp
 
@@ -234,169 +391,19 @@ def main(argv=None):
 
     device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
     print(f"jax {jax.__version__} on {device}, N = {args.N}", flush=True)
-    figures = {"N": args.N, "seed": args.seed, "device": device, "host": platform.node(),
-               "cpu_count": os.cpu_count()}
+    figures = {}
+    if args.json and os.path.exists(args.json):  # the parts not run keep their figures
+        with open(args.json) as f:
+            figures = json.load(f)
+    figures.update({"N": args.N, "seed": args.seed, "device": device, "host": platform.node(),
+                    "cpu_count": os.cpu_count()})
     robot = jtraj.robots.get("serial3")
     w = jtraj.Weights(time=1.0, energy=0.1)
-    tight = jtraj.AugmentedLagrangian(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2000)
-    tighter = jtraj.AugmentedLagrangian(tol_feasibility=1e-12, tol_optimality=1e-12, max_iter=4000)
-    rng = np.random.default_rng(args.seed)
+    tight = jtraj.AugmentedLagrangian(tol_feasibility=args.tol, tol_optimality=args.tol, max_iter=4000)
 
     # ---- 1. agreement with finite differences -----------------------------------------
     if args.fd_pairs:
-        q0s, q1s = benchmark_pairs(args.fd_pairs, seed=args.seed)
-        pk = jtraj.robots.get("pkm2").limits
-        pk_lo, pk_hi = np.asarray(pk.q_min), np.asarray(pk.q_max)
-
-        def pkm2_pair(i):  # start and goal drawn in the middle 60 % of pkm2's joint box
-            u = np.random.default_rng([args.seed, i]).uniform(0.2, 0.8, (2, 2))
-            return pk_lo + u[0] * (pk_hi - pk_lo), pk_lo + u[1] * (pk_hi - pk_lo)
-        errs = {(k, o, e): [] for k in kinds for o in ("T", "cost") for e in ("central", "richardson")}
-        changed = {k: [] for k in kinds}  # per kind and pair: the active set changes within the step
-        cases = []  # (error, kind, output, pair index, closure) for the sweep
-        skipped, t0 = 0, time.perf_counter()
-        failed, unconverged, nan_jvp = {}, {}, {}  # per kind: pairs whose problem raised / did not converge /
-        # whose converged optimum has a NaN derivative (left out of the error statistics, counted)
-        for ip, (q0, q1) in enumerate(zip(q0s, q1s)):
-            try:
-                free = jtraj.Problem(robot, q0, q1, N=args.N, weights=w)
-            except ValueError:
-                skipped += 1
-                continue
-            free_sol = jtraj.solve(free, solver=tight)
-            if not bool(free_sol.converged):
-                skipped += 1
-                continue
-            for kind in kinds:
-                try:
-                    setup = _setup(kind, jtraj, robot, q0, q1, free, free_sol, args.N, w, tight, pkm2_pair(ip))
-                except Exception as err:  # counted and printed: a kind that fails is a finding, not a crash
-                    failed[kind] = failed.get(kind, 0) + 1
-                    print(f"   pair {ip} {kind}: {type(err).__name__}: {err}"[:400], flush=True)
-                    continue
-                if setup is None:
-                    unconverged[kind] = unconverged.get(kind, 0) + 1
-                    continue
-                try:
-                    p, base, get, absolute = setup
-                    dyn, static = eqx.partition(p, eqx.is_inexact_array)
-                    zero = jax.tree.map(jnp.zeros_like, dyn)
-                    x = get(p)
-                    leaves, tdef = jax.tree.flatten(x)
-                    flat = np.concatenate([np.ravel(np.asarray(v, float)) for v in leaves])
-                    u = rng.standard_normal(flat.size)
-                    u /= np.linalg.norm(u)
-                    # an absolute step (rad, rad/s, m) for configurations, velocities and positions,
-                    # a relative one otherwise
-                    scale = np.concatenate([np.ones(np.size(v)) if a else np.abs(np.ravel(np.asarray(v, float)))
-                                            for v, a in zip(leaves, absolute)])
-                    direction = u * scale
-                    pieces, pos = [], 0
-                    for v in leaves:
-                        pieces.append(jnp.asarray(direction[pos:pos + np.size(v)]).reshape(np.shape(v)))
-                        pos += np.size(v)
-
-                    def along(t, leaves=leaves, tdef=tdef, pieces=pieces):
-                        return jax.tree.unflatten(tdef, [jnp.asarray(v) + t * d for v, d in zip(leaves, pieces)])
-
-                    tangent = eqx.tree_at(get, zero, jax.tree.unflatten(tdef, pieces))
-
-                    def out_of(d, static=static, base=base):  # at the base optimum: warm from it
-                        s = jtraj.solve(eqx.combine(d, static), solver=tight, init=(base.v, base.h))
-                        return jnp.stack([s.T, s.cost])
-
-                    _, jvp = jax.jvp(out_of, (dyn,), (tangent,))
-                    jvp = np.asarray(jvp)
-                    if not np.all(np.isfinite(jvp)):  # a converged base with an invalid derivative
-                        nan_jvp[kind] = nan_jvp.get(kind, 0) + 1
-                        print(f"   pair {ip} {kind}: NaN derivative at a converged optimum", flush=True)
-                        continue
-
-                    def central(step, solver=tight, dyn=dyn, static=static, get=get, along=along, base=base,
-                                acts=None):
-                        vals = []
-                        for sign in (1.0, -1.0):
-                            d_ = eqx.tree_at(get, dyn, along(sign * step))
-                            s = jtraj.solve(eqx.combine(d_, static), solver=solver, init=(base.v, base.h))
-                            if not bool(s.converged):
-                                return None
-                            vals.append(np.array([float(s.T), float(s.cost)]))
-                            if acts is not None:
-                                acts.append(_active_signature(eqx.combine(d_, static), s))
-                        return (vals[0] - vals[1]) / (2 * step)
-
-                    acts = []
-                    d1, d2 = central(args.step, acts=acts), central(args.step / 2, acts=acts)
-                    if d1 is None or d2 is None:
-                        unconverged[kind] = unconverged.get(kind, 0) + 1
-                        continue
-                    rich = (4 * d2 - d1) / 3
-                    # does the active set of a shifted re-solve differ from the base optimum's?
-                    # (then the differences straddle a change of active set: not a reference)
-                    sig0 = _active_signature(p, base)
-                    moved = any(not all(np.array_equal(a, b) for a, b in zip(sig, sig0)) for sig in acts)
-                    changed[kind].append(moved)
-                    for i, o in enumerate(("T", "cost")):
-                        for name, fd in (("central", d2), ("richardson", rich)):
-                            e = abs(jvp[i] - fd[i]) / max(abs(fd[i]), 1e-6)
-                            errs[(kind, o, name)].append(e)
-                        e = abs(jvp[i] - rich[i]) / max(abs(rich[i]), 1e-6)
-                        cases.append((e, kind, o, ip, i, jvp[i], central, moved))
-                except Exception as err:  # counted and printed, as above
-                    failed[kind] = failed.get(kind, 0) + 1
-                    print(f"   pair {ip} {kind}: {type(err).__name__}: {err}"[:400], flush=True)
-            print(f"   pair {ip}: {time.perf_counter() - t0:.0f} s", flush=True)
-            figures["fd_partial"] = {"pairs_done": ip + 1, "seconds": time.perf_counter() - t0,
-                                     "failed": failed, "unconverged": unconverged, "nan_derivative": nan_jvp,
-                                     "errors": {f"{k}/d{o}/{e}": _stats(v) for (k, o, e), v in errs.items()},
-                                     "active_set_changed": {k: int(np.sum(v)) for k, v in changed.items()}}
-            dump()
-        elapsed = time.perf_counter() - t0
-        print(f"1. finite differences of re-solves, {args.fd_pairs} pairs ({skipped} skipped: invalid or "
-              f"not converged), {elapsed:.0f} s; relative errors (central with step {args.step / 2:g}; "
-              f"Richardson from {args.step:g} and {args.step / 2:g}):")
-        fd_fig = {}
-        for kind in kinds:
-            for o in ("T", "cost"):
-                c, r = _stats(errs[(kind, o, "central")]), _stats(errs[(kind, o, "richardson")])
-                moved = np.asarray(changed[kind], bool)
-                same = _stats(np.asarray(errs[(kind, o, "richardson")])[~moved]) if moved.size else None
-                fd_fig[f"{kind}/d{o}"] = {"central": c, "richardson": r, "active_set_changed": int(moved.sum()),
-                                          "richardson_same_active": same}
-                print(f"   {kind:8s} d{o:4s} central:    {_fmt(c)}")
-                print(f"   {'':8s} {'':5s} Richardson: {_fmt(r)}")
-                print(f"   {'':8s} {'':5s} active set changes within the step on {int(moved.sum())} pairs; "
-                      f"Richardson on the others: {_fmt(same)}")
-        print(_table(fd_fig, kinds))  # the benchmarks page's table (docs/benchmarks.md)
-        allr = [e for (k, o, n), v in errs.items() if n == "richardson" for e in v]
-        print(f"   all kinds, Richardson: {_fmt(_stats(allr))}; above 1e-5: {int(np.sum(np.asarray(allr) > 1e-5))}")
-        figures.pop("fd_partial", None)
-        figures["fd"] = {"pairs": args.fd_pairs, "skipped": skipped, "step": args.step, "seconds": elapsed,
-                         "errors": fd_fig, "all_richardson": _stats(allr), "failed": failed,
-                         "unconverged": unconverged, "nan_derivative": nan_jvp,
-                         "above_1e-5": int(np.sum(np.asarray(allr) > 1e-5))}
-        # the worst cases: error against the step, and with tighter re-solves
-        sweep = []
-        # (the worst cases among the pairs whose active set stays: the others' differences are no reference)
-        for e, kind, o, ip, i, jv, central, _ in sorted([c for c in cases if not c[-1]],
-                                                        key=lambda c: -c[0])[:args.sweep]:
-            rows = []
-            for step in (1e-2, 1e-3, 1e-4, 1e-5, 1e-6):
-                fd = central(step)
-                rows.append({"step": step, "error": None if fd is None else abs(jv - fd[i]) / max(abs(fd[i]), 1e-6)})
-            tight_fd = [central(s, tighter) for s in (args.step, args.step / 2)]
-            rt = None
-            if all(f is not None for f in tight_fd):
-                r_ = (4 * tight_fd[1][i] - tight_fd[0][i]) / 3
-                rt = abs(jv - r_) / max(abs(r_), 1e-6)
-            sweep.append({"kind": kind, "output": o, "pair": ip, "richardson_error": e, "by_step": rows,
-                          "richardson_error_tol_1e-12": rt})
-            print(f"   worst: {kind} d{o} pair {ip}: Richardson {e:.2e}; central by step "
-                  + ", ".join(f"{r['step']:g}: " + ("n/a" if r["error"] is None else f"{r['error']:.1e}")
-                              for r in rows)
-                  + "; Richardson with re-solves at 1e-12: " + ("n/a" if rt is None else f"{rt:.1e}"), flush=True)
-        figures["fd"]["worst"] = sweep
-        dump()
+        _fd_part(args, jtraj, robot, w, tight, kinds, figures, dump)
 
     # ---- 2. backward pass against the batched forward solve -----------------------------
     if args.time_pairs:

@@ -63,10 +63,26 @@ threshold) are treated as inactive: the result is the derivative of the strictly
 set, the one-sided derivative in the directions that keep such a constraint satisfied.
 At a point where the active set changes the derivative is one-sided in this sense.
 
+Refinement. The active set is read off the returned point: at the interior-point
+method's default tolerances a constraint with a small multiplier lies about
+``mu / multiplier`` inside its bound and can be missed (more than ``ACT_TOL`` inside);
+the reduced Hessian of the remaining set is then indefinite and the derivative there not
+valid. Where a converged solve's derivative is not valid, the rule refines the optimum
+(:func:`refine`: the AL method at tolerances 1e-10, :data:`REFINE`, warm-started at the
+returned point, bounded work) and differentiates at the refined point, the same
+optimum to the refinement's tolerance. With concrete primal values (a derivative
+outside ``jit``) the check is read on the host and the refinement is the ordinary solve;
+inside ``jit`` or ``vmap`` it is a ``lax.cond`` on the traced flag (under ``vmap`` both
+sides run, the lanes that need no refinement starting finished). The primal outputs stay
+those of the returned solve. Where the stage-wise solve still fails its self-check at a
+converged point (its iteration on the multipliers not converging in ``MAX_ITER`` steps),
+the derivative comes from the dense LU of the same system where that is regular (with
+concrete values; inside a trace the derivative stays invalid).
+
 Failures are never silent. A derivative is valid where the solve converged
 (``Status.CONVERGED``), the active set fits (``r`` slots) and the KKT system is
-regular (as its solve above tests it). Elsewhere a single solve's tangents and gradients are NaN
-(``on_failure="nan"``, the default) or the solve raises at run time when it is
+regular (as its solve above tests it), at the returned point or at its refinement.
+Elsewhere a single solve's tangents and gradients are NaN (``on_failure="nan"``, the default) or the solve raises at run time when it is
 differentiated (``on_failure="raise"``, through ``equinox.error_if``: inside ``jit`` too,
 as an ``XlaRuntimeError``/``EquinoxRuntimeError``); in a batch each invalid sample's
 derivative is zero, its status says why, and :func:`valid_derivatives` gives the mask.
@@ -88,9 +104,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .problem import Problem
+from .solver.methods import AugmentedLagrangian
 from .transcription import Transcription
 
-__all__ = ["ACT_TOL", "BOUND_TOL", "WEAK", "implicit_tangent", "valid_derivatives"]
+__all__ = ["ACT_TOL", "BOUND_TOL", "REFINE", "WEAK", "implicit_tangent", "refine", "valid_derivatives"]
 
 #: inequalities with ``c_i > -ACT_TOL`` (normalised units) are candidates for the active set
 ACT_TOL = 1e-3
@@ -99,6 +116,11 @@ ACT_TOL = 1e-3
 BOUND_TOL = 1e-3
 #: a candidate is active where its multiplier exceeds WEAK * max(1, max multiplier)
 WEAK = 1e-7
+
+#: the refinement of a converged optimum whose derivative is not valid as it is (the AL
+#: method warm-started at it, tolerances 1e-10; see :func:`refine`): the rule differentiates
+#: at the refined point
+REFINE = AugmentedLagrangian(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2000)
 
 #: the linear solve of the derivatives through jtraj.solve / solve_batch: None (the
 #: transcription's default: "stagewise" for the decoupled one, "dense" otherwise),
@@ -234,17 +256,21 @@ def _kkt_residual(dyn, static, tr: Transcription, act: ActiveSet, z, l):
     return jnp.concatenate([Fz, Fc])
 
 
-def implicit_tangent(problem: Problem, tr: Transcription, solution, tangent, converged, method: str | None = None):
+def implicit_tangent(problem: Problem, tr: Transcription, solution, tangent, converged, method: str | None = None,
+                     at=None):
     """The tangent of the optimum along ``tangent`` (a pytree like ``problem``'s
     inexact-array part, :func:`equinox.partition`): returns ``(dz, outputs' tangents,
     z, valid)``. Linear in ``tangent``; ``valid`` is a traced bool (converged, the active
     set fits, the KKT system regular). ``method``: ``"stagewise"`` (the decoupled
     transcription's default, :mod:`jtraj.adjoint`) or ``"dense"`` (every other
-    transcription's, and the reference). Where not valid, the tangents are finite values
-    the caller masks (a NaN in ``tangent``, or in a cotangent in reverse mode, stays NaN)."""
+    transcription's, and the reference). ``at``: the point ``(u, h)`` (the
+    transcription's controls and the periods) to differentiate at, by default the
+    solution's own (a refined optimum of the same problem, see :func:`refine`). Where not
+    valid, the tangents are finite values the caller masks (a NaN in ``tangent``, or in a
+    cotangent in reverse mode, stays NaN)."""
     method = _method(tr, method)
     dyn, static = eqx.partition(problem, eqx.is_inexact_array)
-    z = z_of(problem, tr, solution)
+    z = z_of(problem, tr, solution) if at is None else tr.layout(problem).pack(*at)
     finite = jnp.all(jnp.isfinite(z))
     layout = tr.layout(problem)
     z = jnp.where(finite, z, jnp.clip(jnp.zeros_like(z), layout.z_lo, layout.z_hi))
@@ -361,11 +387,17 @@ def _nested(fn):
 
 
 def _primal_single(cfg: _Config, dyn, init):
+    """The solve itself: inside a trace one program (``solve_jit``); with concrete values
+    the staged programs of :func:`jtraj.solve` (:mod:`jtraj.solver.staged`), the ones an
+    ordinary solve of the problem runs (compiled once for both)."""
+    from .solver import staged as _staged
     from .solver.core import solve_jit as _solve_jit
 
     problem = eqx.combine(dyn, cfg.static)
-    run = _nested(_solve_jit) if any_traced((dyn, init)) else _solve_jit
-    return run(problem, cfg.opts, cfg.transcription, init, np.bool_(cfg.warm), np.bool_(cfg.guess))
+    if any_traced((dyn, init)):
+        return _nested(_solve_jit)(problem, cfg.opts, cfg.transcription, init, np.bool_(cfg.warm),
+                                   np.bool_(cfg.guess))
+    return _staged.solve(problem, cfg.opts, cfg.transcription, init, np.bool_(cfg.warm), np.bool_(cfg.guess))
 
 
 def _primal_batch(cfg: _Config, dyn, init):
@@ -379,11 +411,13 @@ def _primal_batch(cfg: _Config, dyn, init):
     return _solve_problems(problems, cfg.opts, cfg.transcription, init, cfg.warm, slots, segment)
 
 
-def _tangent_solution(cfg: _Config, dyn, ddyn, sol):
-    """The Solution-shaped tangent of one solve (floats everywhere, see _to_float)."""
+def _tangent_solution(cfg: _Config, dyn, ddyn, sol, at, method=None):
+    """The Solution-shaped tangent of one solve (floats everywhere, see _to_float) at the
+    point ``at`` = (u, h), and whether it is valid (``method``: default KKT_SOLVE)."""
     # "raise" is "nan" plus a run-time check outside (one program for both)
     on_failure = "zero" if cfg.on_failure == "zero" else "nan"
-    return _tangent_program(cfg.static, cfg.transcription, on_failure, KKT_SOLVE, dyn, ddyn, sol)
+    return _tangent_program(cfg.static, cfg.transcription, on_failure, KKT_SOLVE if method is None else method,
+                            dyn, ddyn, sol, at)
 
 
 def _nan_where_invalid(dout, ddyn, valid):
@@ -405,16 +439,119 @@ def _nan_where_invalid(dout, ddyn, valid):
 
 
 @eqx.filter_jit  # keyed by the problem's structure, not by the solver options
-def _tangent_program(static, transcription: str, on_failure: str, method, dyn, ddyn, sol):
+def _tangent_program(static, transcription: str, on_failure: str, method, dyn, ddyn, sol, at):
     tr = Transcription(transcription)
     problem = eqx.combine(dyn, static)
-    _, dout, _, valid = implicit_tangent(problem, tr, sol, ddyn, sol.status == 0, method=method)
+    _, dout, _, valid = implicit_tangent(problem, tr, sol, ddyn, sol.status == 0, method=method, at=at)
     if on_failure == "zero":
         dout = jax.tree.map(lambda t: jnp.where(valid, t, 0.0), dout)
     else:
         dout = _nan_where_invalid(dout, ddyn, valid)
     zeros = jax.tree.map(jnp.zeros_like, _to_float(sol))
     return dataclasses.replace(zeros, **dout), valid
+
+
+# ----------------------------------------------------------------------------------------
+# refinement of an optimum whose derivative is not valid as it is
+
+
+def _point(tr: Transcription, sol):
+    """(u, h) of a solution (batched or not): the point the derivative is taken at."""
+    return tr.controls_of(sol), sol.h
+
+
+def refine(problem: Problem, tr: Transcription, at, need):
+    """The optimum refined by :data:`REFINE` (the AL loop warm-started at ``at`` = (u, h))
+    where the traced bool ``need`` says so: returns ``(u, h)``, the refined point where
+    ``need`` and the refinement converged, ``at`` otherwise. Where ``need`` is False the
+    loop starts finished (no iteration; under ``vmap`` such a lane waits for the others).
+    Bounded work: at most ``REFINE.max_iter`` Newton iterations and one restart."""
+    from .solver import loop
+    from .solver.al import ALMethod
+    from .solver.core import finish, prepare
+    from .solver.options import to_options
+
+    opts = to_options(REFINE)
+    nlp, state, valid = prepare(problem, opts, tr, at, True)
+    state = state._replace(done=state.done | ~need)
+    al = ALMethod(opts)
+    ref = finish(nlp, al.postprocess(nlp, loop.run(al, nlp, state), state), opts, valid)
+    ok = need & (ref.status == 0)
+    return tuple(jnp.where(ok, a, b) for a, b in zip(_point(tr, ref), at))
+
+
+def _concrete(x):
+    """``x`` as a NumPy array where it is a concrete value, None where it is traced."""
+    return None if isinstance(x, jax.core.Tracer) else np.asarray(x)
+
+
+def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
+    """The Solution-shaped tangent of a solve (``batch``: per sample) and its validity.
+
+    Where the derivative at the returned optimum is not valid although the solve
+    converged (the active set read off a point on the interior-point method's central
+    path misses constraints with small multipliers: the reduced Hessian of the rest is
+    indefinite, the stage-wise solve's self-check fails), the optimum is refined
+    (:func:`refine`) and the derivative taken at the refined point: the derivative of the
+    same optimum to the refinement's tolerance. With concrete primal values (a derivative
+    outside ``jit``) the decision is taken on the host and the refinement is the ordinary
+    solve with :data:`REFINE` (a batch re-solves only the samples that need it); inside
+    ``jit`` or ``vmap`` it is a ``lax.cond`` on the traced flag."""
+    tr = Transcription(cfg.transcription)
+    at = _point(tr, sol)
+
+    def tangent(point, method=None):
+        if batch:
+            return jax.vmap(lambda d, dd, s, a: _tangent_solution(cfg, d, dd, s, a, method))(dyn, ddyn, sol, point)
+        return _tangent_solution(cfg, dyn, ddyn, sol, point, method)
+
+    dsol, valid = tangent(at)
+    need = (sol.status == 0) & ~valid
+    flags = _concrete(need)
+    if flags is not None and not np.any(flags):
+        return dsol, valid
+    if flags is not None and not any_traced((dyn, sol)):  # on the host: re-solve what needs it
+        at = _refine_host(cfg, dyn, at, flags, batch)
+    else:  # inside a trace: one bounded refinement program, skipped where nothing needs it
+        def run(d, a, n):
+            return refine(eqx.combine(d, cfg.static), tr, a, n)
+
+        batched = (lambda: jax.vmap(run)(dyn, at, need)) if batch else (lambda: run(dyn, at, need))
+        at = jax.lax.cond(jnp.any(need), batched, lambda: at)
+    dsol, valid = tangent(at)
+    # a stage-wise solve that still fails its self-check at a converged point (an iteration on
+    # the multipliers that does not converge in MAX_ITER steps): with concrete values, the
+    # dense LU of the same KKT system where it is regular
+    still = _concrete((sol.status == 0) & ~valid)
+    if still is None or not np.any(still) or _method(tr, KKT_SOLVE) != "stagewise":
+        return dsol, valid
+    dense, ok = tangent(at, "dense")
+    use = still & np.asarray(ok)
+    if not batch:  # (a host choice: the NaN-masked stage-wise tangent must not enter the graph)
+        return (dense, ok) if bool(use) else (dsol, valid)
+    # a batch masks by selection (zero, not NaN): a per-sample choice is safe in reverse mode
+    pick = lambda a, b: jnp.where(jnp.reshape(use, use.shape + (1,) * (jnp.ndim(a) - use.ndim)), a, b)  # noqa: E731
+    return jax.tree.map(pick, dense, dsol), valid | use
+
+
+def _refine_host(cfg: _Config, dyn, at, flags, batch: bool):
+    """:func:`refine` with concrete values: each flagged problem re-solved by the public
+    solve with :data:`REFINE`, warm-started at its point (one compiled program whatever
+    the number of flagged samples)."""
+    from .solver import solve
+
+    tr = Transcription(cfg.transcription)
+
+    def one(d, a):
+        ref = solve(eqx.combine(d, cfg.static), solver=REFINE, transcription=cfg.transcription, init=a)
+        return _point(tr, ref) if bool(ref.converged) else a
+
+    if not batch:
+        return one(dyn, at)
+    u, h = (np.array(a) for a in at)
+    for i in np.flatnonzero(flags):
+        u[i], h[i] = one(jax.tree.map(lambda x: x[i], dyn), (u[i], h[i]))
+    return jnp.asarray(u), jnp.asarray(h)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -427,7 +564,7 @@ def _single_jvp(cfg: _Config, primals, tangents):
     dyn, init = primals
     ddyn, _ = tangents
     sol = _primal_single(cfg, dyn, init)
-    dsol, valid = _tangent_solution(cfg, dyn, ddyn, sol)
+    dsol, valid = _refined_tangent(cfg, dyn, ddyn, sol, batch=False)
     out = _to_float(sol)
     if cfg.on_failure == "raise":
         out = eqx.error_if(out, ~valid, "jtraj: derivative of a solve that did not converge (or whose KKT "
@@ -445,7 +582,7 @@ def _batch_jvp(cfg: _Config, primals, tangents):
     dyn, init = primals
     ddyn, _ = tangents
     sol = _primal_batch(cfg, dyn, init)
-    dsol, _ = jax.vmap(lambda d, dd, s: _tangent_solution(cfg, d, dd, s))(dyn, ddyn, sol)
+    dsol, _ = _refined_tangent(cfg, dyn, ddyn, sol, batch=True)
     return _to_float(sol), dsol
 
 

@@ -72,6 +72,25 @@ class Weights(eqx.Module):
         self.has_kinetic = Q is not None or not zero.get("kinetic", False)
         self.has_singularity = not zero.get("singularity", False)
 
+    def invalid(self) -> Array:
+        """A traced bool: what the constructor rejects where the values are concrete (a
+        weight negative or not finite; ``U`` or ``Q`` not finite, not symmetric or with an
+        eigenvalue below -1e-12), for weights traced past it (checked by the
+        solve, :meth:`Problem.infeasible_on_its_face`)."""
+        bad = jnp.zeros((), bool)
+        for w in (self.time, self.energy, self.kinetic, self.singularity):
+            w = jnp.asarray(w)
+            bad |= jnp.any(~jnp.isfinite(w) | (w < 0))
+        for M in (self.U, self.Q):
+            if M is not None:
+                M = jnp.asarray(M)
+                M = jnp.diag(M) if M.ndim == 1 else M
+                finite = jnp.all(jnp.isfinite(M))
+                Ms = jnp.where(finite, M, 0.0)
+                bad |= ~finite | jnp.any(jnp.abs(Ms - Ms.T) > 1e-8 + 1e-5 * jnp.abs(Ms.T))  # (np.allclose's)
+                bad |= jnp.min(jnp.linalg.eigvalsh(0.5 * (Ms + Ms.T))) < -1e-12
+        return bad
+
     def matrices(self, robot: Robot) -> tuple[Array, Array]:
         """(U, Q) for ``robot``: U is (m, m) over actuator efforts, Q (n, n)."""
         tau_max = robot.limits.tau_max
@@ -387,10 +406,12 @@ class Problem(eqx.Module):
         """A traced bool: what :meth:`_check_feasible` rejects with a ``ValueError``
         (start or goal outside the joint box, the workspace box or the robot's path
         constraints, boundary velocities beyond ``qd_max``, a move longer than N h_max or
-        T_max allow). A batch gives such samples the status ``INVALID_INPUT`` instead of
-        solving them."""
+        T_max allow) or :class:`Weights` rejects (a weight negative or not finite, ``U``
+        or ``Q`` not finite or with a negative eigenvalue). A batch gives such samples the
+        status ``INVALID_INPUT`` instead of solving them."""
         lim = self.robot.limits
         bad = ~admissible_configuration(self.robot, self.q_start) | ~admissible_configuration(self.robot, self.q_goal)
+        bad |= self.weights.invalid()
         if lim.qd_max is not None:
             bound = lim.qd_max * (1 + FACE_TOL)
             bad |= jnp.any(jnp.abs(self.qd_start) > bound) | jnp.any(jnp.abs(self.qd_goal) > bound)

@@ -8,14 +8,12 @@ and time of :func:`jtraj.solve` with the parameter substituted into the robot by
 ``eqx.tree_at``; see :mod:`jtraj.implicit` for the mathematics (active set, bordered KKT
 system, weakly active constraints).
 
-The derivative is that of the active set at the optimum (:mod:`jtraj.implicit`), so the
-optimum must be known to the precision of the derivative: a solve at the default
-tolerances (the interior-point method's, about 1e-5) ends on the barrier's central path,
-with the slack of a constraint about ``mu / multiplier``, and a constraint with a small
-multiplier can lie too far inside its bound to be recognised as active (the reduced
-Hessian of the remaining set is then indefinite and the derivative invalid: NaN).
-:func:`sensitivity` therefore refines the solution with the augmented-Lagrangian method
-at tolerances 1e-10 (:data:`REFINE`), warm-started at it, and differentiates there.
+The derivative is that of the active set at the optimum (:mod:`jtraj.implicit`), so it is
+as precise as the optimum: :func:`sensitivity` differentiates the solve by the
+augmented-Lagrangian method at tolerances 1e-10 (:data:`REFINE`), warm-started at the
+first solve's optimum, so that its derivatives are those of the optimum to that
+precision. (Where a converged optimum's active set does not give a valid derivative, the
+derivative rule itself refines it the same way: :func:`jtraj.implicit.refine`.)
 
 Parameters are the robot's array parameters (``masses``, ``lengths``, ``inertias``,
 ``com``, ...) and its limit fields (``tau_max``, ``qd_max``, ``qdd_max``, ``h_min``,
@@ -36,7 +34,7 @@ from . import implicit
 from ._compile import solver_jit
 from .problem import Problem
 from .robots import Limits, parameter_names
-from .solver import AugmentedLagrangian, SolverOptions, Status
+from .solver import SolverOptions, Status
 from .solver.al import run_al as _run
 from .solver.core import finish as _finish
 from .solver.nlp import NLP as _NLP
@@ -46,8 +44,9 @@ from .transcription import Transcription
 __all__ = ["REFINE", "sensitivity", "solve_with_multipliers"]
 
 #: the solver of the refinement (warm-started at the first solve's optimum) at whose
-#: optimum :func:`sensitivity` differentiates
-REFINE = AugmentedLagrangian(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2000)
+#: optimum :func:`sensitivity` differentiates: the derivative rule's own
+#: (:data:`jtraj.implicit.REFINE`)
+REFINE = implicit.REFINE
 
 # ----------------------------------------------------------------------------------------
 # solving with the final multipliers exposed
@@ -188,20 +187,19 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
     if not bool(sol.converged):
         raise ValueError(f"the solve did not converge (status {Status(int(sol.status)).name}: "
                          f"{Status(int(sol.status)).message}); sensitivities need a converged KKT point")
-    # the active set needs the optimum to the derivative's precision (the module doc)
-    refine = REFINE
-    sol = solve(problem, solver=refine, transcription=tr.name, init=(tr.controls_of(sol), sol.h))
-    if not bool(sol.converged):
-        raise ValueError(f"the refinement of the optimum (REFINE: the AL method at tolerances 1e-10) did not "
-                         f"converge (status {Status(int(sol.status)).name}); sensitivities need a converged KKT point")
+    # the optimum to the derivative's precision (the module doc): the refined solve, warm at
+    # the first one's optimum, is the one differentiated
     theta0 = jnp.asarray(_getter(wrt)(problem), dtype=float)
     warm = (tr.controls_of(sol), sol.h)
 
-    def optimum(theta):  # warm at the refined optimum: its derivative
-        s = solve(_with_param(problem, wrt, theta), solver=refine, transcription=tr.name, init=warm)
-        return {"cost": s.cost, "T": s.T}
+    def optimum(theta):
+        s = solve(_with_param(problem, wrt, theta), solver=REFINE, transcription=tr.name, init=warm)
+        return {"cost": s.cost, "T": s.T}, s
 
-    jac = jax.jacrev(optimum)(theta0)
+    jac, sol = jax.jacrev(optimum, has_aux=True)(theta0)
+    if not bool(sol.converged):
+        raise ValueError(f"the refinement of the optimum (REFINE: the AL method at tolerances 1e-10) did not "
+                         f"converge (status {Status(int(sol.status)).name}); sensitivities need a converged KKT point")
     env, counts = _envelope(problem, tr, sol)
     result = {"cost": np.asarray(_getter(wrt)(env)).reshape(theta0.shape),
               "T": np.asarray(jac["T"]).reshape(theta0.shape)}

@@ -392,3 +392,76 @@ def test_path_constrained_robot_pkm2(monkeypatch):
     _close(g, fd, rtol=1e-4)
     monkeypatch.setattr(implicit, "KKT_SOLVE", "dense")
     _tree_close(g, jax.grad(lambda x: jtraj.solve(make(x), options=PKM2, init=(base.v, base.h)).cost)(jnp.asarray(qg)), 1e-8)
+
+
+@pytest.mark.parametrize("name, value", [
+    ("time", -1.0), ("energy", -0.1), ("kinetic", np.inf), ("singularity", np.nan),
+    ("U", np.array([0.1, -0.2, 0.3])), ("Q", np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])),
+])
+def test_weights_traced_past_their_check_are_flagged_on_the_device(name, value):
+    """What ``Weights`` refuses on the host (a negative or non-finite weight, a U or Q that
+    is not positive semidefinite) the device's face check flags when the value is traced
+    past the constructor; valid weights are not flagged."""
+    if name not in ("U", "Q"):
+        with pytest.raises(ValueError, match=name):
+            jtraj.Weights(**{**WEIGHTS, name: value})
+    p = _problem(weights=jtraj.Weights(**WEIGHTS, U=np.full(3, 0.1), Q=np.eye(3)))
+    bad = eqx.tree_at(lambda q: getattr(q.weights, name), p, jnp.asarray(value, float))
+    face = jax.jit(lambda q: q.infeasible_on_its_face())
+    assert not bool(face(p))
+    assert bool(face(bad))
+
+
+def test_traced_negative_weight_gives_invalid_input_and_nan_gradients(grads, base):
+    """A negative time weight traced past ``Weights`` (its host check cannot see it): the
+    solve flags INVALID_INPUT and every gradient is NaN. (The problem differs from
+    ``grads``' in leaf values only: the same programs.)"""
+    # (a float64 array like the constructor's: not weakly typed, the same programs)
+    p = eqx.tree_at(lambda q: q.weights.time, _problem(), jnp.full_like(_problem().weights.time, -1.0))
+    assert int(jtraj.solve(p, options=TIGHT).status) == jtraj.Status.INVALID_INPUT
+    g = _reverse(p)
+    for out in ("T", "cost"):
+        for leaf in jax.tree.leaves(g[out]):
+            assert np.all(np.isnan(np.asarray(leaf)))
+
+
+# a pair whose default solve (the interior-point method at its default tolerances) converges
+# on the barrier's central path at a point whose active set misses constraints with small
+# multipliers: the derivative there is not valid, the rule refines the optimum
+DEFAULT_START, DEFAULT_GOAL = np.array((-0.9944, -0.6317, 0.7231)), np.array((-0.9287, -0.9564, 0.6696))
+
+
+def test_converged_default_solve_gets_the_refined_optimums_derivative(monkeypatch, base):
+    """``jax.grad`` through a converged default solve whose returned point does not give a
+    valid derivative (the rule refines it: counted here) gives finite gradients equal to
+    central differences of tight re-solves. (serial3, N = 10: the tangent program is
+    ``grads``', the refinement's and the re-solves' AL program ``base``'s.)"""
+    p = _problem(q_start=DEFAULT_START, q_goal=DEFAULT_GOAL)
+    refined = []
+    host = implicit._refine_host
+
+    def spy(*args):
+        refined.append(np.asarray(args[3]))
+        return host(*args)
+
+    monkeypatch.setattr(implicit, "_refine_host", spy)
+    dyn, static = eqx.partition(p, eqx.is_inexact_array)
+
+    def f(d):
+        s = jtraj.solve(eqx.combine(d, static))
+        return jnp.stack([s.T, s.cost]), s
+
+    _, vjp, sol = jax.vjp(f, dyn, has_aux=True)
+    g = {"T": vjp(jnp.array([1.0, 0.0]))[0], "cost": vjp(jnp.array([0.0, 1.0]))[0]}
+    assert bool(sol.converged), sol.status_message
+    assert len(refined) == 1 and bool(refined[0])  # the returned point's derivative was not valid
+    tight = jtraj.solve(p, options=TIGHT, init=(sol.v, sol.h))
+    assert bool(tight.converged), tight.status_message
+    m0 = np.asarray(ROBOT.masses)
+    fd = _fd(lambda m: _problem(robot=jtraj.robots.get("serial3", masses=m), q_start=DEFAULT_START,
+                                q_goal=DEFAULT_GOAL), m0, _T_and_cost, tight, rel=1e-4)
+    for i, out in enumerate(("T", "cost")):
+        assert np.all(np.isfinite(np.asarray(g[out].robot.masses)))
+        _close(g[out].robot.masses, fd[i], rtol=1e-4)
+    for leaf in jax.tree.leaves(g):
+        assert np.all(np.isfinite(np.asarray(leaf)))
