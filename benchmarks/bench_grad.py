@@ -225,7 +225,7 @@ def _fd_part(args, jtraj, robot, w, tight, kinds, figures, dump):
     free_all = jtraj.solve_batch(robot, q0s, q1s, N=args.N, weights=w, solver=tight)
     rng = np.random.default_rng(args.seed)
     fig = {"pairs": args.fd_pairs, "steps": steps.tolist(), "tol": args.tol, "kinds": {},
-           "date": time.strftime("%Y-%m-%d", time.gmtime()), "load_average": os.getloadavg()[0]}
+           "load_average": os.getloadavg()[0]}  # (the date goes beside the table on docs/benchmarks.md)
     for kind in kinds:
         tk = time.perf_counter()
         counts = {"setup_failed": 0, "not_converged": 0, "nan_derivative": 0, "resolve_failed": 0}

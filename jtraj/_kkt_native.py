@@ -166,7 +166,7 @@ def _build(n: int) -> None:
     if not os.path.exists(path):
         fd, tmp = tempfile.mkstemp(dir=folder, suffix=".so.tmp")
         os.close(fd)
-        # the compiler, the chmod and the atomic rename run in their own session, so that
+        # the compiler, the chmod and the atomic rename run detached (setsid), so that
         # a build outlives a process that ends first (a one-shot solve that ran the XLA
         # version meanwhile): the next process finds the library; concurrent builders
         # (dataset workers) each rename a whole file

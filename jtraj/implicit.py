@@ -535,15 +535,19 @@ def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
 
 
 def _refine_host(cfg: _Config, dyn, at, flags, batch: bool):
-    """:func:`refine` with concrete values: each flagged problem re-solved by the public
-    solve with :data:`REFINE`, warm-started at its point (one compiled program whatever
-    the number of flagged samples)."""
-    from .solver import solve
+    """:func:`refine` with concrete values: each flagged problem re-solved with
+    :data:`REFINE` by the staged programs of :func:`jtraj.solve`, warm-started at its
+    point (one compiled program whatever the number of flagged samples)."""
+    from .solver import staged as _staged
+    from .solver.core import resolve_method
+    from .solver.options import to_options
 
     tr = Transcription(cfg.transcription)
 
     def one(d, a):
-        ref = solve(eqx.combine(d, cfg.static), solver=REFINE, transcription=cfg.transcription, init=a)
+        problem = eqx.combine(d, cfg.static)
+        opts = resolve_method(to_options(REFINE), cfg.transcription, problem.robot, problem.jerk)
+        ref = _staged.solve(problem, opts, cfg.transcription, a, np.bool_(True), np.bool_(False))
         return _point(tr, ref) if bool(ref.converged) else a
 
     if not batch:

@@ -431,6 +431,7 @@ def test_traced_negative_weight_gives_invalid_input_and_nan_gradients(grads, bas
 DEFAULT_START, DEFAULT_GOAL = np.array((-0.9944, -0.6317, 0.7231)), np.array((-0.9287, -0.9564, 0.6696))
 
 
+@pytest.mark.slow  # (about 40 s: it compiles the default interior-point programs at N = 10)
 def test_converged_default_solve_gets_the_refined_optimums_derivative(monkeypatch, base):
     """``jax.grad`` through a converged default solve whose returned point does not give a
     valid derivative (the rule refines it: counted here) gives finite gradients equal to
