@@ -220,28 +220,26 @@ def prefetch(n: int) -> None:
 
 
 @contextlib.contextmanager
+def _flag(name: str):
+    before = getattr(_deferring, name, False)
+    setattr(_deferring, name, True)
+    try:
+        yield
+    finally:
+        setattr(_deferring, name, before)
+
+
 def deferred():
     """Within this context :func:`active` does not wait for a build in progress: it
     answers whether the kernel is built or being built (and has not failed). The caller
     must call :func:`available` for the kernels its program names before compiling it,
     and trace again where one is not available."""
-    before = getattr(_deferring, "on", False)
-    _deferring.on = True
-    try:
-        yield
-    finally:
-        _deferring.on = before
+    return _flag("on")
 
 
-@contextlib.contextmanager
 def without():
     """Within this context :func:`active` is False: a trace uses the XLA version."""
-    before = getattr(_deferring, "off", False)
-    _deferring.off = True
-    try:
-        yield
-    finally:
-        _deferring.off = before
+    return _flag("off")
 
 
 def _pending_or_built(n: int) -> bool:
