@@ -39,6 +39,14 @@ def test_status_record_and_table(tmp_path, monkeypatch):
     statuses, worst, effort = run_all.status_row("demo")
     assert statuses == "2 CONVERGED, 1 FEASIBLE_NOT_OPTIMAL"
     assert worst == "3.0e-07 (b)" and effort == "1.830 (a)"
+    # an infeasible run's effort between samples measures its violation: the column reads the
+    # feasible runs, and names an infeasible one only when no run is feasible
+    bad = run_all.status_record("d", _fake_solution(jtraj.Status.LIKELY_INFEASIBLE, 0.4))
+    bad["effort_between_samples"] = 1.4
+    run_all.write_status("demo2", runs + [bad], t_start=0.0)
+    assert run_all.status_row("demo2")[2] == "1.830 (a)"
+    run_all.write_status("demo3", [bad], t_start=0.0)
+    assert run_all.status_row("demo3")[2] == "1.400 (d, not feasible)"
     # a script without a record
     assert run_all.status_row("other") == ("no status reported", "-", "-")
     text = run_all.status_table(["demo", "other"], {"other": (12.0, "exit 0")})
@@ -204,3 +212,35 @@ def test_the_tip_path_names_via_points_once():
     fig = plot_path(problem, _recursion_solution(problem, v, jnp.full(8, 0.1)))
     texts = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert texts.count("via point") == 1, texts
+
+
+def test_intervals_solve_only_where_the_bound_is_exceeded_between_samples(monkeypatch):
+    """An optimum within its bound between samples needs no intervals solve (it is that
+    problem's optimum too); one beyond it gets a warm-started solve and a status record."""
+    robot = robots.get("serial3")
+    problem = jtraj.Problem(robot, jnp.zeros(3), jnp.asarray([0.02, -0.01, 0.03]), N=4)
+    v = jnp.asarray([[1.0, -0.5, 1.5], [0.5, 0.0, 0.5], [-0.5, 0.0, -0.5], [-1.0, 0.5, -1.5]])
+    from jtraj.resample import intersample_effort
+
+    calls = []
+
+    def fake_solve(pr, init=None, cache=None, key=None):
+        calls.append((pr, init))
+        sol = _recursion_solution(problem, init[0] / 4, init[1])
+        sol.update(T=jnp.sum(init[1]), status=np.int32(0), iterations=np.int32(3), outer_iterations=np.int32(0),
+                   max_violation={"overall": np.float64(1e-12)})
+        return sol, 1.0, 0.5, ["CONVERGED"]
+
+    monkeypatch.setattr(run_all, "solve_with_restart", fake_solve)
+    slow = _recursion_solution(problem, 0.1 * v, jnp.full(4, 0.2))
+    assert float(intersample_effort(slow, robot)) < 1
+    records = []
+    cell = run_all.intervals_cell(lambda: pytest.fail("no solve expected"), slow, robot, "slow", records)
+    assert cell.startswith("not needed") and records == [] and calls == []
+    fast = _recursion_solution(problem, 4.0 * v, jnp.full(4, 0.2))
+    fast.update(T=jnp.sum(fast.h))
+    assert float(intersample_effort(fast, robot)) > 1
+    cell = run_all.intervals_cell(lambda: "the intervals problem", fast, robot, "fast", records)
+    assert calls[0][0] == "the intervals problem" and calls[0][1][0] is fast.v and calls[0][1][1] is fast.h
+    assert [r["run"] for r in records] == ["fast, efforts=intervals"] and records[0]["status"] == "CONVERGED"
+    assert cell.startswith("T = 0.8000 s (+0.00 %), CONVERGED (3 Newton it., 0 outer, 0.50 s)")
