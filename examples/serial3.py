@@ -65,8 +65,8 @@ def fmt(x, d=4):
 def run_case(robot, problem, label):
     """Solve, +1.5 kg by sensitivity and by re-solve; returns a dict of results.
 
-    The first call compiles quick programs and the second the optimised ones (see the
-    performance guide), so the solve time is the third call's."""
+    The first call compiles (or loads) quick programs and the second the optimised ones
+    (see the performance guide), so the solve time is the third call's."""
     r = {}
     for key in ("t_first", "t_second", "t_solve"):
         t0 = time.perf_counter()
@@ -225,8 +225,9 @@ def main():
         ("bound imposed at both ends of every interval (`efforts=\"intervals\"`)", *both(lambda r: r["intervals"]),
          "-", "the thesis imposes the bound at the samples only; this is the motion that meets it everywhere"),
         ("CPU per solve [s]", *both(lambda r: f"{r['t_solve']:.2f}"), "540-780 (Matlab, PIII 1 GHz)",
-         f"compiled JAX on a shared 2-core machine, the third call; the first {A['t_first']:.0f} s and the second "
-         f"{A['t_second']:.0f} s include compilation (quick programs, then the optimised ones)"),
+         f"compiled JAX on a shared 2-core machine, the third call; the first call took {A['t_first']:.1f} s and "
+         f"the second {A['t_second']:.1f} s (they compile the quick and then the optimised programs, or load them "
+         f"from the compilation cache)"),
         ("third link +1.5 kg: open-loop tip error [m]", *both(lambda r: f"{r['open_loop_err']:.2e}"), "< 1e-3",
          "nominal optimal torques replayed on the heavier arm (no feedback, no re-optimisation); "
          "the thesis' 1e-3 m is for its re-planned trajectory, next row"),
