@@ -142,16 +142,24 @@ def ik(robot: Robot, p, q_init=None, *, method: str = "weighted", max_iter: int 
     return _ik(robot, p, q0, method, int(max_iter), *hyper)  # traced hyperparameters: one compile
 
 
+def box_centring(lim):
+    """(q_mid, W) of the null-space term ``-null_gain W (q - q_mid)`` that pulls a
+    redundant arm towards the middle of its joint box: W_i = min_j half_j^2 / half_i^2
+    (the gradient of ``sum ((q_i - q_mid,i) / half_i)^2`` scaled so that the narrowest
+    joint's weight is 1, see the module docstring), zero for a joint without finite limits."""
+    lo, hi = lim.q_min, lim.q_max
+    finite = jnp.isfinite(lo) & jnp.isfinite(hi)
+    mid = jnp.where(finite, 0.5 * (lo + hi), 0.0)
+    half2 = jnp.where(finite, (0.5 * (hi - lo)) ** 2, 1.0)
+    return mid, jnp.where(finite, jnp.min(jnp.where(finite, half2, jnp.inf)) / half2, 0.0)
+
+
 @eqx.filter_jit
 def _ik(robot, p, q0, method, max_iter, tol, damping, null_gain, null_tol, max_step, max_dq):
     lim = robot.limits
     has_box = lim.q_min is not None and lim.q_max is not None
     if has_box:
-        lo, hi = lim.q_min, lim.q_max
-        finite = jnp.isfinite(lo) & jnp.isfinite(hi)
-        mid = jnp.where(finite, 0.5 * (lo + hi), 0.0)
-        half2 = jnp.where(finite, (0.5 * (hi - lo)) ** 2, 1.0)
-        w = jnp.where(finite, jnp.min(jnp.where(finite, half2, jnp.inf)) / half2, 0.0)
+        mid, w = box_centring(lim)
 
     def residual(q):
         return p - robot.forward_kinematics(q)

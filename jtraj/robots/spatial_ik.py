@@ -42,7 +42,7 @@ from jaxtyping import Array
 
 from .._checks import is_concrete
 from ._base import Robot
-from .ik import NONFINITE, NOT_CONVERGED, STATUS, SUCCESS, check_array, default_q_init
+from .ik import NONFINITE, NOT_CONVERGED, STATUS, SUCCESS, box_centring, check_array, default_q_init
 
 
 class PoseIKResult(NamedTuple):
@@ -150,11 +150,7 @@ def _pose_ik(robot, p, R_t, q0, max_iter, tol, rot_tol, damping, null_gain, max_
     redundant = n > dim
     has_box = lim.q_min is not None and lim.q_max is not None
     if has_box:
-        lo, hi = lim.q_min, lim.q_max
-        finite = jnp.isfinite(lo) & jnp.isfinite(hi)
-        mid = jnp.where(finite, 0.5 * (lo + hi), 0.0)
-        half2 = jnp.where(finite, (0.5 * (hi - lo)) ** 2, 1.0)
-        w = jnp.where(finite, jnp.min(jnp.where(finite, half2, jnp.inf)) / half2, 0.0)
+        mid, w = box_centring(lim)
 
     def errors(q):
         e_p = p - robot.forward_kinematics(q)
