@@ -46,6 +46,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .lq import small_cho_solve
+
 
 #: points of the time-scaling grid for robots whose efforts are not homogeneous
 GRID = 32
@@ -105,7 +107,9 @@ def effort_step(robot, U, q0, qd0, q_goal, qd_goal, v, h, rho):
     the efforts linearised in ``v`` at the states of ``v`` (``tau_k ~ J_k v_k + c_k``,
     ``J_k = dtau/dv``), the goal's 2n linear equations kept exactly. The KKT system is
     block diagonal in the samples but for the 2n multipliers: N n x n solves and one
-    2n x 2n solve."""
+    2n x 2n solve, by unrolled Cholesky factorisations (both matrices are positive
+    definite: ``rho > 0``; on a CPU LAPACK's per-matrix calls cost several times more
+    for matrices this small)."""
     n = v.shape[1]
     A = terminal_rows(h)
     target = jnp.stack([qd_goal - qd0, q_goal - q0 - jnp.sum(h) * qd0])  # (2, n)
@@ -115,11 +119,13 @@ def effort_step(robot, U, q0, qd0, q_goal, qd_goal, v, h, rho):
     c = tau - jnp.einsum("kij,kj->ki", J, v)
     H = h[:, None, None] * (jnp.einsum("kji,jl,klm->kim", J, U, J) + rho * jnp.eye(n)[None])  # halved Hessian
     g = h[:, None] * (jnp.einsum("kji,jl,kl->ki", J, U, c) - rho * v)
-    Hinv = jnp.linalg.inv(H)
+    # the samples as trailing lane axes of small_cho_solve: Hinv (N, n, n)
+    eye = jnp.broadcast_to(jnp.eye(n, dtype=H.dtype)[:, :, None], (n, n, H.shape[0]))
+    Hinv = jnp.moveaxis(small_cho_solve(jnp.moveaxis(H, 0, -1), eye)[0], -1, 0)
     # v_k = -Hinv_k (g_k + sum_r A[r, k] lam_r); A v = target gives S lam = -A Hinv g - target
     Hg = jnp.einsum("kij,kj->ki", Hinv, g)
     S = jnp.einsum("rk,sk,kij->risj", A, A, Hinv).reshape(2 * n, 2 * n)
-    lam = jnp.linalg.solve(S, (-(A @ Hg) - target).reshape(2 * n)).reshape(2, n)
+    lam = small_cho_solve(S, (-(A @ Hg) - target).reshape(2 * n, 1))[0].reshape(2, n)
     return -Hg - jnp.einsum("kij,kj->ki", Hinv, A.T @ lam)
 
 
@@ -230,9 +236,7 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
     # positive definite whatever the energy weight
     u_scale = jnp.maximum(jnp.trace(U) / U.shape[0], 1e-12)
 
-    def candidate(q0, qd0, q_goal, qd_goal, v, h, step):
-        v = goal_projection(q0, qd0, q_goal, qd_goal, v, h)
-        v = jnp.where(step, effort_step(robot, U, q0, qd0, q_goal, qd_goal, v, h, rho * u_scale), v)
+    def candidate(q0, qd0, q_goal, qd_goal, v, h):
         if homogeneous:
             # the scaled plan's states and efforts follow from the unscaled ones: same q,
             # qd / s, tau / s^2 (exact, up to rounding; the tests re-verify them)
@@ -248,10 +252,13 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
 
     def repair(q0, qd0, q_goal, qd_goal, v, h):
         h = jnp.clip(h, h_min, h_max)
-        hs = jnp.stack([h, jnp.full_like(h, jnp.mean(h))] * (2 if effort else 1))
-        steps = jnp.array([False, False, True, True] if effort else [False, False])
-        out = jax.vmap(candidate, in_axes=(None, None, None, None, None, 0, 0))(q0, qd0, q_goal, qd_goal, v, hs,
-                                                                               steps)
+        hs = jnp.stack([h, jnp.full_like(h, jnp.mean(h))])
+        vs = jax.vmap(goal_projection, in_axes=(None, None, None, None, None, 0))(q0, qd0, q_goal, qd_goal, v, hs)
+        if effort:  # the effort steps from the two projections: four candidates
+            step = jax.vmap(effort_step, in_axes=(None, None, None, None, None, None, 0, 0, None))
+            vs = jnp.concatenate([vs, step(robot, U, q0, qd0, q_goal, qd_goal, vs, hs, rho * u_scale)])
+            hs = jnp.concatenate([hs, hs])
+        out = jax.vmap(candidate, in_axes=(None, None, None, None, 0, 0))(q0, qd0, q_goal, qd_goal, vs, hs)
         cost, viol = out[5], out[7]
         ok = viol <= 1e-9
         i = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
