@@ -84,6 +84,37 @@ class Plan(NamedTuple):
     ood: jax.Array
 
 
+def _packed(core, n: int):
+    """``(flat, flat_batch, unpack)`` for ``core(q_start, q_goal) -> Plan``: jitted functions
+    returning the plan (of one pair, or of a (B, n) batch) as one float array, and the
+    host function rebuilding the :class:`Plan` of NumPy arrays from it. A jitted call
+    pays for each output buffer it returns; a Plan has twenty, which on a CPU cost more
+    than a single plan's arithmetic."""
+    dtype = jnp.asarray(0.0).dtype
+    spec = jax.ShapeDtypeStruct((n,), dtype)
+    leaves = jax.tree.leaves(jax.eval_shape(core, spec, spec))
+    ends = np.cumsum([int(np.prod(x.shape, dtype=int)) for x in leaves])
+    # (slice, shape, dtype or None where the float value is already the field's)
+    fields = [(slice(int(e - np.prod(x.shape, dtype=int)), int(e)), x.shape, None if x.dtype == dtype else x.dtype)
+              for x, e in zip(leaves, ends)]
+
+    def flat(qs, qg):
+        return jnp.concatenate([jnp.ravel(x).astype(dtype) for x in jax.tree.leaves(core(qs, qg))])
+
+    def flat_batch(qs, qg):
+        out = jax.tree.leaves(jax.vmap(core)(qs, qg))
+        return jnp.concatenate([x.reshape(x.shape[0], -1).astype(dtype) for x in out], axis=1)
+
+    def unpack(values) -> Plan:
+        values = np.asarray(values)
+        lead = values.shape[:-1]
+        flat = values.reshape(-1, values.shape[-1])  # (1 or B, size): plain slices, no Ellipsis
+        out = [flat[:, sl].reshape(lead + shape) for sl, shape, _ in fields]
+        return Plan._make(x if d is None else x.astype(d) for x, (_, _, d) in zip(out, fields))
+
+    return jax.jit(flat), jax.jit(flat_batch), unpack
+
+
 def _load(model):
     from jtraj import anfis
 
@@ -196,8 +227,11 @@ class Planner:
         self.tol, self.goal_tol, self.correct, self.effort = float(tol), float(goal_tol), correct, effort
         self._coverage()
         core = self._core()
+        # device arrays, for use inside other jitted code
         self._plan = jax.jit(core)
         self._plan_batch = jax.jit(jax.vmap(core))
+        # what plan() runs: one output buffer, NumPy arrays on the host
+        self._flat, self._flat_batch, self._unpack = _packed(core, self.n)
 
     def _coverage(self):
         from . import coverage
@@ -303,11 +337,11 @@ class Planner:
         return qs, qg
 
     def plan(self, q_start, q_goal) -> Plan:
-        """The plan and its report (one jitted call). ``q_start``, ``q_goal``: ``(n,)``, or
-        ``(B, n)`` for a batch (every field of the Plan then has a leading B axis).
-        ``ValueError`` where they are not finite numbers of those shapes."""
+        """The plan and its report (one jitted call), as NumPy arrays. ``q_start``,
+        ``q_goal``: ``(n,)``, or ``(B, n)`` for a batch (every field of the Plan then has a
+        leading B axis). ``ValueError`` where they are not finite numbers of those shapes."""
         qs, qg = self._inputs(q_start, q_goal)
-        return self._plan(qs, qg) if qs.ndim == 1 else self._plan_batch(qs, qg)
+        return self._unpack(self._flat(qs, qg) if qs.ndim == 1 else self._flat_batch(qs, qg))
 
     def check(self, q_start, q_goal) -> None:
         """``ValueError`` where ``q_start`` or ``q_goal`` is not what ``jtraj.Problem``

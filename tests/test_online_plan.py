@@ -237,6 +237,12 @@ def test_planner_batch_plans_re_verified(planner_and_data, tmp_path):
         # one query equals its row of the batch
         p1 = planner.plan(qs[i], qg[i])
         np.testing.assert_allclose(np.asarray(p1.v), np.asarray(pb.v[i]), rtol=1e-12, atol=1e-12)
+    # plan() returns through one packed buffer: field by field the jitted Plan's, dtypes kept
+    for packed, direct in ((pb, planner._plan_batch(jnp.asarray(qs), jnp.asarray(qg))),
+                           (planner.plan(qs[0], qg[0]), planner._plan(jnp.asarray(qs[0]), jnp.asarray(qg[0])))):
+        for name, a, b in zip(packed._fields, packed, direct):
+            assert isinstance(a, np.ndarray) and a.dtype == b.dtype and a.shape == b.shape, name
+            np.testing.assert_array_equal(a, np.asarray(b), err_msg=name)
     # without the least-effort candidates: feasible too, never cheaper (fewer candidates)
     from jtraj.online import Planner
 
