@@ -328,7 +328,8 @@ def main():
          f"imposed to {VIA_TOL:g} m, verified within that + 1e-6 m (verify_tol, absolute; re-simulated); "
          f"status {status_text(sp, t_p)}; tries (default options, "
          f"then warm re-solves from the result): {'; '.join(ptries)}"),
-        ("platform 200 -> 300 kg: T [s]", f"{T:.3f} -> {float(sh.T):.3f} ({100 * (float(sh.T) / T - 1):+.1f} %)",
+        ("platform 200 -> 300 kg (Fig. 4.10; its caption says 30.0 kg, the text 300 kg): T [s]",
+         f"{T:.3f} -> {float(sh.T):.3f} ({100 * (float(sh.T) / T - 1):+.1f} %)",
          "studied, numbers not printed",
          f"re-solve warm-started from the 200 kg optimum: {status_text(sh, t_h)} (tries {' -> '.join(htries)}); "
          f"cold start: {jtraj.Status(int(sh_cold.status)).name}, T = {float(sh_cold.T):.3f} s"),
