@@ -113,7 +113,8 @@ def intervals_check(designs: dict, tips) -> tuple[str, list[dict]]:
                      f"effort between samples is {between.max():.3f} of the bound)")
     (a, ta), (b, tb) = means.items()
     return ("With the bound at both ends of every interval (`efforts=\"intervals\"`, warm-started): "
-            + "; ".join(parts) + f". {a} against {b}: {ta - tb:+.4f} s ({100 * (ta / tb - 1):+.2f} %).", records)
+            + "; ".join(parts) + f". {a[0].upper() + a[1:]} against {b}: {ta - tb:+.4f} s "
+            f"({100 * (ta / tb - 1):+.2f} %).", records)
 
 
 def mean_time(lengths, tips, init=None):

@@ -470,12 +470,16 @@ def _write_table(text: str) -> None:
                   "in each status, the largest re-simulated violation (relative for bounds) and the largest "
                   "actuator effort between samples over its bound among the feasible runs (`intersample_effort`; "
                   "above 1 means the constant-acceleration motion exceeds the bound between samples although the "
-                  "samples meet it). Where an optimum exceeds it, its script also solves the problem with the bound "
-                  "at both ends of every interval (`efforts=\"intervals\"`, runs named so); where an optimum "
-                  "stays within it, it meets the bound everywhere and is therefore the intervals optimum too, so "
-                  "no such solve is needed. The exceptions are stated in their sections: the neuro-fuzzy "
-                  "training sets and the inverse problems' observations are solved as the thesis does, with the "
-                  "bound at the samples."
+                  "samples meet it). Where an experiment's main optimum exceeds it, its script also solves the "
+                  "problem with the bound at both ends of every interval (`efforts=\"intervals\"`, runs named "
+                  "so: serial3, serial3_lines, serial3_vertical, ibm7535's decoupled transcription, parallel3, wmr, "
+                  "gough_stewart, design_by_gradient); an optimum within it meets the bound everywhere and is "
+                  "therefore the intervals optimum too. Bounding the ends of the intervals does not bound their "
+                  "interiors, so such a run can still exceed the bound slightly between samples (parallel3 at "
+                  "mu >= 0.75). Not re-solved so: re-solves and variants of a main run (the +1.5 kg re-solves; "
+                  "ibm7535's other transcriptions, whose section slows each path until it meets the bound "
+                  "instead), the observations of the inverse problems (the data being fitted) and the "
+                  "neuro-fuzzy training sets."
                   "\n\n" + text)
 
 
