@@ -2,7 +2,8 @@
 jerk rows a batch's problems carry are the robot's default on its concrete limits (the
 Panda's published limits imply its jerk bound, so neither carries them and the
 interior-point method solves both), and (slow) ``solve_batch`` on Panda pairs takes the
-iterations and reaches the costs of ``jtraj.solve`` on each."""
+iterations and reaches the costs of ``jtraj.solve`` on each, also on pairs of the panda
+dataset's family that the interior-point method finishes without the AL loop."""
 
 import equinox as eqx
 import jax
@@ -74,5 +75,28 @@ def test_panda_batch_equals_single_solves():
     assert np.asarray(batch.converged).all(), np.asarray(batch.status)
     assert "jerk" not in batch.max_violation  # no jerk rows: the Panda's limits imply them
     assert all(bool(s.converged) for s in singles)
+    np.testing.assert_array_equal(np.asarray(batch.iterations), [int(s.iterations) for s in singles])
+    np.testing.assert_allclose(np.asarray(batch.cost), [float(s.cost) for s in singles], rtol=1e-9)
+
+
+@pytest.mark.slow
+def test_panda_dataset_pairs_finish_in_the_interior_point_method():
+    """Pairs of the panda dataset's family (``jtraj dataset --robot panda``: moves up to
+    0.8 rad per joint, periods up to 0.2 s) whose violation stays above 1 for a while
+    (pairs 0 and 5 of seed 0) finish solved in the interior-point method with the
+    Gauss-Newton model, without the AL loop (``outer_iterations`` 0), and the batch and
+    the single solves agree."""
+    from jtraj import dataset
+    from jtraj.dataset import sampling
+
+    spec = dataset.make_spec("panda", 16, 0, N=40, batch=4)
+    robot = spec.robot_model()
+    q0, q1 = sampling.sample_pairs(robot, spec.distribution, 0, 0, 16)
+    q0, q1 = q0[[0, 5]], q1[[0, 5]]
+    singles = [jtraj.solve(jtraj.Problem(robot, a, b, N=40, weights=spec.weights_obj())) for a, b in zip(q0, q1)]
+    for s in singles:
+        assert bool(s.converged), s.status_message
+        assert int(s.outer_iterations) == 0 and int(s.iterations) <= 100
+    batch = jtraj.solve_batch(robot, q0, q1, N=40, weights=spec.weights_obj(), slots=2)
     np.testing.assert_array_equal(np.asarray(batch.iterations), [int(s.iterations) for s in singles])
     np.testing.assert_allclose(np.asarray(batch.cost), [float(s.cost) for s in singles], rtol=1e-9)
