@@ -3,6 +3,7 @@
     python benchmarks/bench_spatial.py [--pairs 64] [--batch 32] [--seed 0] [--N 40]
                                        [--latency-pairs 4] [--workers W] [--peer-jerk off|auto]
                                        [--first-solution] [--json out.json]
+    python benchmarks/bench_spatial.py --dataset [--pairs 64] [--batch 32] [--ipopt-pairs 8] [--json out.json]
 
 Problem family: ``jtraj.robots.get("panda")``, N = 40, weights time 1 / energy 0.1,
 q_start uniform in the middle 60 % of each joint range, q_goal = q_start + U(-0.5, 0.5)
@@ -18,7 +19,8 @@ success is re-simulated from its own (v, h) and checked with Pinocchio
 process per core; jtraj vmapped batches, one process pinned per core), warm single
 solve (both in one pinned process, alternating pair by pair), and with
 ``--first-solution`` the time from a fresh interpreter to the first solution of each.
-Ratios > 1 mean jtraj is ahead.
+Ratios > 1 mean jtraj is ahead. ``--dataset``: ``jtraj dataset --robot panda`` end to end
+against the IPOPT loop on a subset of the same pairs instead (:func:`dataset_run`).
 """
 
 from __future__ import annotations
@@ -90,14 +92,15 @@ def peer_spec(lim: dict, jerk: bool):
     return model, spec
 
 
-def jtraj_starts(q0, q1, N):
-    """jtraj's starting points (its default guess) for the pairs, as (v, h) arrays."""
+def jtraj_starts(q0, q1, N, robot=None):
+    """jtraj's starting points (its default guess) for the pairs, as (v, h) arrays
+    (``robot``: default ``jtraj_panda()``)."""
     import equinox as eqx
 
     import jtraj
     from jtraj.initial_guess import GUESSES
 
-    robot = jtraj_panda()
+    robot = jtraj_panda() if robot is None else robot
     guess = GUESSES[jtraj.SolverOptions().guess]
     v, h = eqx.filter_jit(eqx.filter_vmap(lambda a, b: guess(jtraj.Problem(robot, a, b, N=N, validate=False))))(
         np.asarray(q0, float), np.asarray(q1, float))
@@ -204,6 +207,87 @@ def first_solution(N, seed, lim, jerk):
     return out
 
 
+def dataset_run(pairs, batch, seed, N, workers, ipopt_pairs, jerk):
+    """``jtraj dataset --robot panda`` end to end against the IPOPT loop on the same pairs.
+
+    The dataset (:func:`jtraj.dataset.make_spec`: joint-space sampling, weights time 1 /
+    energy 0.1, the dataset's period bound ``h_max="auto"``) is built three times into a
+    temporary folder by ``workers`` pinned processes: once untimed (every program its
+    chunks need compiled into the persistent cache: ``cold_build_s``), then timed, first
+    ``workers`` chunks (``first_chunks_s``, worker start-up included) and the rest by
+    resuming the same dataset (``resume_s``). The end-to-end pairs/s is ``pairs`` over
+    the two timed parts; the resumed dataset must equal the untimed one. The IPOPT loop
+    (:func:`jtraj_peers.ipopt_arm.solve_many`, one process per core, NLP built once per
+    process, not timed) solves the first ``ipopt_pairs`` pairs of the same dataset with
+    the same limits from jtraj's starting points; both sides' solutions of those pairs
+    are re-simulated and checked with Pinocchio."""
+    import tempfile
+
+    from jtraj import dataset
+    from jtraj_peers.ipopt_arm import solve_many
+    from jtraj_peers.verify_arm import verify
+
+    spec = dataset.make_spec("panda", pairs, seed, N=N, batch=batch)
+    robot = spec.robot_model()
+    lim = _limits(robot)
+    with tempfile.TemporaryDirectory(prefix="bench_spatial_dataset_") as tmp:
+        cold_dir, out = os.path.join(tmp, "cold"), os.path.join(tmp, "d")
+        t0 = time.perf_counter()
+        dataset.build(spec, cold_dir, progress=False, workers=workers)
+        cold = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        dataset.build(spec, out, progress=False, max_chunks=workers, workers=workers)
+        first = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        resumed = dataset.build(spec, out, progress=False, workers=workers)
+        rest = time.perf_counter() - t0
+        data, ref = dataset.load(out), dataset.load(cold_dir)
+        keys = ("q_start", "q_goal", "v", "h", "cost", "converged", "status", "iterations")
+        d = {k: np.asarray(data[k]).copy() for k in keys}
+        same = all(np.array_equal(d[k], np.asarray(ref[k])) for k in keys)
+    jt_thr = pairs / (first + rest)
+    M = min(ipopt_pairs, pairs)
+    q0, q1 = d["q_start"][:M], d["q_goal"][:M]
+    model, pspec = peer_spec(lim, jerk)
+    ip = solve_many(pspec, q0, q1, N=N, weights=PEER_WEIGHTS, inits=jtraj_starts(q0, q1, N, robot))
+    ip_thr = len(ip) / ip.wall_seconds
+    kw = dict(tau_max=lim["tau_max"], qd_max=lim["qd_max"], qdd_max=lim["qdd_max"], q_min=lim["q_min"],
+              q_max=lim["q_max"], h_min=lim["h_min"], h_max=lim["h_max"], weights=PEER_WEIGHTS, tol=1e-6)
+    ip_ver = np.array([r["success"] and verify(model, a, b, r["v"], r["h"], **kw)["ok"] for a, b, r in zip(q0, q1, ip)])
+    jt_conv = d["converged"][:M].astype(bool)
+    jt_ver = np.array([verify(model, a, b, v, h, **kw)["ok"] for a, b, v, h in zip(q0, q1, d["v"][:M], d["h"][:M])])
+    ip_cost = np.array([r["cost"] for r in ip])
+    both = jt_conv & jt_ver & ip_ver
+    gap = (d["cost"][:M] - ip_cost) / ip_cost
+    report = {
+        "pairs": pairs, "N": N, "batch": spec.batch, "workers": workers, "h_max": lim["h_max"],
+        "distribution": spec.distribution.describe(),
+        "cold_build_s": cold, "first_chunks_s": first, "resume_s": rest, "resumed_pairs": resumed["new_pairs"],
+        "resume_pairs_per_s": resumed["pairs_per_s"], "jtraj_pairs_per_s": jt_thr,
+        "resumed_equals_untimed_build": bool(same),
+        "converged": int(d["converged"].sum()), "iterations_median": float(np.median(d["iterations"])),
+        "ipopt_pairs": M, "ipopt_processes": ip.processes, "ipopt_pairs_per_s": ip_thr,
+        "ipopt_build_s_per_worker": ip.setup_seconds, "ratio": jt_thr / ip_thr,
+        "ipopt_verified": int(ip_ver.sum()), "jtraj_verified_converged_subset": int((jt_conv & jt_ver).sum()),
+        "jtraj_false_converged_subset": int(np.sum(jt_conv & ~jt_ver)),
+        "cost_gap_pct_median_both": float(100 * np.median(gap[both])) if both.any() else None,
+        "cost_gap_pct_max_both": float(100 * gap[both].max()) if both.any() else None,
+        "projected_1000_pairs_s": 1000 / jt_thr, "ipopt_projected_1000_pairs_s": 1000 / ip_thr,
+    }
+    print(f"  dataset, {pairs} pairs (batch {spec.batch}, {workers} workers, N = {N}, h_max {lim['h_max']:g} s): "
+          f"converged {report['converged']}/{pairs}; untimed build {cold:.1f} s (compilation included); timed "
+          f"{first:.1f} s (first {workers} chunks) + {rest:.1f} s (resumed, {resumed['new_pairs']} pairs) -> "
+          f"{jt_thr:.3f} pairs/s end to end; resumed build equals the untimed one: {same}")
+    print(f"  IPOPT loop on the first {M} pairs: {ip_thr:.3f} pairs/s on {ip.processes} processes "
+          f"(verified {report['ipopt_verified']}/{M}; jtraj verified {report['jtraj_verified_converged_subset']}/{M}, "
+          f"false converged {report['jtraj_false_converged_subset']}) -> ratio {report['ratio']:.2f}x")
+    if both.any():
+        print(f"  cost gap where both succeed ({both.sum()} pairs): median {report['cost_gap_pct_median_both']:+.4f} %, "
+              f"max {report['cost_gap_pct_max_both']:+.4f} %")
+    print(f"  projected 1,000 pairs: jtraj {1000 / jt_thr / 60:.1f} min, IPOPT loop {1000 / ip_thr / 60:.1f} min")
+    return report
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", type=int, default=64)
@@ -217,6 +301,10 @@ def main(argv=None):
                          "has jerk limits; use it only where jtraj's transcription bounds the jerk in that same "
                          "form, otherwise the two NLPs differ (default off)")
     ap.add_argument("--first-solution", action="store_true", help="also time a fresh process to a first solution")
+    ap.add_argument("--dataset", action="store_true",
+                    help="instead: a panda dataset of --pairs pairs (jtraj dataset) against the IPOPT loop on its first "
+                         "--ipopt-pairs pairs (dataset_run)")
+    ap.add_argument("--ipopt-pairs", type=int, default=8, help="with --dataset: pairs the IPOPT loop solves")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
 
@@ -228,6 +316,15 @@ def main(argv=None):
     workers = args.workers or available_cpus()
     lim = _limits(robot)
     jerk = args.peer_jerk == "auto" and lim["qddd_max"] is not None
+    if args.dataset:
+        print(f"panda dataset, N = {args.N}, weights time=1 energy=0.1, seed {args.seed}, "
+              f"os.cpu_count() = {os.cpu_count()}, peer jerk bound: {'on' if jerk else 'off'}")
+        report = {"robot": "panda", "dataset": dataset_run(args.pairs, args.batch, args.seed, args.N, workers,
+                                                           args.ipopt_pairs, jerk)}
+        if args.json:
+            with open(args.json, "w") as f:
+                json.dump(report, f, indent=2)
+        return report
     model, spec = peer_spec(lim, jerk)
     q0, q1 = panda_pairs(args.pairs, args.seed, lim["q_min"], lim["q_max"])
     print(f"panda, N = {args.N}, weights time=1 energy=0.1, {args.pairs} pairs (seed {args.seed}), "

@@ -17,6 +17,7 @@ from .solver.al import (ALMethod, ALState, al_finished, al_loop, held_bounds, in
 from .solver.al import _TRIAL_SHIFT as TRIAL_SHIFT
 from .solver.al import _TRIAL_STEP as TRIAL_STEP
 from .solver.api import _guess_batch_jit as guess_batch_jit
+from .solver.api import _problems_jit as problems_jit
 from .solver.certify import (al_kkt_error, estimate_multipliers, final_polish, init_multipliers,
                              kkt_error, ls_multipliers)
 from .solver.certify import _polish as polish
@@ -80,7 +81,7 @@ __all__ = ["ALMethod", "ALState", "IPM_ALPHAS", "IPM_RHO_E", "IPM_SHIFT_LADDER",
            "ipm_flat", "ipm_ladder_directions", "ipm_ladder_directions_xla", "ipm_model", "ipm_parts",
            "ipm_shorter_trials", "ipm_trial", "ipm_with_rhs", "kink_curvature", "kkt_error", "lane_programs",
            "ls_multipliers", "mass_matrix_mechanism", "native_compiler", "next_inner_tol", "pbm", "pbm_phi",
-           "pbm_slope", "phr", "placeholder_init", "polish", "prefix_sums", "prepare", "prepare_batch_jit",
+           "pbm_slope", "phr", "placeholder_init", "polish", "prefix_sums", "prepare", "prepare_batch_jit", "problems_jit",
            "resolve_method", "restart_state", "run_al", "run_with_restart", "segment_jit", "setup_state",
            "solve_batch_jit", "solve_jit", "solve_problems", "split_options", "staged", "staged_al_jit",
            "stage_axes", "stage_mult", "staged_ip_jit", "staged_start", "stagewise_directions", "static_options", "suffix_sums", "violation",

@@ -164,18 +164,21 @@ def _guess_batch_jit(problems, opts, transcription):
     return eqx.filter_vmap(lambda p: initial_guess(p, opts, tr))(problems)
 
 
-def _problem(robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts) -> Problem:
+def _problem(robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts, jerk) -> Problem:
     return Problem(robot, q_start, q_goal, N=N, weights=weights, qd_start=qd_start, qd_goal=qd_goal, T_max=T_max,
-                   efforts=efforts, validate=False)
+                   efforts=efforts, jerk=jerk, validate=False)
 
 
 @_jit
-def _problems_jit(robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts):
+def _problems_jit(robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts, jerk):
     """:class:`Problem` per sample of a batch, as one program (built eagerly under vmap,
     each of its operations was a program of its own: a dozen compiled at a process's
-    first batch)."""
-    return eqx.filter_vmap(_problem, in_axes=(None, 0, 0, 0, 0, 0, None, None, None))(
-        robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts)
+    first batch). ``jerk`` (a Python bool, the robot's :func:`jtraj.problem.default_jerk`
+    on its concrete limits): inside the trace the limits are tracers, on which the
+    default would always add the jerk rows, and the method chosen for the batch (the
+    interior-point method where they are off) would then run on rows it does not model."""
+    return eqx.filter_vmap(_problem, in_axes=(None, 0, 0, 0, 0, 0, None, None, None, None))(
+        robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts, jerk)
 
 
 def solve_batch(problem, q_start=None, q_goal=None, *, N: int | None = None, weights: Weights | None = None,
@@ -291,7 +294,7 @@ def solve_batch(problem, q_start=None, q_goal=None, *, N: int | None = None, wei
     _kkt_native.prefetch(robot.n)  # the native kernel's build runs while the solver is traced
 
     def make(a, b, c, d, t):
-        return _problem(robot, a, b, c, d, t, N, weights, efforts)
+        return _problem(robot, a, b, c, d, t, N, weights, efforts, jerk)
 
     if slots == "auto":
         slots = cpu_lanes(N * (n + 1)) if jax.default_backend() == "cpu" else 1024
@@ -304,7 +307,7 @@ def solve_batch(problem, q_start=None, q_goal=None, *, N: int | None = None, wei
     _resources.check(N, n, B, lanes=slots or B)  # ValueError naming N or B beyond the memory limit
     # (inside another trace: the programs without their XLA options, see jtraj._compile.nested_jit)
     problems = (nested_jit(_problems_jit) if traced else _problems_jit)(
-        robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts)
+        robot, q_start, q_goal, qd_start, qd_goal, T_max, N, weights, efforts, jerk)
     warm = init is not None
     if init is None:
         # non-finite samples get a finite placeholder guess; they are flagged invalid
