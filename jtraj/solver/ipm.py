@@ -390,6 +390,15 @@ def _errors(nlp, st: IPState, g_lag, p: _Pieces, mu, parts=False):
     comp = jnp.maximum(comp, jnp.max(jnp.where(has_lo, jnp.abs(dl * st.zl - mu), 0.0)))
     comp = jnp.maximum(comp, jnp.max(jnp.where(has_hi, jnp.abs(du * st.zu - mu), 0.0)))
     if parts:
+        # the parts' test stands in for the verification, which reads the goal velocity
+        # unscaled: its rows (divided by qd_max) count max(1, qd_max / 2) times, so that
+        # ``primal = verify_tol / 2`` keeps |qd_N - qd_goal| within verify_tol whatever
+        # qd_max (a panda joint's 2.61 rad/s let 1.005e-6 through); 1 up to 2 rad/s
+        qd_max = nlp.problem.robot.limits.qd_max
+        if qd_max is not None:
+            n = p.e.shape[0] // 2
+            factor = jnp.concatenate([jnp.ones(n, p.e.dtype), jnp.maximum(1.0, jnp.broadcast_to(qd_max, (n,)) / 2)])
+            prim = jnp.maximum(prim, jnp.max(jnp.abs(p.e) * factor))
         return jnp.max(jnp.abs(rd)) / s_d, prim, comp / s_d
     return jnp.maximum(jnp.maximum(jnp.max(jnp.abs(rd)) / s_d, prim), comp / s_d)
 
