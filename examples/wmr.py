@@ -101,6 +101,11 @@ def main():
         ("status", status_text(sol, t_last) + "; tries " + " -> ".join(tries), "-",
          f"default solver options from the cycloidal guess (straight line through the obstacles), then warm "
          f"re-solves from the result while not certified; first call {t_first:.0f} s incl. compilation"),
+        ("parameters; solve time", f"{N * (robot.n + 1)} ({N} intervals x ({robot.n} accelerations + 1 period)); "
+         f"{t_last:.0f} s (the last try), {t_first:.0f} s for the first incl. compilation",
+         "10 (6 path control points + 4 time-profile points); 4 min",
+         "not comparable: another parameterisation (a path spline and a time profile against jtraj's samples), "
+         "another solver (simulated annealing) and another machine"),
         ("bang-bang time of the obstacle-free straight line [s]", f"{T_free:.2f}", "-",
          f"{straight:.2f} m at the acceleration of both wheels at +-{tau_max[0]:g} N m "
          f"({a_max:.3f} m/s^2); the obstacles cost {T - T_free:+.2f} s"),
