@@ -235,6 +235,7 @@ def _fd_part(args, jtraj, robot, w, tight, kinds, figures, dump):
     chosen = {int(x) for x in args.pairs_list.split(",") if x.strip()} or set(range(args.fd_pairs))
     # (the kinds not run keep their figures of an earlier run: each kind records its own tolerance)
     fig = {"pairs": args.fd_pairs, "pairs_list": sorted(chosen), "steps": steps.tolist(), "tol": args.tol,
+           "direction_seeding": "per (seed, kind, pair)",
            "kinds": dict(figures.get("fd", {}).get("kinds", {})),
            "load_average": os.getloadavg()[0]}  # (the date goes beside the table on docs/benchmarks.md)
     for kind in kinds:
@@ -337,7 +338,8 @@ def _fd_part(args, jtraj, robot, w, tight, kinds, figures, dump):
                 counts["resolve_failed"] += 1
             rows.append(row)
         res = {"counts": counts, "seconds": time.perf_counter() - tk, "resolve_seconds": t_solve,
-               "resolves": len(shifted), "tol": args.tol, "resolves_kkt_max": float(np.max(np.where(ok, kkt, 0.0))), "rows": rows}
+               "resolves": len(shifted), "tol": args.tol, "direction_seeding": fig["direction_seeding"],
+               "resolves_kkt_max": float(np.max(np.where(ok, kkt, 0.0))), "rows": rows}
         for o in ("T", "cost"):
             rs = [r[o] for r in rows if r[o] is not None]
             same = [r for r in rs if not r["moved"]]
