@@ -72,13 +72,51 @@ def _directions(fd, seed, kinds, sizes):
     return dirs
 
 
+def _reference(r):
+    """bench_grad's choice of the reference among the Richardson estimates ``r["richardson"]``
+    (T): where two successive ones agree best; returns (estimate, uncertainty) or None."""
+    R = np.asarray(r["richardson"], float)[:, 0]
+    usable = [j for j in range(len(R) - 1) if np.isfinite(R[j]) and np.isfinite(R[j + 1])]
+    if not usable:
+        return None
+    spread = [abs(R[j] - R[j + 1]) for j in usable]
+    j = usable[int(np.argmin(spread))]
+    return R[j], min(spread)
+
+
+def table(out, tols):
+    """The markdown table of the cases (docs/benchmarks.md)."""
+    lines = ["", "| case (kind: pair) | run's error / uncertainty | dT*: stage-wise vs dense LU | base at 1e-12: "
+             "KKT error | " + " | ".join(f"re-solves at {t:g}: error / uncertainty" for t in tols)
+             + " | active set differs |", "|---" * (5 + len(tols)) + "|"]
+    for name, row in out["cases"].items():
+        jT, jd = row["jvp"][0], row["jvp_dense"][0]
+        cells = []
+        moved = False
+        for t in tols:
+            r = row[f"resolves_{t:g}"]
+            moved |= any(any(i["active_set_differs"]) for i in r["resolves"])
+            ref = _reference(r)
+            cells.append("n/a" if ref is None else f"{abs(ref[0] - jT) / max(abs(ref[0]), 1e-6):.1e} / "
+                         f"{ref[1] / max(abs(ref[0]), 1e-6):.1e}")
+        rec = row["recorded_T"]
+        lines.append(f"| {name.replace(':', ': ')} | {rec['error']:.1e} / {rec['uncertainty']:.1e} | "
+                     f"{abs(jT - jd) / abs(jd):.0e} | {row['base_1e-12']['kkt_error']:.0e} | " + " | ".join(cells)
+                     + f" | {'yes' if moved else 'no'} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", default=os.path.join(HERE, "figures", "grad.json"))
     ap.add_argument("--cases", default="", help="kind:pair,... (default: the misses, see above)")
     ap.add_argument("--tols", default="1e-10,1e-12")
     ap.add_argument("--out", default=os.path.join(HERE, "figures", "grad_recheck.json"))
+    ap.add_argument("--table", action="store_true", help="print the table of the figures in --out and exit")
     args = ap.parse_args(argv)
+    if args.table:
+        print(table(json.load(open(args.out)), [float(t) for t in args.tols.split(",")]))
+        return
 
     import jax
 
