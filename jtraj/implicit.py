@@ -82,10 +82,17 @@ concrete values; inside a trace the derivative stays invalid).
 Failures are never silent. A derivative is valid where the solve converged
 (``Status.CONVERGED``), the active set fits (``r`` slots) and the KKT system is
 regular (as its solve above tests it), at the returned point or at its refinement.
-Elsewhere a single solve's tangents and gradients are NaN (``on_failure="nan"``, the default) or the solve raises at run time when it is
-differentiated (``on_failure="raise"``, through ``equinox.error_if``: inside ``jit`` too,
-as an ``XlaRuntimeError``/``EquinoxRuntimeError``); in a batch each invalid sample's
-derivative is zero, its status says why, and :func:`valid_derivatives` gives the mask.
+Elsewhere a single solve's tangents and gradients are NaN (``on_failure="nan"``, the
+default) or the solve raises at run time when it is differentiated
+(``on_failure="raise"``, through ``equinox.error_if``: inside ``jit`` too, as an
+``XlaRuntimeError``/``EquinoxRuntimeError``); in a batch each invalid sample's
+derivative is zero. The status says why: a solve that did not converge keeps its own
+code, and a differentiated solve that converged but whose derivative is not valid
+reports ``Status.CONVERGED_NO_DERIVATIVE`` (its primal values are the converged
+solve's, ``converged`` stays True); :func:`valid_derivatives` (status ``CONVERGED``)
+gives the mask. The code is part of the rule's primal output, so only a solve that is
+differentiated (``grad``, ``jvp``, ``vjp``, ...) reports it: an undifferentiated solve
+never checks its derivative.
 
 Static structure (N, the transcription, ``efforts``, the robot's type, the options) is
 not differentiable; a traced value where a static one is expected raises a ``ValueError``
@@ -133,10 +140,12 @@ _ON_FAILURE = ("nan", "raise", "zero")
 
 
 def valid_derivatives(solution) -> jax.Array:
-    """The boolean mask of the solutions whose derivatives are valid: those that
-    converged (``Status.CONVERGED``). A single solution gives a 0-d mask, a batch one
-    entry per sample. Derivatives of the other samples are zero in a batch and NaN (or
-    an error, see ``on_failure``) for a single solve."""
+    """The boolean mask of the solutions whose derivatives are valid: those whose status
+    is ``Status.CONVERGED``. A differentiated solve reports a converged solution whose
+    derivative is not valid (after refinement) ``Status.CONVERGED_NO_DERIVATIVE``, so the
+    mask is False there too. A single solution gives a 0-d mask, a batch one entry per
+    sample. Derivatives of the other samples are zero in a batch and NaN (or an error,
+    see ``on_failure``) for a single solve."""
     return jnp.asarray(solution.status) == 0
 
 
@@ -413,11 +422,10 @@ def _primal_batch(cfg: _Config, dyn, init):
 
 def _tangent_solution(cfg: _Config, dyn, ddyn, sol, at, method=None):
     """The Solution-shaped tangent of one solve (floats everywhere, see _to_float) at the
-    point ``at`` = (u, h), and whether it is valid (``method``: default KKT_SOLVE)."""
-    # "raise" is "nan" plus a run-time check outside (one program for both)
-    on_failure = "zero" if cfg.on_failure == "zero" else "nan"
-    return _tangent_program(cfg.static, cfg.transcription, on_failure, KKT_SOLVE if method is None else method,
-                            dyn, ddyn, sol, at)
+    point ``at`` = (u, h), unmasked, and whether it is valid (``method``: default
+    KKT_SOLVE). The rules mask it once the final validity is known (:func:`_masked`)."""
+    return _tangent_program(cfg.static, cfg.transcription, KKT_SOLVE if method is None else method, dyn, ddyn, sol,
+                            at)
 
 
 def _nan_where_invalid(dout, ddyn, valid):
@@ -439,16 +447,34 @@ def _nan_where_invalid(dout, ddyn, valid):
 
 
 @eqx.filter_jit  # keyed by the problem's structure, not by the solver options
-def _tangent_program(static, transcription: str, on_failure: str, method, dyn, ddyn, sol, at):
+def _tangent_program(static, transcription: str, method, dyn, ddyn, sol, at):
     tr = Transcription(transcription)
     problem = eqx.combine(dyn, static)
     _, dout, _, valid = implicit_tangent(problem, tr, sol, ddyn, sol.status == 0, method=method, at=at)
-    if on_failure == "zero":
-        dout = jax.tree.map(lambda t: jnp.where(valid, t, 0.0), dout)
-    else:
-        dout = _nan_where_invalid(dout, ddyn, valid)
     zeros = jax.tree.map(jnp.zeros_like, _to_float(sol))
     return dataclasses.replace(zeros, **dout), valid
+
+
+def _masked(dsol, ddyn, valid, batch: bool):
+    """The tangent ``dsol`` where ``valid``; elsewhere zero (a batch, per sample) or NaN
+    in every entry (a single solve, :func:`_nan_where_invalid`)."""
+    fields = {f: getattr(dsol, f) for f in DIFF_FIELDS}
+    if batch:
+        expand = lambda t: jnp.reshape(valid, jnp.shape(valid) + (1,) * (jnp.ndim(t) - jnp.ndim(valid)))  # noqa: E731
+        fields = jax.tree.map(lambda t: jnp.where(expand(t), t, 0.0), fields)
+    else:
+        fields = _nan_where_invalid(fields, ddyn, valid)
+    return dataclasses.replace(dsol, **fields)
+
+
+def _with_status(out, valid):
+    """The (float) primal output with ``Status.CONVERGED_NO_DERIVATIVE`` where the solve
+    converged but its derivative is not valid: the status of a differentiated solve
+    tells why its derivative is zero or NaN, and :func:`valid_derivatives` agrees."""
+    from .solver.results import Status
+
+    no_derivative = (out.status == float(Status.CONVERGED)) & ~valid
+    return dataclasses.replace(out, status=jnp.where(no_derivative, float(Status.CONVERGED_NO_DERIVATIVE), out.status))
 
 
 # ----------------------------------------------------------------------------------------
@@ -486,7 +512,8 @@ def _concrete(x):
 
 
 def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
-    """The Solution-shaped tangent of a solve (``batch``: per sample) and its validity.
+    """The Solution-shaped tangent of a solve (``batch``: per sample), unmasked, and its
+    validity.
 
     Where the derivative at the returned optimum is not valid although the solve
     converged (the active set read off a point on the interior-point method's central
@@ -527,9 +554,9 @@ def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
         return dsol, valid
     dense, ok = tangent(at, "dense")
     use = still & np.asarray(ok)
-    if not batch:  # (a host choice: the NaN-masked stage-wise tangent must not enter the graph)
+    if not batch:  # (a host choice)
         return (dense, ok) if bool(use) else (dsol, valid)
-    # a batch masks by selection (zero, not NaN): a per-sample choice is safe in reverse mode
+    # a per-sample selection (the caller masks the invalid samples by selection as well)
     pick = lambda a, b: jnp.where(jnp.reshape(use, use.shape + (1,) * (jnp.ndim(a) - use.ndim)), a, b)  # noqa: E731
     return jax.tree.map(pick, dense, dsol), valid | use
 
@@ -569,7 +596,8 @@ def _single_jvp(cfg: _Config, primals, tangents):
     ddyn, _ = tangents
     sol = _primal_single(cfg, dyn, init)
     dsol, valid = _refined_tangent(cfg, dyn, ddyn, sol, batch=False)
-    out = _to_float(sol)
+    dsol = _masked(dsol, ddyn, valid, batch=False)
+    out = _with_status(_to_float(sol), valid)
     if cfg.on_failure == "raise":
         out = eqx.error_if(out, ~valid, "jtraj: derivative of a solve that did not converge (or whose KKT "
                                         "system at the optimum is degenerate); see Solution.status")
@@ -586,8 +614,8 @@ def _batch_jvp(cfg: _Config, primals, tangents):
     dyn, init = primals
     ddyn, _ = tangents
     sol = _primal_batch(cfg, dyn, init)
-    dsol, _ = _refined_tangent(cfg, dyn, ddyn, sol, batch=True)
-    return _to_float(sol), dsol
+    dsol, valid = _refined_tangent(cfg, dyn, ddyn, sol, batch=True)
+    return _with_status(_to_float(sol), valid), _masked(dsol, ddyn, valid, batch=True)
 
 
 def _zero_tangent_safe(x):

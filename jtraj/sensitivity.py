@@ -166,7 +166,7 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
     Raises:
         ValueError: unknown parameter name (the message lists the accepted ones), or
             the solve or its refinement did not converge (sensitivities need a converged
-            KKT point).
+            KKT point), or the derivative at the refined optimum is not valid.
     """
     from .solver import solve
     from .solver.api import solver_argument
@@ -200,6 +200,9 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
     if not bool(sol.converged):
         raise ValueError(f"the refinement of the optimum (REFINE: the AL method at tolerances 1e-10) did not "
                          f"converge (status {Status(int(sol.status)).name}); sensitivities need a converged KKT point")
+    if int(sol.status) == Status.CONVERGED_NO_DERIVATIVE:
+        raise ValueError("the optimum's derivative is not valid (status CONVERGED_NO_DERIVATIVE: a degenerate "
+                         "active set or a singular KKT system at the refined optimum)")
     env, counts = _envelope(problem, tr, sol)
     result = {"cost": np.asarray(_getter(wrt)(env)).reshape(theta0.shape),
               "T": np.asarray(jac["T"]).reshape(theta0.shape)}

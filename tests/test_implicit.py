@@ -161,6 +161,58 @@ def test_unconverged_single_solve_gives_nan_or_raises(grads):
                                                              on_failure="raise").T)(dyn))
 
 
+def _force_invalid_derivatives(monkeypatch):
+    """Every derivative reported not valid (the tangent program's flag forced False) and
+    the refinement keeping the point: the case of a converged solve whose derivative
+    stays invalid after refinement and the dense fallback. Returns the list of the
+    refinement's calls."""
+    program = implicit._tangent_program
+
+    def invalid(static, transcription, method, *args):
+        # (the dense fallback's program is the stage-wise one here: not compiled for this test)
+        dsol, valid = program(static, transcription, None, *args)
+        return dsol, jnp.zeros_like(valid)
+
+    calls = []
+
+    def keep(cfg, dyn, at, flags, batch):
+        calls.append(np.asarray(flags))
+        return at
+
+    monkeypatch.setattr(implicit, "_tangent_program", invalid)
+    monkeypatch.setattr(implicit, "_refine_host", keep)
+    return calls
+
+
+def test_converged_solve_with_invalid_derivative_says_so(grads, monkeypatch):
+    """A converged solve whose derivative is not valid after refinement reports
+    ``Status.CONVERGED_NO_DERIVATIVE`` when differentiated (``converged`` stays True, its
+    values are the solve's), ``valid_derivatives`` is False, every gradient entry is NaN,
+    and ``on_failure="raise"`` raises; the undifferentiated solve reports CONVERGED. (The
+    programs are ``grads``'.)"""
+    calls = _force_invalid_derivatives(monkeypatch)
+    p = _problem()
+    plain = jtraj.solve(p, options=TIGHT)
+    assert int(plain.status) == jtraj.Status.CONVERGED
+    dyn, static = eqx.partition(p, eqx.is_inexact_array)
+
+    def f(d, on_failure="nan"):
+        s = jtraj.solve(eqx.combine(d, static), options=TIGHT, on_failure=on_failure)
+        return s.T, s
+
+    T, vjp, sol = jax.vjp(f, dyn, has_aux=True)
+    (g,) = vjp(jnp.ones(()))
+    assert len(calls) == 1 and bool(calls[0])  # the refinement was tried
+    assert int(sol.status) == jtraj.Status.CONVERGED_NO_DERIVATIVE
+    assert "derivative" in sol.status_message
+    assert bool(sol.converged) and not bool(valid_derivatives(sol))
+    np.testing.assert_allclose(float(T), float(plain.T), rtol=1e-12)
+    for leaf in jax.tree.leaves(g):
+        assert np.all(np.isnan(np.asarray(leaf)))
+    with pytest.raises(Exception, match="degenerate"):
+        jax.block_until_ready(jax.grad(lambda d: f(d, "raise")[0])(dyn))
+
+
 def test_static_inputs_are_refused_when_traced():
     with pytest.raises(ValueError, match="N"):
         jax.grad(lambda n: jtraj.Problem(ROBOT, START, GOAL, N=n).T_max)(3.0)
@@ -339,6 +391,30 @@ def test_batch_derivatives_equal_per_sample_and_flag_failures(base):
     _close(grads[1], fd)
 
 
+@pytest.mark.slow  # the programs of test_batch_derivatives_equal_per_sample_and_flag_failures
+def test_batch_sample_with_invalid_derivative_says_so(monkeypatch):
+    """In a batch, a converged sample whose derivative is not valid after refinement gets
+    a zero gradient and ``Status.CONVERGED_NO_DERIVATIVE``; a sample that did not converge
+    keeps its own status; ``valid_derivatives`` is False for both."""
+    calls = _force_invalid_derivatives(monkeypatch)
+    goals = np.stack([GOAL, GOAL + np.array([0.05, -0.02, 0.01]), GOAL])
+    short_T = np.array([np.inf, np.inf, 0.2])
+
+    def total_T(g):
+        s = jtraj.solve_batch(ROBOT, np.broadcast_to(START, g.shape), g, N=N, weights=jtraj.Weights(**WEIGHTS),
+                              T_max=short_T, options=TIGHT, slots=None)
+        return jnp.sum(s.T), s
+
+    (_, sol), g = jax.value_and_grad(total_T, has_aux=True)(jnp.asarray(goals))
+    assert calls and calls[0].tolist() == [True, True, False]  # the converged samples were to be refined
+    status = np.asarray(sol.status).tolist()
+    assert status[:2] == [jtraj.Status.CONVERGED_NO_DERIVATIVE] * 2
+    assert status[2] not in (jtraj.Status.CONVERGED, jtraj.Status.CONVERGED_NO_DERIVATIVE)
+    assert np.asarray(sol.converged).tolist() == [True, True, False]
+    assert not np.any(np.asarray(valid_derivatives(sol)))
+    assert np.all(np.asarray(g) == 0)
+
+
 @pytest.mark.slow  # the whole solver vmapped inside the derivative's trace: minutes
 def test_vmap_of_grad_equals_per_sample_grad():
     goals = np.stack([GOAL, GOAL + np.array([0.05, -0.02, 0.01])])
@@ -360,14 +436,20 @@ def test_via_point_position_and_tolerance(monkeypatch):
         return _problem(via_points=[jtraj.ViaPoint(point=x[:2], tol=x[2])])
 
     x0 = np.r_[p_mid, 1e-3]
-    base = jtraj.solve(make(x0), options=TIGHT)
+    # (the AL method needs more than TIGHT's 1000 iterations on some of the re-solves; the
+    # iteration limit is a traced number: the same programs)
+    VIA = jtraj.SolverOptions(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=4000, method="al")
+    base = jtraj.solve(make(x0), options=VIA)
     assert bool(base.converged), base.status_message
 
     def f(x):
-        return jtraj.solve(_problem(via_points=[jtraj.ViaPoint(point=x[:2], tol=x[2])]), options=TIGHT).T
+        return jtraj.solve(_problem(via_points=[jtraj.ViaPoint(point=x[:2], tol=x[2])]), options=VIA,
+                           init=(base.v, base.h)).T
 
     g = jax.grad(f)(jnp.asarray(x0))
-    fd = _fd(make, x0, lambda s: s.T, base)
+    # steps of 1e-6 m in the point and in the tolerance (0.1 % of it): the via constraint
+    # stays active, the re-solves' noise (about 1e-11 in T) stays below 1e-5 of the slope
+    fd = _fd(make, x0, lambda s: s.T, base, absolute=1e-6, options=VIA)
     _close(g, fd, rtol=1e-4)
     monkeypatch.setattr(implicit, "KKT_SOLVE", "dense")
     _tree_close(g, jax.grad(f)(jnp.asarray(x0)), 1e-8)
@@ -383,9 +465,14 @@ def test_path_constrained_robot_pkm2(monkeypatch):
     qs, qg = q0 - 0.1 * (hi - lo), q0 + 0.1 * (hi - lo)
 
     def make(g):
-        return jtraj.Problem(robot, qs, np.asarray(g), N=N, weights=jtraj.Weights(**WEIGHTS))
+        return jtraj.Problem(robot, qs, jnp.asarray(g), N=N, weights=jtraj.Weights(**WEIGHTS))
 
-    base = jtraj.solve(make(qg), options=PKM2)
+    # the base in two stages (tolerances 1e-8, then 1e-10 warm): the cold AL run at 1e-10 can
+    # stop feasible but not certified within its iterations (the tolerances are traced
+    # numbers: the same programs)
+    ROUGH = jtraj.SolverOptions(tol_feasibility=1e-8, tol_optimality=1e-8, max_iter=4000, method="al")
+    rough = jtraj.solve(make(qg), options=ROUGH)
+    base = jtraj.solve(make(qg), options=PKM2, init=(rough.v, rough.h))
     assert bool(base.converged), base.status_message
     g = jax.grad(lambda x: jtraj.solve(make(x), options=PKM2, init=(base.v, base.h)).cost)(jnp.asarray(qg))
     fd = _fd(make, qg, lambda s: s.cost, base, absolute=1e-6, options=PKM2)

@@ -113,7 +113,7 @@ def test_time_dominant_serial3_task_against_central_differences():
         for sign in (1.0, -1.0):
             m = m0.copy()
             m[i] += sign * 1e-4 * m0[i]
-            s = jtraj.solve(make(m), solver=jtraj.solver.from_options(REFINE), init=(base.v, base.h))
+            s = jtraj.solve(make(m), solver=REFINE, init=(base.v, base.h))
             assert bool(s.converged), s.status_message
             out.append((float(s.cost), float(s.T)))
         fd[:, i] = (np.array(out[0]) - np.array(out[1])) / (2e-4 * m0[i])

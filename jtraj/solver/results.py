@@ -24,6 +24,7 @@ class Status(enum.IntEnum):
     INVALID_INPUT = 4
     VERIFICATION_FAILED = 5
     LIKELY_INFEASIBLE = 6
+    CONVERGED_NO_DERIVATIVE = 7
 
     @property
     def message(self) -> str:
@@ -40,6 +41,9 @@ _MESSAGES = {
     Status.LIKELY_INFEASIBLE: "stopped early: the violation stopped shrinking while the penalty grew 16x or sat at "
                               "its cap; the problem is likely infeasible (e.g. it needs more time than N h_max or "
                               "T_max allow)",
+    Status.CONVERGED_NO_DERIVATIVE: "converged, but the derivative at the optimum is not valid (a degenerate active set "
+                                    "or a singular KKT system, also after refinement); reported by a differentiated "
+                                    "solve only, see jtraj.implicit",
 }
 
 
@@ -56,7 +60,9 @@ class Solution(eqx.Module):
             distance beyond each point's ``tol``); re-simulated from v and h;
         converged: strict: status == CONVERGED, i.e. the solver certified first-order
             optimality and the re-simulated trajectory meets every bound within
-            ``verify_tol`` (relative) and the goal within ``verify_tol``;
+            ``verify_tol`` (relative) and the goal within ``verify_tol`` (a differentiated
+            solve reports such a solution ``CONVERGED_NO_DERIVATIVE`` where its
+            derivative is not valid, with ``converged`` True);
         status: int code of :class:`Status`; iterations: Newton iterations;
         outer_iterations: multiplier updates;
         history: (max_outer, 3) per outer iteration: cost, violation, penalty (NaN-padded).
