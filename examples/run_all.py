@@ -156,7 +156,7 @@ def read_status(name: str) -> dict | None:
 _RANK = ["CONVERGED", "FEASIBLE_NOT_OPTIMAL", "VERIFICATION_FAILED", "LIKELY_INFEASIBLE", "MAX_ITERATIONS",
          "NUMERICAL_ERROR", "INVALID_INPUT"]
 #: the statuses whose solution meets its constraints (re-simulated)
-_FEASIBLE = ("CONVERGED", "FEASIBLE_NOT_OPTIMAL")
+_FEASIBLE = ("CONVERGED", "CONVERGED_NO_DERIVATIVE", "FEASIBLE_NOT_OPTIMAL")
 
 
 def status_row(name: str) -> tuple[str, str, str]:
