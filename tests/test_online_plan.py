@@ -237,12 +237,6 @@ def test_planner_batch_plans_re_verified(planner_and_data, tmp_path):
         # one query equals its row of the batch
         p1 = planner.plan(qs[i], qg[i])
         np.testing.assert_allclose(np.asarray(p1.v), np.asarray(pb.v[i]), rtol=1e-12, atol=1e-12)
-    # plan() returns through one packed buffer: field by field the jitted Plan's, dtypes kept
-    for packed, direct in ((pb, planner._plan_batch(jnp.asarray(qs), jnp.asarray(qg))),
-                           (planner.plan(qs[0], qg[0]), planner._plan(jnp.asarray(qs[0]), jnp.asarray(qg[0])))):
-        for name, a, b in zip(packed._fields, packed, direct):
-            assert isinstance(a, np.ndarray) and a.dtype == b.dtype and a.shape == b.shape, name
-            np.testing.assert_array_equal(a, np.asarray(b), err_msg=name)
     # without the least-effort candidates: feasible too, never cheaper (fewer candidates)
     from jtraj.online import Planner
 
@@ -258,6 +252,19 @@ def test_planner_batch_plans_re_verified(planner_and_data, tmp_path):
     out = planner.query(qs[0], qg[0])
     assert out["feasible"] and out["coverage"]["kind"] == "nearest training pair"
     assert json.loads(json.dumps(out))["cost"] == pytest.approx(float(pb.cost[0]), rel=1e-12)
+
+
+@pytest.mark.slow  # two more programs; plan()'s fields are re-verified in the test above
+def test_packed_plan_equals_the_jitted_plan(planner_and_data):
+    """plan() returns through one packed buffer: field by field the jitted Plan's, dtypes
+    and shapes kept, for one pair and for a batch."""
+    planner, data = planner_and_data
+    qs, qg = data["q_start"][:8], data["q_goal"][:8]
+    for packed, direct in ((planner.plan(qs, qg), planner._plan_batch(jnp.asarray(qs), jnp.asarray(qg))),
+                           (planner.plan(qs[0], qg[0]), planner._plan(jnp.asarray(qs[0]), jnp.asarray(qg[0])))):
+        for name, a, b in zip(packed._fields, packed, direct):
+            assert isinstance(a, np.ndarray) and a.dtype == b.dtype and a.shape == b.shape, name
+            np.testing.assert_array_equal(a, np.asarray(b), err_msg=name)
 
 
 def test_query_command_prints_and_writes_cost_violation_and_coverage(planner_and_data, tmp_path, capsys):
