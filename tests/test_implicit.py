@@ -184,6 +184,7 @@ def _force_invalid_derivatives(monkeypatch):
     return calls
 
 
+@pytest.mark.slow  # 14 s of its own programs; the default suite keeps the unconverged solve's NaN
 def test_converged_solve_with_invalid_derivative_says_so(grads, monkeypatch):
     """A converged solve whose derivative is not valid after refinement reports
     ``Status.CONVERGED_NO_DERIVATIVE`` when differentiated (``converged`` stays True, its
