@@ -267,16 +267,7 @@ def _fd_part(args, jtraj, robot, w, tight, kinds, figures, dump):
             u /= np.linalg.norm(u)
             # an absolute step (rad, rad/s, m) for configurations, velocities and positions,
             # a relative one otherwise
-            scale = np.concatenate([np.ones(np.size(v)) if a else np.abs(np.ravel(np.asarray(v, float)))
-                                    for v, a in zip(leaves, absolute)])
-            direction, pieces, pos = u * scale, [], 0
-            for v in leaves:
-                pieces.append(jnp.asarray(direction[pos:pos + np.size(v)]).reshape(np.shape(v)))
-                pos += np.size(v)
-
-            def along(t, leaves=leaves, tdef=tdef, pieces=pieces):
-                return jax.tree.unflatten(tdef, [jnp.asarray(v) + t * d for v, d in zip(leaves, pieces)])
-
+            pieces, along = direction_along(leaves, tdef, absolute, u)
             tangent = eqx.tree_at(get, jax.tree.map(jnp.zeros_like, dyn), jax.tree.unflatten(tdef, pieces))
 
             def out_of(d, static=static, base=base):  # warm at the base optimum: its derivative
@@ -364,6 +355,25 @@ def _fd_part(args, jtraj, robot, w, tight, kinds, figures, dump):
     fig["seconds"] = time.perf_counter() - t0
     figures["fd"] = fig
     dump()
+
+
+def direction_along(leaves, tdef, absolute, u):
+    """The direction of unit vector ``u`` over the input's ``leaves`` (an absolute step for
+    configurations, velocities and positions, ``absolute``; a relative one otherwise), as
+    arrays shaped like the leaves, and ``along(t)``: the input moved by ``t`` along it."""
+    import jax
+    import jax.numpy as jnp
+
+    scale = np.concatenate([np.ones(np.size(v)) if a else np.abs(np.ravel(np.asarray(v, float)))
+                            for v, a in zip(leaves, absolute)])
+    direction, pieces, pos = u * scale, [], 0
+    for v in leaves:
+        pieces.append(jnp.asarray(direction[pos:pos + np.size(v)]).reshape(np.shape(v)))
+        pos += np.size(v)
+
+    def along(t):
+        return jax.tree.unflatten(tdef, [jnp.asarray(v) + t * d for v, d in zip(leaves, pieces)])
+    return pieces, along
 
 
 def main(argv=None):

@@ -176,16 +176,7 @@ def main(argv=None):
             if dirs is None:
                 dirs = _directions(fd, seed, bg.KINDS, _SIZES)
             u = dirs[(kind, ip)]
-        scale = np.concatenate([np.ones(np.size(v)) if a else np.abs(np.ravel(np.asarray(v, float)))
-                                for v, a in zip(leaves, absolute)])
-        direction, pieces, pos = u * scale, [], 0
-        for v in leaves:
-            pieces.append(jnp.asarray(direction[pos:pos + np.size(v)]).reshape(np.shape(v)))
-            pos += np.size(v)
-
-        def along(t, leaves=leaves, tdef=tdef, pieces=pieces):
-            return jax.tree.unflatten(tdef, [jnp.asarray(v) + t * d for v, d in zip(leaves, pieces)])
-
+        pieces, along = bg.direction_along(leaves, tdef, absolute, u)
         tangent = eqx.tree_at(get, jax.tree.map(jnp.zeros_like, dyn), jax.tree.unflatten(tdef, pieces))
 
         def jvp_at(b, solver, method=None, static=static, dyn=dyn, tangent=tangent):
