@@ -17,8 +17,10 @@ Mathematics. At the returned optimum ``z*`` (the scaled controls and periods,
 multipliers ``lambda``. Its active set is fixed at ``z*``:
 
 * every equality row that is not identically zero (the goal, path equalities);
-* every inequality with ``c_i > -ACT_TOL`` whose least-squares multiplier exceeds
-  ``WEAK * max(1, max lambda)``;
+* every inequality with ``c_i > -ACT_TOL`` whose least-squares multiplier exceeds a
+  threshold: ``WEAK * max(1, max lambda)``, or less at an accurate optimum (``NOISE``
+  times the stationarity error of the least-squares fit, which bounds the multipliers'
+  own error; at least ``WEAK_MIN * max(1, max lambda)``);
 * every simple bound ``z*`` touches (within ``BOUND_TOL``) whose bound multiplier (the
   Lagrangian's gradient there) has the right sign and exceeds the same threshold.
 
@@ -108,21 +110,29 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jax.scipy.linalg
 import numpy as np
 
 from .problem import Problem
 from .solver.methods import AugmentedLagrangian
 from .transcription import Transcription
 
-__all__ = ["ACT_TOL", "BOUND_TOL", "REFINE", "WEAK", "implicit_tangent", "refine", "valid_derivatives"]
+__all__ = ["ACT_TOL", "BOUND_TOL", "NOISE", "REFINE", "WEAK", "WEAK_MIN", "implicit_tangent", "refine", "valid_derivatives"]
 
 #: inequalities with ``c_i > -ACT_TOL`` (normalised units) are candidates for the active set
 ACT_TOL = 1e-3
 #: simple bounds within BOUND_TOL (z's scaled units) are candidates for the active set (the
 #: interior-point method may end a little inside a bound it could not snap onto)
 BOUND_TOL = 1e-3
-#: a candidate is active where its multiplier exceeds WEAK * max(1, max multiplier)
+#: a candidate is active where its multiplier exceeds a threshold: WEAK * max(1, max
+#: multiplier) at most, lowered to NOISE times the point's stationarity error in its free
+#: variables where the optimum is more accurate (a genuine multiplier of 1e-7 is told from
+#: noise at an optimum solved to 1e-12), and not below WEAK_MIN * max(1, max multiplier)
 WEAK = 1e-7
+NOISE = 1e3
+WEAK_MIN = 1e-12
+#: steps of iterated regularisation of the least-squares multipliers
+LS_STEPS = 3
 
 #: the refinement of a converged optimum whose derivative is not valid as it is (the AL
 #: method warm-started at it, tolerances 1e-10; see :func:`refine`): the rule differentiates
@@ -227,18 +237,28 @@ def active_set(problem: Problem, tr: Transcription, z) -> ActiveSet:
 
     def ls(free, rows):  # least-squares multipliers over `rows` in the `free` variables
         Jf = jnp.where(rows[:, None] & free[None, :], J, 0.0)
+        g = jnp.where(free, gf, 0.0)
+        # Tikhonov-regularised normal equations (J_f^T J_f is singular where fewer rows
+        # than variables are active), then LS_STEPS steps of iterated regularisation:
+        # each divides the regularisation's bias eps / (sigma^2 + eps) by the same factor,
+        # so that the multipliers reach the stationarity the point itself has
         eps = 1e-12 * (1.0 + jnp.max(jnp.sum(Jf**2, axis=1)))
-        A = Jf.T @ Jf + eps * jnp.eye(nz, dtype=J.dtype)
-        lam = -Jf @ jnp.linalg.solve(A, jnp.where(free, gf, 0.0))
+        cf = jax.scipy.linalg.cho_factor(Jf.T @ Jf + eps * jnp.eye(nz, dtype=J.dtype))
+        lam = jnp.zeros(nc, J.dtype)
+        for _ in range(LS_STEPS):
+            lam = lam - Jf @ jax.scipy.linalg.cho_solve(cf, g + Jf.T @ lam)
         return jnp.where(rows, lam, 0.0)
 
     lam = ls(free0, cand)
     scale = jnp.maximum(1.0, jnp.max(jnp.abs(lam)))
-    active = cand & (is_eq | (lam > WEAK * scale))
+    # the multipliers' noise: the stationarity the point has in its free variables
+    noise = jnp.max(jnp.where(free0, jnp.abs(gf + J.T @ lam), 0.0))
+    weak = jnp.minimum(WEAK * scale, jnp.maximum(NOISE * noise, WEAK_MIN * scale))
+    active = cand & (is_eq | (lam > weak))
     lam = ls(free0, active)
     nu = gf + J.T @ lam  # the bound multipliers (lower: nu >= 0, upper: nu <= 0)
-    at_lo = near_lo & (nu > WEAK * scale)
-    at_hi = near_hi & ~at_lo & (nu < -WEAK * scale)
+    at_lo = near_lo & (nu > weak)
+    at_hi = near_hi & ~at_lo & (nu < -weak)
     free = ~(at_lo | at_hi)
     lam = ls(free, active)  # weakly held variables released
     r = min(nc, nz)
