@@ -296,7 +296,7 @@ def _model(nlp, st: IPState):
 
     def value_and_jac(w, t, sdk, J):
         (Jw, Jt), g = jax.jacfwd(lambda w_, t_: (stage_ineq(w_, t_, sdk),) * 2, argnums=(0, 1), has_aux=True)(w, t)
-        return g, Jw + small_matmul(Jt, J)
+        return g, Jw + (small_matmul(Jt, J) if Jt.size * J.shape[-1] <= _GRAM_ELEMENTWISE_MAX else Jt @ J)
 
     G, Jg = jax.vmap(value_and_jac)(W, tau, nlp.sd, Jtau)
     Sig = st.y / st.s
@@ -342,13 +342,27 @@ def _gram(Jg, Sig):
     return jnp.matmul(A, Jg)
 
 
+def _rows_times(Jg, r):
+    """``r_k^T J_k`` per stage, (N+1, nw); a batched dot for large blocks (see :func:`_gram`)."""
+    if Jg.shape[-2] * Jg.shape[-1] ** 2 <= _GRAM_ELEMENTWISE_MAX:
+        return jnp.sum(Jg * r[..., None], axis=1)
+    return jnp.matmul(r[:, None, :], Jg)[:, 0]
+
+
+def _times_columns(Jg, x):
+    """``J_k x_k`` per stage, (N+1, mi); a batched dot for large blocks (see :func:`_gram`)."""
+    if Jg.shape[-2] * Jg.shape[-1] ** 2 <= _GRAM_ELEMENTWISE_MAX:
+        return jnp.sum(Jg * x[:, None, :], axis=-1)
+    return jnp.matmul(Jg, x[..., None])[..., 0]
+
+
 def _with_rhs(nlp, st: IPState, model, Jg, dgT, p: _Pieces, mu):
     """The model's linear terms for barrier parameter mu: the correction
     J^T (mu / s + Sigma (g + s) - y) and the bounds' barrier gradient enter the gradients
     only (the co-states of the curvature are the Lagrangian's, ``model.g``)."""
     layout = nlp.layout
     N, n = layout.N, nlp.problem.robot.n
-    corr = jnp.sum(Jg * (mu / st.s + (st.y / st.s) * (p.G + st.s) - st.y)[..., None], axis=1)
+    corr = _rows_times(Jg, mu / st.s + (st.y / st.s) * (p.G + st.s) - st.y)
     corrT = jnp.sum((mu / st.sT + (st.yT / st.sT) * (p.gT + st.sT) - st.yT) * dgT)
     sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
     dl, du, has_lo, has_hi = _bounds(nlp, st.z)
@@ -387,7 +401,7 @@ def _direction(nlp, st: IPState, p: _Pieces, Jg, dgT, Ex, d, dX, mu, any_pd) -> 
     sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
     du_st = z_to_stages(dz, N, n) * sy[None, :]
     dW = jnp.concatenate([dXz[:, :2 * n], jnp.concatenate([du_st, jnp.zeros((1, n + 1), dt)])], axis=1)
-    Jdz = jnp.sum(Jg * dW[:, None, :], axis=-1)
+    Jdz = _times_columns(Jg, dW)
     dT = jnp.sum(du_st[:, -1])
     ds = -(p.G + st.s) - Jdz
     dsT = -(p.gT + st.sT) - dgT * dT
