@@ -325,35 +325,31 @@ def _model(nlp, st: IPState):
     return model, Jg, dgT, _Pieces(G, gT, e, f), Ex
 
 
-#: :func:`_gram` forms the per-stage product elementwise up to this many products per
-#: stage (rows x columns^2), as a batched dot above
+#: per-stage products with the inequality Jacobians Jg (N+1, mi, nw) are formed
+#: elementwise (:func:`jtraj._math.small_matmul`, fused with their neighbours) up to this
+#: many (mi nw^2: serial3's 18 x 10 blocks), as batched dots above (XLA's elementwise loops
+#: run far slower than its dot kernel there: the panda's 42 x 22 blocks over 41 stages,
+#: J^T Sig J in 0.4 instead of 2.6 ms)
 _GRAM_ELEMENTWISE_MAX = 4096
 
 
 def _gram(Jg, Sig):
-    """``J_k^T diag(Sig_k) J_k`` per stage from Jg (N+1, mi, nw) and Sig (N+1, mi). Small
-    blocks (serial3: 18 rows, 10 columns) as an elementwise product summed
-    (:func:`jtraj._math.small_matmul`, which fuses with its neighbours); large ones as a
-    batched dot, which XLA's elementwise loop runs far slower than its dot kernel at
-    these sizes (the panda: 42 rows, 22 columns, 41 stages, 0.4 against 2.6 ms)."""
+    """``J_k^T diag(Sig_k) J_k`` per stage (see :data:`_GRAM_ELEMENTWISE_MAX`)."""
     A = jnp.swapaxes(Sig[..., None] * Jg, -1, -2)
-    if Jg.shape[-2] * Jg.shape[-1] ** 2 <= _GRAM_ELEMENTWISE_MAX:
-        return small_matmul(A, Jg)
-    return jnp.matmul(A, Jg)
+    return small_matmul(A, Jg) if Jg.shape[-2] * Jg.shape[-1] ** 2 <= _GRAM_ELEMENTWISE_MAX else A @ Jg
 
 
 def _rows_times(Jg, r):
-    """``r_k^T J_k`` per stage, (N+1, nw); a batched dot for large blocks (see :func:`_gram`)."""
+    """``r_k^T J_k`` per stage (N+1, nw); :func:`_times_columns`: ``J_k x_k`` (N+1, mi)."""
     if Jg.shape[-2] * Jg.shape[-1] ** 2 <= _GRAM_ELEMENTWISE_MAX:
         return jnp.sum(Jg * r[..., None], axis=1)
-    return jnp.matmul(r[:, None, :], Jg)[:, 0]
+    return (r[:, None, :] @ Jg)[:, 0]
 
 
 def _times_columns(Jg, x):
-    """``J_k x_k`` per stage, (N+1, mi); a batched dot for large blocks (see :func:`_gram`)."""
     if Jg.shape[-2] * Jg.shape[-1] ** 2 <= _GRAM_ELEMENTWISE_MAX:
         return jnp.sum(Jg * x[:, None, :], axis=-1)
-    return jnp.matmul(Jg, x[..., None])[..., 0]
+    return (Jg @ x[..., None])[..., 0]
 
 
 def _with_rhs(nlp, st: IPState, model, Jg, dgT, p: _Pieces, mu):
