@@ -9,7 +9,9 @@ One problem of ``bench_spatial``'s family (pair 0 of seed 0 for the panda; for o
 the same rule on their joint ranges). ``--pieces``: the per-sample functions over the
 N + 1 samples, compiled apart (trace+lower s, compile s, HLO instructions, warm run ms):
 the stage value, the efforts' Jacobian, and the stage Hessian of the interior-point
-model with the chosen curvature. Without ``--no-program``: the interior-point program
+model with the chosen curvature. ``--iteration``: the pieces of one interior-point
+iteration at the starting point, compiled apart (the Newton model, the KKT solve of the
+shift ladder, one trial point of the line search, the whole step). Without ``--no-program``: the interior-point program
 of a concrete solve (``jtraj.T.staged_ip_jit``: guess, interior point, light
 finish), its compile s and HLO size, then warm solves (best of ``--repeats``) and the
 run's iterations, status and cost. ``--opt-level`` sets XLA's LLVM optimisation level
@@ -127,6 +129,7 @@ def main(argv=None):
         warm("stage Hessian", measure("stage Hessian", hessian, lag, W, mult), lag, W, mult, repeats=20)
 
     if args.iteration:
+        from jtraj.solver import ipm
 
         def start(problem, split):
             o = T.TracedOptions(split)
@@ -153,10 +156,10 @@ def main(argv=None):
 
         warm("ip trial point", measure("ip trial point", trial, nlp, st, dz), nlp, st, dz, repeats=10)
 
-        def slope(nlp, st, dz):
-            return jax.jvp(lambda zz: T.ipm_parts(nlp, zz).f, (st.z,), (dz,))
+        def whole(nlp, st):
+            return ipm.step(nlp, st, ipm.Tolerances(1e-6))
 
-        warm("ip cost slope (jvp)", measure("ip cost slope (jvp)", slope, nlp, st, dz), nlp, st, dz, repeats=10)
+        warm("ip step (whole)", measure("ip step (whole)", whole, nlp, st), nlp, st, repeats=10)
 
     if not args.no_program:
 

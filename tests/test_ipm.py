@@ -45,9 +45,9 @@ _ip_init = eqx.filter_jit(ipm.init)
 
 @eqx.filter_jit
 def _ip_model(nlp, st):
-    """(model with its right-hand side, Ex, p) of ``S.ipm_model`` at state ``st``."""
+    """(model with its right-hand side, Ex, p, Jg, dgT) of ``S.ipm_model`` at state ``st``."""
     model, Jg, dgT, p, Ex = S.ipm_model(nlp, st)
-    return S.ipm_with_rhs(nlp, st, model, Jg, dgT, p, st.mu), Ex, p
+    return S.ipm_with_rhs(nlp, st, model, Jg, dgT, p, st.mu), Ex, p, Jg, dgT
 
 
 @pytest.mark.slow
@@ -58,7 +58,7 @@ def test_shift_ladder_for_one_problem_takes_the_batch_choice():
     least shifted positive definite direction is the same number for number, whether
     shift 0 is positive definite or not."""
     nlp, z0 = _nlp()
-    model, Ex, _ = _ip_model(nlp, _ip_init(nlp, z0))
+    model, Ex = _ip_model(nlp, _ip_init(nlp, z0))[:2]
     m = model.R.shape[1]
     # as it is (shift 0 positive definite) and with R made indefinite (it is not)
     cases = [model, model._replace(R=model.R - 30.0 * jnp.eye(m))]
@@ -129,7 +129,7 @@ def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
     models, terms = [], []
     for q1 in (Q1, Q1 + 0.3, Q1 - 0.4):
         nlp, z0 = _nlp(q1=q1)
-        model, Ex, _ = _ip_model(nlp, _ip_init(nlp, z0))
+        model, Ex = _ip_model(nlp, _ip_init(nlp, z0))[:2]
         models.append(model)
         terms.append(Ex.T)
     m = models[0].R.shape[1]
@@ -182,7 +182,7 @@ def test_newton_step_equals_the_dense_kkt_solve():
     st = st._replace(y=jnp.asarray(rng.uniform(0.01, 2.0, st.y.shape)), s=jnp.asarray(rng.uniform(0.05, 1.0, st.s.shape)),
                      lam=jnp.asarray(rng.normal(size=st.lam.shape)), zl=jnp.asarray(rng.uniform(0.1, 1.0, st.z.shape)),
                      zu=jnp.asarray(rng.uniform(0.1, 1.0, st.z.shape)), mu=jnp.asarray(0.02))
-    model, Ex, p = _ip_model(nlp, st)
+    model, Ex, p, Jg, dgT = _ip_model(nlp, st)
     delta = 3.0  # enough to make the matrix positive definite at this point
     d, dX, ok = lq.kkt_directions(model, jnp.array([delta]), Ex.T)
     assert bool(ok[0])
@@ -212,12 +212,42 @@ def test_newton_step_equals_the_dense_kkt_solve():
         r = -(jax.grad(f)(z) - st.mu / (z - lo) + st.mu / (hi - z) + J.T @ (st.mu / s + sig * (g(z) + s))) \
             - S.IPM_RHO_E * E.T @ e(z)
         K = jnp.block([[Wd, E.T], [E, jnp.zeros((E.shape[0], E.shape[0]))]])
-        return jnp.linalg.solve(K, jnp.concatenate([r, -e(z)]))
+        return jnp.linalg.solve(K, jnp.concatenate([r, -e(z)])), f(z), jax.grad(f)(z)
 
     z = st.z
-    ref = dense_solution(nlp, st)
+    ref, f_ref, grad_f = dense_solution(nlp, st)
     np.testing.assert_allclose(np.asarray(dz), np.asarray(ref[:z.size]), rtol=1e-9, atol=1e-9 * float(jnp.max(jnp.abs(ref))))
     np.testing.assert_allclose(np.asarray(st.lam + dlam), np.asarray(ref[z.size:]), rtol=1e-9, atol=1e-9)
+    # the line search's cost and cost slope, which the step takes from the model's pieces
+    # (the Lagrangian's values and gradient less their constraint terms), against the
+    # cost and its gradient in z
+    f_model, slope, dz_step = _cost_and_slope(nlp, st, model.g, p, Jg, dgT, Ex, d, dX)
+    np.testing.assert_allclose(np.asarray(dz_step), np.asarray(dz), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(float(f_model), float(f_ref), rtol=1e-12)
+    np.testing.assert_allclose(float(slope), float(grad_f @ dz), rtol=1e-9, atol=1e-12 * float(jnp.linalg.norm(grad_f)))
+
+
+@eqx.filter_jit
+def _cost_and_slope(nlp, st, g, p, Jg, dgT, Ex, d, dX):
+    """(cost, its slope along the step, the step) as :func:`ipm.step` computes them from
+    the model's pieces (g: the Lagrangian's gradient in z)."""
+    dr = ipm._direction(nlp, st, p, Jg, dgT, Ex, d, dX, st.mu, jnp.asarray(True))
+    return p.f, jnp.sum(g * dr.dz) - dr.dcon, dr.dz
+
+
+@pytest.mark.parametrize("rows, cols", [(18, 10), (42, 22)])  # serial3's stage blocks, the panda's
+def test_stage_products_with_the_inequality_jacobians(rows, cols):
+    """J^T diag(s) J, r^T J and J x per stage, elementwise for small blocks and as batched
+    dots for large ones, against NumPy's einsum."""
+    rng = np.random.default_rng(1)
+    J, s, x = rng.normal(size=(5, rows, cols)), rng.uniform(size=(5, rows)), rng.normal(size=(5, cols))
+    assert (rows * cols**2 <= ipm._GRAM_ELEMENTWISE_MAX) == (rows == 18)
+    np.testing.assert_allclose(np.asarray(ipm._gram(jnp.asarray(J), jnp.asarray(s))),
+                               np.einsum("kia,ki,kib->kab", J, s, J), rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(ipm._rows_times(jnp.asarray(J), jnp.asarray(s))),
+                               np.einsum("kia,ki->ka", J, s), rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(ipm._times_columns(jnp.asarray(J), jnp.asarray(x))),
+                               np.einsum("kia,ka->ki", J, x), rtol=1e-13, atol=1e-13)
 
 
 @pytest.fixture(scope="module")

@@ -288,7 +288,7 @@ def _model(nlp, st: IPState):
     # the inequalities' Jacobians by the chain rule through the efforts, whose values and
     # Jacobians the stage derivatives computed (the inverse dynamics' derivatives once per
     # iteration instead of twice; the decoupled transcription's derivatives are split)
-    _, c, Hk, tau, Jtau = lag.stage_derivatives(W, multipliers(nlp, st), jnp.asarray(0.0, z.dtype), efforts=True)
+    val, c, Hk, tau, Jtau = lag.stage_derivatives(W, multipliers(nlp, st), jnp.asarray(0.0, z.dtype), efforts=True)
 
     def stage_ineq(w, t, sdk):
         a = tr.split_stage(problem, w)[2]
@@ -296,11 +296,11 @@ def _model(nlp, st: IPState):
 
     def value_and_jac(w, t, sdk, J):
         (Jw, Jt), g = jax.jacfwd(lambda w_, t_: (stage_ineq(w_, t_, sdk),) * 2, argnums=(0, 1), has_aux=True)(w, t)
-        return g, Jw + small_matmul(Jt, J)
+        return g, Jw + (small_matmul(Jt, J) if Jt.size * J.shape[-1] <= _GRAM_ELEMENTWISE_MAX else Jt @ J)
 
     G, Jg = jax.vmap(value_and_jac)(W, tau, nlp.sd, Jtau)
     Sig = st.y / st.s
-    Hk = Hk + small_matmul(jnp.swapaxes(Sig[..., None] * Jg, -1, -2), Jg)  # J^T Sig J per stage
+    Hk = Hk + _gram(Jg, Sig)  # J^T Sig J per stage
     T = jnp.sum(W[:-1, -1])
     gT_of = lambda t: tr.time_inequalities(problem, t)  # noqa: E731
     gT = gT_of(T)
@@ -320,7 +320,36 @@ def _model(nlp, st: IPState):
     # rho_e E^T E on the terminal state, and its gradient rho_e E^T e (the goal rows are
     # linear in x_N): the exact Newton step of the KKT system is unchanged
     model = model._replace(PN=model.PN + _RHO_E * Ex.T @ Ex, cx=model.cx.at[N].add(_RHO_E * Ex.T @ e))
-    return model, Jg, dgT, _Pieces(G, gT, e, None), Ex
+    # the cost: the stage terms' Lagrangian values less their constraint terms
+    f = jnp.sum(val) - jnp.sum(st.y * G) - jnp.sum(st.lam * e)
+    return model, Jg, dgT, _Pieces(G, gT, e, f), Ex
+
+
+#: per-stage products with the inequality Jacobians Jg (N+1, mi, nw) are formed
+#: elementwise (:func:`jtraj._math.small_matmul`, fused with their neighbours) up to this
+#: many (mi nw^2: serial3's 18 x 10 blocks), as batched dots above (XLA's elementwise loops
+#: run far slower than its dot kernel there: the panda's 42 x 22 blocks over 41 stages,
+#: J^T Sig J in 0.4 instead of 2.6 ms)
+_GRAM_ELEMENTWISE_MAX = 4096
+
+
+def _gram(Jg, Sig):
+    """``J_k^T diag(Sig_k) J_k`` per stage (see :data:`_GRAM_ELEMENTWISE_MAX`)."""
+    A = jnp.swapaxes(Sig[..., None] * Jg, -1, -2)
+    return small_matmul(A, Jg) if Jg.shape[-2] * Jg.shape[-1] ** 2 <= _GRAM_ELEMENTWISE_MAX else A @ Jg
+
+
+def _rows_times(Jg, r):
+    """``r_k^T J_k`` per stage (N+1, nw); :func:`_times_columns`: ``J_k x_k`` (N+1, mi)."""
+    if Jg.shape[-2] * Jg.shape[-1] ** 2 <= _GRAM_ELEMENTWISE_MAX:
+        return jnp.sum(Jg * r[..., None], axis=1)
+    return (r[:, None, :] @ Jg)[:, 0]
+
+
+def _times_columns(Jg, x):
+    if Jg.shape[-2] * Jg.shape[-1] ** 2 <= _GRAM_ELEMENTWISE_MAX:
+        return jnp.sum(Jg * x[:, None, :], axis=-1)
+    return (Jg @ x[..., None])[..., 0]
 
 
 def _with_rhs(nlp, st: IPState, model, Jg, dgT, p: _Pieces, mu):
@@ -329,7 +358,7 @@ def _with_rhs(nlp, st: IPState, model, Jg, dgT, p: _Pieces, mu):
     only (the co-states of the curvature are the Lagrangian's, ``model.g``)."""
     layout = nlp.layout
     N, n = layout.N, nlp.problem.robot.n
-    corr = jnp.sum(Jg * (mu / st.s + (st.y / st.s) * (p.G + st.s) - st.y)[..., None], axis=1)
+    corr = _rows_times(Jg, mu / st.s + (st.y / st.s) * (p.G + st.s) - st.y)
     corrT = jnp.sum((mu / st.sT + (st.yT / st.sT) * (p.gT + st.sT) - st.yT) * dgT)
     sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
     dl, du, has_lo, has_hi = _bounds(nlp, st.z)
@@ -348,6 +377,9 @@ class _Direction(NamedTuple):
     dyT: Array
     dzl: Array
     dzu: Array
+    #: the slope along dz of the constraint terms of the Lagrangian,
+    #: ``y . dG + yT dg_T + lam . de`` (see :func:`step`'s cost slope)
+    dcon: Array
 
 
 def _direction(nlp, st: IPState, p: _Pieces, Jg, dgT, Ex, d, dX, mu, any_pd) -> _Direction:
@@ -365,7 +397,7 @@ def _direction(nlp, st: IPState, p: _Pieces, Jg, dgT, Ex, d, dX, mu, any_pd) -> 
     sy = jnp.concatenate([layout.u_scale, layout.h_scale[None]])
     du_st = z_to_stages(dz, N, n) * sy[None, :]
     dW = jnp.concatenate([dXz[:, :2 * n], jnp.concatenate([du_st, jnp.zeros((1, n + 1), dt)])], axis=1)
-    Jdz = jnp.sum(Jg * dW[:, None, :], axis=-1)
+    Jdz = _times_columns(Jg, dW)
     dT = jnp.sum(du_st[:, -1])
     ds = -(p.G + st.s) - Jdz
     dsT = -(p.gT + st.sT) - dgT * dT
@@ -374,7 +406,8 @@ def _direction(nlp, st: IPState, p: _Pieces, Jg, dgT, Ex, d, dX, mu, any_pd) -> 
     dl, du, has_lo, has_hi = _bounds(nlp, st.z)
     dzl = jnp.where(has_lo, mu / dl - st.zl - (st.zl / dl) * dz, 0.0)
     dzu = jnp.where(has_hi, mu / du - st.zu + (st.zu / du) * dz, 0.0)
-    return _Direction(dz, dlam, ds, dsT, dy, dyT, dzl, dzu)
+    dcon = jnp.sum(st.y * Jdz) + jnp.sum(st.yT * dgT) * dT + jnp.sum(st.lam * jnp.sum(Ex * dXz[N][None, :], axis=-1))
+    return _Direction(dz, dlam, ds, dsT, dy, dyT, dzl, dzu, dcon)
 
 
 def _errors(nlp, st: IPState, g_lag, p: _Pieces, mu, parts=False):
@@ -539,7 +572,7 @@ def step(nlp, st: IPState, tol) -> IPState:
     delta = jnp.where(project & any_pd, st.delta, delta)
     stuck = ~any_pd & (st.delta >= _DELTA_RANGE[1])
     d, dX = jnp.where(any_pd, d[..., k], 0.0), jnp.where(any_pd, dX[..., k], 0.0)  # (nz, 1 + 2n), (N+1, nx, 1 + 2n)
-    dz, dlam, ds, dsT, dy, dyT, dzl, dzu = _direction(nlp, st, p, Jg, dgT, Ex, d, dX, mu, any_pd)
+    dz, dlam, ds, dsT, dy, dyT, dzl, dzu, dcon = _direction(nlp, st, p, Jg, dgT, Ex, d, dX, mu, any_pd)
     dl, du, has_lo, has_hi = _bounds(nlp, st.z)
     tau = jnp.maximum(_TAU_MIN, 1.0 - mu)
 
@@ -552,9 +585,11 @@ def step(nlp, st: IPState, tol) -> IPState:
     ad = jnp.minimum(jnp.minimum(amax(st.y, dy), amax(st.yT, dyT)),
                      jnp.minimum(amax(st.zl, dzl, has_lo), amax(st.zu, dzu, has_hi)))
     # filter line search over a few step lengths at once
-    f0, df = jax.jvp(lambda zz: _parts(nlp, zz).f, (st.z,), (dz,))
+    # the cost's slope along dz from the Lagrangian's gradient less its constraint terms'
+    # (all computed already) instead of a pass through the dynamics with tangents
+    df = jnp.sum(g_lag * dz) - dcon
     th0 = _theta(p, st.s, st.sT)
-    ph0 = _barrier_phi(nlp, st.z, st.s, st.sT, f0, mu)
+    ph0 = _barrier_phi(nlp, st.z, st.s, st.sT, p.f, mu)
     dlog = (jnp.sum(ds / st.s) + jnp.sum(dsT / st.sT) + jnp.sum(jnp.where(has_lo, dz / dl, 0.0))
             - jnp.sum(jnp.where(has_hi, dz / du, 0.0)))
     gphi = df - mu * dlog
