@@ -47,6 +47,7 @@ reports the plan's cost gap to the refined optimum.
 
 from __future__ import annotations
 
+import os
 import time
 from typing import NamedTuple
 
@@ -59,6 +60,17 @@ import numpy as np
 #: (jtraj.coverage): a new draw of the training law falls a little outside the range of
 #: a few hundred training pairs (4 of 40 held-out serial3 pairs at margin 0)
 BOX_MARGIN = 0.05
+#: :meth:`Planner.plan` splits a larger batch into calls of this many pairs (the last one
+#: padded, so that one compiled program serves every batch size above it): on a CPU the
+#: batched program's arrays of a few hundred plans stay in cache, and the calls run on
+#: :data:`THREADS` threads at once
+CHUNK = 256
+#: threads :meth:`Planner.plan` runs a chunked batch's calls on (XLA releases the GIL)
+THREADS = min(os.cpu_count() or 1, 8)
+#: XLA CPU options of the batched program: no YNNPACK library fusions (jaxlib hands the
+#: small reductions over 2 to 60 numbers per plan to YNNPACK, slower than XLA's own loops
+#: for arrays of this shape)
+BATCH_XLA_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
 
 
 class Plan(NamedTuple):
@@ -105,6 +117,8 @@ def _packed(core, n: int):
         out = jax.tree.leaves(jax.vmap(core)(qs, qg))
         return jnp.concatenate([x.reshape(x.shape[0], -1).astype(dtype) for x in out], axis=1)
 
+    from ._compile import cpu_jit
+
     def unpack(values) -> Plan:
         values = np.asarray(values)
         lead = values.shape[:-1]
@@ -112,7 +126,7 @@ def _packed(core, n: int):
         out = [flat[:, sl].reshape(lead + shape) for sl, shape, _ in fields]
         return Plan._make(x if d is None else x.astype(d) for x, (_, _, d) in zip(out, fields))
 
-    return jax.jit(flat), jax.jit(flat_batch), unpack
+    return jax.jit(flat), cpu_jit(BATCH_XLA_OPTIONS)(flat_batch), unpack
 
 
 def _load(model):
@@ -232,6 +246,7 @@ class Planner:
         self._plan_batch = jax.jit(jax.vmap(core))
         # what plan() runs: one output buffer, NumPy arrays on the host
         self._flat, self._flat_batch, self._unpack = _packed(core, self.n)
+        self.chunk, self.threads, self._pool = CHUNK, THREADS, None
 
     def _coverage(self):
         from . import coverage
@@ -337,11 +352,38 @@ class Planner:
         return qs, qg
 
     def plan(self, q_start, q_goal) -> Plan:
-        """The plan and its report (one jitted call), as NumPy arrays. ``q_start``,
-        ``q_goal``: ``(n,)``, or ``(B, n)`` for a batch (every field of the Plan then has a
-        leading B axis). ``ValueError`` where they are not finite numbers of those shapes."""
+        """The plan and its report, as NumPy arrays. ``q_start``, ``q_goal``: ``(n,)``, or
+        ``(B, n)`` for a batch (every field of the Plan then has a leading B axis).
+        ``ValueError`` where they are not finite numbers of those shapes.
+
+        One jitted call for one pair or a batch of up to ``self.chunk`` pairs (default
+        :data:`CHUNK`); a larger batch runs as calls of ``self.chunk`` pairs on
+        ``self.threads`` threads (default :data:`THREADS`), the last call padded with
+        copies of the batch's first pair."""
         qs, qg = self._inputs(q_start, q_goal)
-        return self._unpack(self._flat(qs, qg) if qs.ndim == 1 else self._flat_batch(qs, qg))
+        if qs.ndim == 1:
+            return self._unpack(self._flat(qs, qg))
+        return self._unpack(self._batch(qs, qg))
+
+    def _batch(self, qs, qg):
+        """The packed plans of a (B, n) batch (:meth:`plan`)."""
+        B, C = qs.shape[0], int(self.chunk)
+        if B <= C:
+            return np.asarray(self._flat_batch(qs, qg))
+        pad = (-B) % C
+        if pad:
+            qs, qg = (np.concatenate([x, np.repeat(x[:1], pad, axis=0)]) for x in (qs, qg))
+        parts = [(qs[i:i + C], qg[i:i + C]) for i in range(0, B + pad, C)]
+        run = lambda p: np.asarray(self._flat_batch(*p))  # noqa: E731  (waits for the result)
+        if self.threads > 1:
+            if self._pool is None:
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._pool = ThreadPoolExecutor(self.threads)
+            out = list(self._pool.map(run, parts))
+        else:
+            out = [run(p) for p in parts]
+        return np.concatenate(out)[:B]
 
     def check(self, q_start, q_goal) -> None:
         """``ValueError`` where ``q_start`` or ``q_goal`` is not what ``jtraj.Problem``

@@ -101,6 +101,18 @@ def test_effort_step_solves_the_linearised_least_effort_problem_on_the_goal():
     rhs = np.r_[-gd, np.zeros(n), qg - qs]
     ref = np.linalg.solve(K, rhs)[:N * n].reshape(N, n)
     np.testing.assert_allclose(v1, ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
+    # the linearisation the step uses: the states of the recursion, the efforts and their
+    # derivatives (central differences above)
+    from jtraj.repair import linearise
+
+    ql, qdl, taul, Jl = (np.asarray(x) for x in linearise(rb, *map(jnp.asarray, (qs, z, v0, h))))
+    np.testing.assert_allclose(ql, q0, atol=1e-12)
+    np.testing.assert_allclose(qdl, qd0, atol=1e-12)
+    for k in (0, N // 2, N - 1):
+        np.testing.assert_allclose(taul[k], ID(q0[k], qd0[k], v0[k]), rtol=1e-12, atol=1e-12)
+        Jfd = np.stack([(ID(q0[k], qd0[k], v0[k] + 1e-6 * e) - ID(q0[k], qd0[k], v0[k] - 1e-6 * e)) / 2e-6
+                        for e in np.eye(n)], axis=1)
+        np.testing.assert_allclose(Jl[k], Jfd, rtol=1e-6, atol=1e-8)
 
 
 def test_homogeneity_test_tells_the_horizontal_arm_from_the_geared_vertical_one():
@@ -237,6 +249,16 @@ def test_planner_batch_plans_re_verified(planner_and_data, tmp_path):
         # one query equals its row of the batch
         p1 = planner.plan(qs[i], qg[i])
         np.testing.assert_allclose(np.asarray(p1.v), np.asarray(pb.v[i]), rtol=1e-12, atol=1e-12)
+    # a batch larger than the chunk runs as calls of the chunk's size (the program above),
+    # the last one padded: the same plans
+    planner.chunk = 8
+    try:
+        pc = planner.plan(np.r_[qs, qs[:5]], np.r_[qg, qg[:5]])
+    finally:
+        planner.chunk = 256
+    assert pc.v.shape == (13, 10, 3)
+    np.testing.assert_array_equal(pc.v, np.r_[pb.v, pb.v[:5]])
+    np.testing.assert_array_equal(pc.cost, np.r_[pb.cost, pb.cost[:5]])
     # without the least-effort candidates: feasible too, never cheaper (fewer candidates)
     from jtraj.online import Planner
 
