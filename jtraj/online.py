@@ -168,8 +168,11 @@ class Planner:
     joints than the model's is refused. ``weights`` (a :class:`jtraj.Weights`) default
     to the dataset's (the model's metadata ``"weights"``), else ``Weights()``: the cost
     the plan reports and the repair's time scaling minimises. ``correct``: apply the
-    feasibility repair (default) or return the raw prediction; ``effort``: with the
-    repair's least-effort step candidates (default; :func:`jtraj.repair.make_repair`).
+    feasibility repair (default) or return the raw prediction; ``switch``, ``effort``:
+    with the repair's switching-profile candidates (default) and its least-effort step
+    candidates (off by default: on held-out serial3 pairs they lower no plan's cost once
+    the switching candidates run, and cost more than half the batch's time;
+    :func:`jtraj.repair.make_repair`).
 
     Coverage (``coverage_distance``, ``coverage_box``, ``ood``; :mod:`jtraj.coverage`):
     with the training pairs in the model's metadata (models from
@@ -181,7 +184,7 @@ class Planner:
     """
 
     def __init__(self, model, robot=None, *, periods=None, weights=None, correct: bool = True,
-                 effort: bool = True, tol: float = 1e-6, goal_tol: float = 1e-6):
+                 effort: bool = False, switch: bool = True, tol: float = 1e-6, goal_tol: float = 1e-6):
         from jtraj import robots
 
         model = _load(model)
@@ -206,7 +209,7 @@ class Planner:
                                  f"model for robot {meta.get('robot')!r}, N = {meta.get('N')}")
         elif periods is not None:
             raise ValueError("periods= is for a nefotc model; a plan model predicts its own periods")
-        for name, x in (("correct", correct), ("effort", effort)):
+        for name, x in (("correct", correct), ("effort", effort), ("switch", switch)):
             if not isinstance(x, bool):
                 raise ValueError(f"{name} must be True or False, got {x!r}")
         for name, x in (("tol", tol), ("goal_tol", goal_tol)):
@@ -239,6 +242,7 @@ class Planner:
             weights = jtraj.Weights.parse(meta["weights"]) if meta.get("weights") else jtraj.Weights()
         self.weights = weights
         self.tol, self.goal_tol, self.correct, self.effort = float(tol), float(goal_tol), correct, effort
+        self.switch = switch
         self._coverage()
         core = self._core()
         # device arrays, for use inside other jitted code
@@ -306,7 +310,7 @@ class Planner:
         from .repair import cost_of, make_repair
 
         predict, rb, lim = self._predict(), self.robot, self.robot.limits
-        repair = make_repair(rb, self.weights, effort=self.effort) if self.correct else None
+        repair = make_repair(rb, self.weights, effort=self.effort, switch=self.switch) if self.correct else None
         weights, distance, radius = self.weights, self._distance, self.coverage_radius
 
         def core(qs, qg):
