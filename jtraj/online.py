@@ -16,8 +16,9 @@ Two kinds of prediction:
 Either prediction ``(v, h)`` then goes through the feasibility repair of
 :mod:`jtraj.repair` (``correct=True``, the default): a projection of ``v`` onto the goal
 state (reached to rounding, at rest) and a time scaling that restores the velocity,
-acceleration and effort bounds at the lowest cost of the scaled plans, all inside the
-same jitted call. ``correct=False`` returns the raw prediction.
+acceleration and effort bounds at the lowest cost of the scaled plans, compared with
+switching profiles on the same periods (the shape of effort-bounded optima), all
+inside the same jitted call. ``correct=False`` returns the raw prediction.
 
 The efforts come from the robot's inverse dynamics, and :class:`Plan` reports:
 
@@ -117,14 +118,14 @@ def _packed(core, n: int):
         out = jax.tree.leaves(jax.vmap(core)(qs, qg))
         return jnp.concatenate([x.reshape(x.shape[0], -1).astype(dtype) for x in out], axis=1)
 
-    from ._compile import cpu_jit
-
     def unpack(values) -> Plan:
         values = np.asarray(values)
         lead = values.shape[:-1]
         flat = values.reshape(-1, values.shape[-1])  # (1 or B, size): plain slices, no Ellipsis
         out = [flat[:, sl].reshape(lead + shape) for sl, shape, _ in fields]
         return Plan._make(x if d is None else x.astype(d) for x, (_, _, d) in zip(out, fields))
+
+    from ._compile import cpu_jit
 
     return jax.jit(flat), cpu_jit(BATCH_XLA_OPTIONS)(flat_batch), unpack
 
@@ -247,7 +248,9 @@ class Planner:
         core = self._core()
         # device arrays, for use inside other jitted code
         self._plan = jax.jit(core)
-        self._plan_batch = jax.jit(jax.vmap(core))
+        from ._compile import cpu_jit
+
+        self._plan_batch = cpu_jit(BATCH_XLA_OPTIONS)(jax.vmap(core))
         # what plan() runs: one output buffer, NumPy arrays on the host
         self._flat, self._flat_batch, self._unpack = _packed(core, self.n)
         self.chunk, self.threads, self._pool = CHUNK, THREADS, None
