@@ -16,8 +16,9 @@ Two kinds of prediction:
 Either prediction ``(v, h)`` then goes through the feasibility repair of
 :mod:`jtraj.repair` (``correct=True``, the default): a projection of ``v`` onto the goal
 state (reached to rounding, at rest) and a time scaling that restores the velocity,
-acceleration and effort bounds at the lowest cost of the scaled plans, all inside the
-same jitted call. ``correct=False`` returns the raw prediction.
+acceleration and effort bounds at the lowest cost of the scaled plans, compared with
+switching profiles on the same periods (the shape of effort-bounded optima), all
+inside the same jitted call. ``correct=False`` returns the raw prediction.
 
 The efforts come from the robot's inverse dynamics, and :class:`Plan` reports:
 
@@ -47,6 +48,7 @@ reports the plan's cost gap to the refined optimum.
 
 from __future__ import annotations
 
+import os
 import time
 from typing import NamedTuple
 
@@ -59,6 +61,17 @@ import numpy as np
 #: (jtraj.coverage): a new draw of the training law falls a little outside the range of
 #: a few hundred training pairs (4 of 40 held-out serial3 pairs at margin 0)
 BOX_MARGIN = 0.05
+#: :meth:`Planner.plan` splits a larger batch into calls of this many pairs (the last one
+#: padded, so that one compiled program serves every batch size above it): on a CPU the
+#: batched program's arrays of a few hundred plans stay in cache, and the calls run on
+#: :data:`THREADS` threads at once
+CHUNK = 256
+#: threads :meth:`Planner.plan` runs a chunked batch's calls on (XLA releases the GIL)
+THREADS = min(os.cpu_count() or 1, 8)
+#: XLA CPU options of the batched program: no YNNPACK library fusions (jaxlib hands the
+#: small reductions over 2 to 60 numbers per plan to YNNPACK, slower than XLA's own loops
+#: for arrays of this shape)
+BATCH_XLA_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
 
 
 class Plan(NamedTuple):
@@ -112,7 +125,9 @@ def _packed(core, n: int):
         out = [flat[:, sl].reshape(lead + shape) for sl, shape, _ in fields]
         return Plan._make(x if d is None else x.astype(d) for x, (_, _, d) in zip(out, fields))
 
-    return jax.jit(flat), jax.jit(flat_batch), unpack
+    from ._compile import cpu_jit
+
+    return jax.jit(flat), cpu_jit(BATCH_XLA_OPTIONS)(flat_batch), unpack
 
 
 def _load(model):
@@ -154,8 +169,11 @@ class Planner:
     joints than the model's is refused. ``weights`` (a :class:`jtraj.Weights`) default
     to the dataset's (the model's metadata ``"weights"``), else ``Weights()``: the cost
     the plan reports and the repair's time scaling minimises. ``correct``: apply the
-    feasibility repair (default) or return the raw prediction; ``effort``: with the
-    repair's least-effort step candidates (default; :func:`jtraj.repair.make_repair`).
+    feasibility repair (default) or return the raw prediction; ``switch``, ``effort``:
+    with the repair's switching-profile candidates (default) and its least-effort step
+    candidates (off by default: on held-out serial3 pairs they lower no plan's cost once
+    the switching candidates run, and cost more than half the batch's time;
+    :func:`jtraj.repair.make_repair`).
 
     Coverage (``coverage_distance``, ``coverage_box``, ``ood``; :mod:`jtraj.coverage`):
     with the training pairs in the model's metadata (models from
@@ -167,7 +185,7 @@ class Planner:
     """
 
     def __init__(self, model, robot=None, *, periods=None, weights=None, correct: bool = True,
-                 effort: bool = True, tol: float = 1e-6, goal_tol: float = 1e-6):
+                 effort: bool = False, switch: bool = True, tol: float = 1e-6, goal_tol: float = 1e-6):
         from jtraj import robots
 
         model = _load(model)
@@ -192,7 +210,7 @@ class Planner:
                                  f"model for robot {meta.get('robot')!r}, N = {meta.get('N')}")
         elif periods is not None:
             raise ValueError("periods= is for a nefotc model; a plan model predicts its own periods")
-        for name, x in (("correct", correct), ("effort", effort)):
+        for name, x in (("correct", correct), ("effort", effort), ("switch", switch)):
             if not isinstance(x, bool):
                 raise ValueError(f"{name} must be True or False, got {x!r}")
         for name, x in (("tol", tol), ("goal_tol", goal_tol)):
@@ -225,13 +243,17 @@ class Planner:
             weights = jtraj.Weights.parse(meta["weights"]) if meta.get("weights") else jtraj.Weights()
         self.weights = weights
         self.tol, self.goal_tol, self.correct, self.effort = float(tol), float(goal_tol), correct, effort
+        self.switch = switch
         self._coverage()
         core = self._core()
         # device arrays, for use inside other jitted code
         self._plan = jax.jit(core)
-        self._plan_batch = jax.jit(jax.vmap(core))
+        from ._compile import cpu_jit
+
+        self._plan_batch = cpu_jit(BATCH_XLA_OPTIONS)(jax.vmap(core))
         # what plan() runs: one output buffer, NumPy arrays on the host
         self._flat, self._flat_batch, self._unpack = _packed(core, self.n)
+        self.chunk, self.threads, self._pool = CHUNK, THREADS, None
 
     def _coverage(self):
         from . import coverage
@@ -291,7 +313,7 @@ class Planner:
         from .repair import cost_of, make_repair
 
         predict, rb, lim = self._predict(), self.robot, self.robot.limits
-        repair = make_repair(rb, self.weights, effort=self.effort) if self.correct else None
+        repair = make_repair(rb, self.weights, effort=self.effort, switch=self.switch) if self.correct else None
         weights, distance, radius = self.weights, self._distance, self.coverage_radius
 
         def core(qs, qg):
@@ -337,11 +359,38 @@ class Planner:
         return qs, qg
 
     def plan(self, q_start, q_goal) -> Plan:
-        """The plan and its report (one jitted call), as NumPy arrays. ``q_start``,
-        ``q_goal``: ``(n,)``, or ``(B, n)`` for a batch (every field of the Plan then has a
-        leading B axis). ``ValueError`` where they are not finite numbers of those shapes."""
+        """The plan and its report, as NumPy arrays. ``q_start``, ``q_goal``: ``(n,)``, or
+        ``(B, n)`` for a batch (every field of the Plan then has a leading B axis).
+        ``ValueError`` where they are not finite numbers of those shapes.
+
+        One jitted call for one pair or a batch of up to ``self.chunk`` pairs (default
+        :data:`CHUNK`); a larger batch runs as calls of ``self.chunk`` pairs on
+        ``self.threads`` threads (default :data:`THREADS`), the last call padded with
+        copies of the batch's first pair."""
         qs, qg = self._inputs(q_start, q_goal)
-        return self._unpack(self._flat(qs, qg) if qs.ndim == 1 else self._flat_batch(qs, qg))
+        if qs.ndim == 1:
+            return self._unpack(self._flat(qs, qg))
+        return self._unpack(self._batch(qs, qg))
+
+    def _batch(self, qs, qg):
+        """The packed plans of a (B, n) batch (:meth:`plan`)."""
+        B, C = qs.shape[0], int(self.chunk)
+        if B <= C:
+            return np.asarray(self._flat_batch(qs, qg))
+        pad = (-B) % C
+        if pad:
+            qs, qg = (np.concatenate([x, np.repeat(x[:1], pad, axis=0)]) for x in (qs, qg))
+        parts = [(qs[i:i + C], qg[i:i + C]) for i in range(0, B + pad, C)]
+        run = lambda p: np.asarray(self._flat_batch(*p))  # noqa: E731  (waits for the result)
+        if self.threads > 1:
+            if self._pool is None:
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._pool = ThreadPoolExecutor(self.threads)
+            out = list(self._pool.map(run, parts))
+        else:
+            out = [run(p) for p in parts]
+        return np.concatenate(out)[:B]
 
     def check(self, q_start, q_goal) -> None:
         """``ValueError`` where ``q_start`` or ``q_goal`` is not what ``jtraj.Problem``

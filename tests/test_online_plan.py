@@ -101,6 +101,38 @@ def test_effort_step_solves_the_linearised_least_effort_problem_on_the_goal():
     rhs = np.r_[-gd, np.zeros(n), qg - qs]
     ref = np.linalg.solve(K, rhs)[:N * n].reshape(N, n)
     np.testing.assert_allclose(v1, ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
+    # the linearisation the step uses: the states of the recursion, the efforts and their
+    # derivatives (central differences above)
+    from jtraj.repair import linearise
+
+    ql, qdl, taul, Jl = (np.asarray(x) for x in linearise(rb, *map(jnp.asarray, (qs, z, v0, h))))
+    np.testing.assert_allclose(ql, q0, atol=1e-12)
+    np.testing.assert_allclose(qdl, qd0, atol=1e-12)
+    for k in (0, N // 2, N - 1):
+        np.testing.assert_allclose(taul[k], ID(q0[k], qd0[k], v0[k]), rtol=1e-12, atol=1e-12)
+        Jfd = np.stack([(ID(q0[k], qd0[k], v0[k] + 1e-6 * e) - ID(q0[k], qd0[k], v0[k] - 1e-6 * e)) / 2e-6
+                        for e in np.eye(n)], axis=1)
+        np.testing.assert_allclose(Jl[k], Jfd, rtol=1e-6, atol=1e-8)
+
+
+def test_switch_profile_holds_opposite_accelerations_around_a_linear_switch_and_ends_on_the_goal():
+    from jtraj.repair import switch_profile
+
+    rng = np.random.default_rng(8)
+    qs, qg, _, _ = _prediction(rng)
+    z = np.zeros(n)
+    for h in (np.full(N, 0.07), rng.uniform(0.05, 0.09, N)):
+        v = np.asarray(switch_profile(*map(jnp.asarray, (qs, z, qg, h)), width=0.3))
+        q, qd = _recursion(qs, z, v, h)
+        np.testing.assert_allclose(q[-1], qg, atol=1e-12)
+        t = np.cumsum(h) - h / 2
+        x = (t - h.sum() / 2) / (0.15 * h.sum())  # position in the switch, -1 to 1
+        a = v[np.argmin(x)]  # the first interval's accelerations
+        for k in range(N):
+            np.testing.assert_allclose(v[k], a * min(1.0, max(-1.0, -x[k])) / min(1.0, -x.min()), rtol=1e-12,
+                                       atol=1e-14)
+        if np.ptp(h) == 0:  # uniform periods: rest at the end too, by symmetry
+            np.testing.assert_allclose(qd[-1], 0.0, atol=1e-12)
 
 
 def test_homogeneity_test_tells_the_horizontal_arm_from_the_geared_vertical_one():
@@ -237,12 +269,22 @@ def test_planner_batch_plans_re_verified(planner_and_data, tmp_path):
         # one query equals its row of the batch
         p1 = planner.plan(qs[i], qg[i])
         np.testing.assert_allclose(np.asarray(p1.v), np.asarray(pb.v[i]), rtol=1e-12, atol=1e-12)
-    # without the least-effort candidates: feasible too, never cheaper (fewer candidates)
+    # a batch larger than the chunk runs as calls of the chunk's size (the program above),
+    # the last one padded: the same plans
+    planner.chunk = 8
+    try:
+        pc = planner.plan(np.r_[qs, qs[:5]], np.r_[qg, qg[:5]])
+    finally:
+        planner.chunk = 256
+    assert pc.v.shape == (13, 10, 3)
+    np.testing.assert_array_equal(pc.v, np.r_[pb.v, pb.v[:5]])
+    np.testing.assert_array_equal(pc.cost, np.r_[pb.cost, pb.cost[:5]])
+    # without the switching candidates: feasible too, never cheaper (fewer candidates)
     from jtraj.online import Planner
 
-    fast = Planner(planner.model, planner.robot, weights=W, effort=False).plan(qs, qg)
-    assert planner.feasible(fast).all()
-    assert np.all(np.asarray(fast.cost) >= np.asarray(pb.cost) * (1 - 1e-12))
+    fewer = Planner(planner.model, planner.robot, weights=W, switch=False).plan(qs, qg)
+    assert planner.feasible(fewer).all()
+    assert np.all(np.asarray(fewer.cost) >= np.asarray(pb.cost) * (1 - 1e-12))
     # the raw prediction misses the goal: the repair is what lands on it
     assert float(np.median(np.asarray(pb.predicted_goal_error))) > 1e-3
     # coverage: training pairs lie at distance 0, far queries are flagged
