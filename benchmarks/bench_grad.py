@@ -274,9 +274,15 @@ def _fd_part(args, jtraj, robot, w, tight, kinds, figures, dump):
 
             def out_of(d, static=static, base=base):  # warm at the base optimum: its derivative
                 s = jtraj.solve(eqx.combine(d, static), solver=tight, init=(base.v, base.h))
-                return jnp.stack([s.T, s.cost])
+                return jnp.stack([s.T, s.cost]), s.status
 
-            jvp = np.asarray(jax.jvp(out_of, (dyn,), (tangent,))[1])
+            _, jvp, status = jax.jvp(out_of, (dyn,), (tangent,), has_aux=True)
+            jvp = np.asarray(jvp)
+            if int(status) not in (0, 7):  # the solve warm at the base stops short of --tol
+                counts["warm_base_not_converged"] = counts.get("warm_base_not_converged", 0) + 1
+                print(f"   pair {ip} {kind}: the solve warm at the base optimum ends with status {int(status)}",
+                      flush=True)
+                continue
             if not np.all(np.isfinite(jvp)):  # a converged base with an invalid derivative
                 counts["nan_derivative"] += 1
                 print(f"   pair {ip} {kind}: NaN derivative at a converged optimum", flush=True)
