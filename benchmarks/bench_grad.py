@@ -189,20 +189,20 @@ def _signatures(batch, sols):
 
 def _table(fig, kinds):
     """The markdown table of part 1 (docs/benchmarks.md) from its figures."""
-    lines = ["", "| input kind | pairs | active set changes within the steps | dT*: median / p90 / max | "
+    lines = ["", "| input kind | tolerances | pairs | active set changes within the steps | dT*: median / p90 / max | "
              "dJ*: median / p90 / max | reference uncertainty, max (dT* / dJ*) | above 1e-5 (dT* / dJ*) | "
-             "all pairs, max (dT* / dJ*) |", "|---|---|---|---|---|---|---|---|"]
+             "all pairs, max (dT* / dJ*) |", "|---|---|---|---|---|---|---|---|---|"]
     for kind in kinds:
         res = fig["kinds"].get(kind)
         if res is None or "dT" not in res:
-            lines.append(f"| {kind} | 0 | | | | | | |")
+            lines.append(f"| {kind} | | 0 | | | | | | |")
             continue
         T, C = res["dT"], res["dcost"]
         n = max(T["pairs"], C["pairs"])
         moved = max(T["moved"], C["moved"])
         cell = lambda st: "n/a" if st is None else " / ".join(f"{st[q]:.1e}" for q in ("median", "p90", "max"))  # noqa: E731
         mx = lambda st: "n/a" if st is None else f"{st['max']:.1e}"  # noqa: E731
-        lines.append(f"| {kind} | {n} | {moved} of {n} ({100 * moved / max(n, 1):.0f} %) | {cell(T['same_active'])} | "
+        lines.append(f"| {kind} | {res.get('tol', fig.get('tol')):g} | {n} | {moved} of {n} ({100 * moved / max(n, 1):.0f} %) | {cell(T['same_active'])} | "
                      f"{cell(C['same_active'])} | {mx(T['uncertainty_same_active'])} / "
                      f"{mx(C['uncertainty_same_active'])} | {T['above_1e-5_same_active']} / "
                      f"{C['above_1e-5_same_active']} | {mx(T['all'])} / {mx(C['all'])} |")

@@ -1,6 +1,6 @@
 """Re-examine the cases of ``bench_grad.py`` part 1 where dT* misses its reference.
 
-    python benchmarks/grad_recheck.py [--json benchmarks/figures/grad.json] [--cases weights:34,via:37]
+    python benchmarks/grad_recheck.py [--json benchmarks/figures/grad_1e-10.json] [--cases weights:34,via:37]
                                       [--tols 1e-10,1e-12] [--out benchmarks/figures/grad_recheck.json]
 
 For each (kind, pair) case (by default: every pair of the run in ``--json`` whose dT*
@@ -108,7 +108,7 @@ def table(out, tols):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--json", default=os.path.join(HERE, "figures", "grad.json"))
+    ap.add_argument("--json", default=os.path.join(HERE, "figures", "grad_1e-10.json"))
     ap.add_argument("--cases", default="", help="kind:pair,... (default: the misses, see above)")
     ap.add_argument("--tols", default="1e-10,1e-12")
     ap.add_argument("--out", default=os.path.join(HERE, "figures", "grad_recheck.json"))
