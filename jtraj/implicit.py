@@ -70,11 +70,14 @@ method's default tolerances a constraint with a small multiplier lies about
 ``mu / multiplier`` inside its bound and can be missed (more than ``ACT_TOL`` inside);
 the reduced Hessian of the remaining set is then indefinite and the derivative there not
 valid. Where a converged solve's derivative is not valid, the rule refines the optimum
-(:func:`refine`: the AL method at tolerances 1e-10, :data:`REFINE`, warm-started at the
-returned point, bounded work) and differentiates at the refined point, the same
-optimum to the refinement's tolerance. With concrete primal values (a derivative
-outside ``jit``) the check is read on the host and the refinement is the ordinary solve;
-inside ``jit`` or ``vmap`` it is a ``lax.cond`` on the traced flag (under ``vmap`` both
+(:func:`refine`, warm-started at the returned point, bounded work: where the
+interior-point method applies, its iterations with a barrier parameter of 1e-8,
+:data:`REFINE_IP`, which stay at the returned point's optimum, then the AL method at
+tolerances 1e-10, :data:`REFINE`, from their point) and differentiates at the refined
+point, the same optimum to the refinement's tolerance. With concrete primal values (a
+derivative outside ``jit``) the check is read on the host and the refinement is one
+compiled program run per flagged sample; inside ``jit`` or ``vmap`` it is a
+``lax.cond`` on the traced flag (under ``vmap`` both
 sides run, the lanes that need no refinement starting finished). The primal outputs stay
 those of the returned solve. Where the stage-wise solve still fails its self-check at a
 converged point (its iteration on the multipliers not converging in ``MAX_ITER`` steps),
@@ -117,7 +120,8 @@ from .problem import Problem
 from .solver.methods import IPM, AugmentedLagrangian
 from .transcription import Transcription
 
-__all__ = ["ACT_TOL", "BOUND_TOL", "NOISE", "REFINE", "REFINE_IP", "WEAK", "WEAK_MIN", "implicit_tangent", "refine", "valid_derivatives"]
+__all__ = ["ACT_TOL", "BOUND_TOL", "NOISE", "REFINE", "REFINE_IP", "WEAK", "WEAK_MIN", "implicit_tangent", "refine",
+           "valid_derivatives"]
 
 #: inequalities with ``c_i > -ACT_TOL`` (normalised units) are candidates for the active set
 ACT_TOL = 1e-3
@@ -535,10 +539,11 @@ def refine(problem: Problem, tr: Transcription, at, need):
     ``at`` = (u, h): :data:`REFINE_IP` (the interior-point iterations alone, where the
     method applies) and then :data:`REFINE` (the AL loop) from its point. Returns
     ``(u, h)``: the AL stage's point where it converged (a converged optimum to 1e-10),
-    ``at`` otherwise. Where ``need`` is False both stages start finished (no iteration; under ``vmap`` such a lane waits for the others). Bounded
+    ``at`` otherwise. Where ``need`` is False both stages start finished (no iteration;
+    under ``vmap`` such a lane waits for the others). Bounded
     work: at most ``REFINE_IP.max_iter`` interior-point iterations, ``REFINE.max_iter``
     Newton iterations of the AL loop and one restart."""
-    from .solver import ipm, loop
+    from .solver import loop
     from .solver.al import ALMethod
     from .solver.core import finish, ip_method, prepare
     from .solver.options import static_options
@@ -580,8 +585,8 @@ def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
     indefinite, the stage-wise solve's self-check fails), the optimum is refined
     (:func:`refine`) and the derivative taken at the refined point: the derivative of the
     same optimum to the refinement's tolerance. With concrete primal values (a derivative
-    outside ``jit``) the decision is taken on the host and the refinement is the ordinary
-    solve with :data:`REFINE` (a batch re-solves only the samples that need it); inside
+    outside ``jit``) the decision is taken on the host and the refinement's compiled
+    program runs on the samples that need it, one at a time; inside
     ``jit`` or ``vmap`` it is a ``lax.cond`` on the traced flag."""
     tr = Transcription(cfg.transcription)
     at = _point(tr, sol)
