@@ -70,11 +70,14 @@ method's default tolerances a constraint with a small multiplier lies about
 ``mu / multiplier`` inside its bound and can be missed (more than ``ACT_TOL`` inside);
 the reduced Hessian of the remaining set is then indefinite and the derivative there not
 valid. Where a converged solve's derivative is not valid, the rule refines the optimum
-(:func:`refine`: the AL method at tolerances 1e-10, :data:`REFINE`, warm-started at the
-returned point, bounded work) and differentiates at the refined point, the same
-optimum to the refinement's tolerance. With concrete primal values (a derivative
-outside ``jit``) the check is read on the host and the refinement is the ordinary solve;
-inside ``jit`` or ``vmap`` it is a ``lax.cond`` on the traced flag (under ``vmap`` both
+(:func:`refine`, warm-started at the returned point, bounded work: where the
+interior-point method applies, its iterations with a barrier parameter of 1e-8,
+:data:`REFINE_IP`, which stay at the returned point's optimum, then the AL method at
+tolerances 1e-10, :data:`REFINE`, from their point) and differentiates at the refined
+point, the same optimum to the refinement's tolerance. With concrete primal values (a
+derivative outside ``jit``) the check is read on the host and the refinement is one
+compiled program run per flagged sample; inside ``jit`` or ``vmap`` it is a
+``lax.cond`` on the traced flag (under ``vmap`` both
 sides run, the lanes that need no refinement starting finished). The primal outputs stay
 those of the returned solve. Where the stage-wise solve still fails its self-check at a
 converged point (its iteration on the multipliers not converging in ``MAX_ITER`` steps),
@@ -114,10 +117,11 @@ import jax.scipy.linalg
 import numpy as np
 
 from .problem import Problem
-from .solver.methods import AugmentedLagrangian
+from .solver.methods import IPM, AugmentedLagrangian
 from .transcription import Transcription
 
-__all__ = ["ACT_TOL", "BOUND_TOL", "NOISE", "REFINE", "WEAK", "WEAK_MIN", "implicit_tangent", "refine", "valid_derivatives"]
+__all__ = ["ACT_TOL", "BOUND_TOL", "NOISE", "REFINE", "REFINE_IP", "WEAK", "WEAK_MIN", "implicit_tangent", "refine",
+           "valid_derivatives"]
 
 #: inequalities with ``c_i > -ACT_TOL`` (normalised units) are candidates for the active set
 ACT_TOL = 1e-3
@@ -138,6 +142,11 @@ LS_STEPS = 3
 #: method warm-started at it, tolerances 1e-10; see :func:`refine`): the rule differentiates
 #: at the refined point
 REFINE = AugmentedLagrangian(tol_feasibility=1e-10, tol_optimality=1e-10, max_iter=2000)
+#: the refinement's first stage, where the interior-point method applies: that method
+#: warm-started at the returned point with a small barrier parameter and tolerances 1e-9
+#: (tens of iterations), whose point :data:`REFINE` then finishes (a few to tens of
+#: iterations from there instead of hundreds to thousands from the returned point)
+REFINE_IP = IPM(tol=1e-9, mu_init=1e-8, dual_tol=1e-9, compl_tol=1e-9, tol_optimality=1e-9, tol_feasibility=1e-10)
 
 #: the linear solve of the derivatives through jtraj.solve / solve_batch: None (the
 #: transcription's default: "stagewise" for the decoupled one, "dense" otherwise),
@@ -506,19 +515,54 @@ def _point(tr: Transcription, sol):
     return tr.controls_of(sol), sol.h
 
 
-def refine(problem: Problem, tr: Transcription, at, need):
-    """The optimum refined by :data:`REFINE` (the AL loop warm-started at ``at`` = (u, h))
-    where the traced bool ``need`` says so: returns ``(u, h)``, the refined point where
-    ``need`` and the refinement converged, ``at`` otherwise. Where ``need`` is False the
-    loop starts finished (no iteration; under ``vmap`` such a lane waits for the others).
-    Bounded work: at most ``REFINE.max_iter`` Newton iterations and one restart."""
-    from .solver import loop
-    from .solver.al import ALMethod
-    from .solver.core import finish, prepare
+def _interior_point_applies(problem: Problem, transcription: str) -> bool:
+    """Whether the interior-point method applies to the problem (the decoupled
+    transcription, no path equalities, no jerk rows): the first stage of the refinement."""
+    from .solver.core import resolve_method
+
+    return resolve_method(None, transcription, problem.robot, problem.jerk).method == "ip"
+
+
+def _refine_options(problem: Problem, transcription: str):
+    """The resolved options of the refinement's stages: ``(interior point or None, AL)``."""
+    from .solver.core import resolve_method
     from .solver.options import to_options
 
-    opts = to_options(REFINE)
-    nlp, state, valid = prepare(problem, opts, tr, at, True)
+    al = resolve_method(to_options(REFINE), transcription, problem.robot, problem.jerk)
+    if not _interior_point_applies(problem, transcription):
+        return None, al
+    return resolve_method(to_options(REFINE_IP), transcription, problem.robot, problem.jerk), al
+
+
+def refine(problem: Problem, tr: Transcription, at, need):
+    """The optimum refined where the traced bool ``need`` says so, warm-started at
+    ``at`` = (u, h): :data:`REFINE_IP` (the interior-point iterations alone, where the
+    method applies) and then :data:`REFINE` (the AL loop) from its point. Returns
+    ``(u, h)``: the AL stage's point where it converged (a converged optimum to 1e-10),
+    ``at`` otherwise. Where ``need`` is False both stages start finished (no iteration;
+    under ``vmap`` such a lane waits for the others). Bounded
+    work: at most ``REFINE_IP.max_iter`` interior-point iterations, ``REFINE.max_iter``
+    Newton iterations of the AL loop and one restart."""
+    from .solver import loop
+    from .solver.al import ALMethod
+    from .solver.core import finish, ip_method, prepare
+    from .solver.options import static_options
+
+    ip_opts, opts = _refine_options(problem, tr.name)
+    start = at
+    if ip_opts is not None:
+        nlp, state, _ = prepare(problem, ip_opts, tr, at, True)
+        state = state._replace(done=state.done | ~need)
+        method = ip_method(ip_opts, jnp.where(state.done, 0, static_options(ip_opts).ip_max_iter))
+        ip = loop.iterate(method, nlp, method.init(nlp, state.z, static_options(ip_opts).ip_mu_init))
+        # its point where it is certified (active bounds snapped on), else its last iterate
+        # (near the optimum: the small barrier parameter keeps it there), which the AL stage
+        # finishes either way
+        solved = ip.done & ~ip.failed
+        z1 = jnp.where(solved, method.postprocess(nlp, ip, state).z, ip.z)
+        z1 = jnp.where(~state.done & jnp.all(jnp.isfinite(z1)), z1, state.z)
+        start = nlp.layout.unpack(z1)
+    nlp, state, valid = prepare(problem, opts, tr, start, True)
     state = state._replace(done=state.done | ~need)
     al = ALMethod(opts)
     ref = finish(nlp, al.postprocess(nlp, loop.run(al, nlp, state), state), opts, valid)
@@ -541,8 +585,8 @@ def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
     indefinite, the stage-wise solve's self-check fails), the optimum is refined
     (:func:`refine`) and the derivative taken at the refined point: the derivative of the
     same optimum to the refinement's tolerance. With concrete primal values (a derivative
-    outside ``jit``) the decision is taken on the host and the refinement is the ordinary
-    solve with :data:`REFINE` (a batch re-solves only the samples that need it); inside
+    outside ``jit``) the decision is taken on the host and the refinement's compiled
+    program runs on the samples that need it, one at a time; inside
     ``jit`` or ``vmap`` it is a ``lax.cond`` on the traced flag."""
     tr = Transcription(cfg.transcription)
     at = _point(tr, sol)
@@ -581,27 +625,20 @@ def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
     return jax.tree.map(pick, dense, dsol), valid | use
 
 
+@eqx.filter_jit  # keyed by the problem's structure
+def _refine_program(static, transcription: str, dyn, at):
+    return refine(eqx.combine(dyn, static), Transcription(transcription), at, jnp.bool_(True))
+
+
 def _refine_host(cfg: _Config, dyn, at, flags, batch: bool):
-    """:func:`refine` with concrete values: each flagged problem re-solved with
-    :data:`REFINE` by the staged programs of :func:`jtraj.solve`, warm-started at its
-    point (one compiled program whatever the number of flagged samples)."""
-    from .solver import staged as _staged
-    from .solver.core import resolve_method
-    from .solver.options import to_options
-
-    tr = Transcription(cfg.transcription)
-
-    def one(d, a):
-        problem = eqx.combine(d, cfg.static)
-        opts = resolve_method(to_options(REFINE), cfg.transcription, problem.robot, problem.jerk)
-        ref = _staged.solve(problem, opts, cfg.transcription, a, np.bool_(True), np.bool_(False))
-        return _point(tr, ref) if bool(ref.converged) else a
-
+    """:func:`refine` with concrete values: each flagged problem refined by one compiled
+    program (the one a trace runs, for one problem), warm-started at its point."""
     if not batch:
-        return one(dyn, at)
+        return _refine_program(cfg.static, cfg.transcription, dyn, at)
     u, h = (np.array(a) for a in at)
     for i in np.flatnonzero(flags):
-        u[i], h[i] = one(jax.tree.map(lambda x: x[i], dyn), (u[i], h[i]))
+        ui, hi = _refine_program(cfg.static, cfg.transcription, jax.tree.map(lambda x: x[i], dyn), (u[i], h[i]))
+        u[i], h[i] = np.asarray(ui), np.asarray(hi)
     return jnp.asarray(u), jnp.asarray(h)
 
 

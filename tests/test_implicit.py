@@ -609,3 +609,58 @@ def test_converged_default_solve_gets_the_refined_optimums_derivative(monkeypatc
         _close(g[out].robot.masses, fd[i], rtol=1e-4)
     for leaf in jax.tree.leaves(g):
         assert np.all(np.isfinite(np.asarray(leaf)))
+
+
+# serial3 at N = 20 between a start and a goal whose default optimum gives no valid
+# derivative where it is returned, and where the AL method at 1e-10 warm-started there walks
+# to a neighbouring local optimum (T 0.6647459 against 0.6647232): the refinement's first
+# interior-point stage keeps the returned point's optimum
+REFINE_START = np.array([0.40686395101237993, -0.08337037687187787, -1.044073050788108])
+REFINE_GOAL = np.array([0.6024830699415404, -0.29660584323654327, -1.2339307421466343])
+
+
+@pytest.mark.slow  # the default solver, the refinement and a tangent program at N = 20 (minutes)
+def test_refinement_of_a_default_optimum_matches_tight_re_solves(monkeypatch):
+    """``jax.grad`` of T in the goal through a converged default solve whose returned point
+    needs the refinement equals Richardson-extrapolated central differences of re-solves
+    by the AL method at 1e-12 warm-started at the refined optimum (feasible, their optimality
+    certified or not in 8,000 iterations), to 1e-6 relative; the
+    refined optimum is the returned one's (T within the interior-point tolerance)."""
+    problem = lambda g: jtraj.Problem(ROBOT, REFINE_START, g, N=20, weights=jtraj.Weights(**WEIGHTS))  # noqa: E731
+    refined = []
+    host = implicit._refine_host
+
+    def spy(*args):
+        out = host(*args)
+        refined.append(out)
+        return out
+
+    monkeypatch.setattr(implicit, "_refine_host", spy)
+    T, g = jax.value_and_grad(lambda q: jtraj.solve(problem(q)).T)(jnp.asarray(REFINE_GOAL))
+    assert len(refined) == 1  # the returned point's derivative was not valid
+    u, h = refined[0]
+    assert np.all(np.isfinite(np.asarray(g)))
+    assert abs(float(jnp.sum(h)) - float(T)) < 1e-3 * float(T)
+    tight = jtraj.AugmentedLagrangian(tol_feasibility=1e-12, tol_optimality=1e-12, max_iter=8000)
+
+    def accurate(s):  # certified at 1e-12, or feasible (the AL method at 1e-12 may stop short of certifying
+        # optimality in 8,000 iterations; the agreement below is the test of the re-solves' precision)
+        return int(s.status) in (jtraj.Status.CONVERGED, jtraj.Status.FEASIBLE_NOT_OPTIMAL)
+
+    at = jtraj.solve(problem(REFINE_GOAL), solver=tight, init=(u, h))
+    assert accurate(at), (at.status_message, float(at.kkt_error))
+    np.testing.assert_allclose(float(at.T), float(jnp.sum(h)), rtol=1e-8)
+    fd = []
+    for i in range(3):
+        d = []
+        for step in (1e-4, 2.5e-5):
+            vals = []
+            for sign in (1.0, -1.0):
+                q = REFINE_GOAL.copy()
+                q[i] += sign * step
+                s = jtraj.solve(problem(q), solver=tight, init=(at.v, at.h))
+                assert accurate(s), (s.status_message, float(s.kkt_error))
+                vals.append(float(s.T))
+            d.append((vals[0] - vals[1]) / (2 * step))
+        fd.append((16 * d[1] - d[0]) / 15)
+    np.testing.assert_allclose(np.asarray(g), fd, rtol=1e-6, atol=1e-9 * max(abs(x) for x in fd))
