@@ -191,6 +191,12 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
     # the first one's optimum, is the one differentiated
     theta0 = jnp.asarray(_getter(wrt)(problem), dtype=float)
     warm = (tr.controls_of(sol), sol.h)
+    if implicit._interior_point_applies(problem, tr.name):
+        # the first stage of the derivative's refinement (jtraj.implicit.refine): interior-point
+        # iterations at a small barrier parameter bring the AL method's start near the optimum
+        first = solve(problem, solver=implicit.REFINE_IP, transcription=tr.name, init=warm)
+        if int(first.status) == Status.CONVERGED:
+            warm = (tr.controls_of(first), first.h)
 
     def optimum(theta):
         s = solve(_with_param(problem, wrt, theta), solver=REFINE, transcription=tr.name, init=warm)
