@@ -120,8 +120,8 @@ from .problem import Problem
 from .solver.methods import IPM, AugmentedLagrangian
 from .transcription import Transcription
 
-__all__ = ["ACT_TOL", "BOUND_TOL", "NOISE", "REFINE", "REFINE_IP", "WEAK", "WEAK_MIN", "implicit_tangent", "refine",
-           "valid_derivatives"]
+__all__ = ["ACT_TOL", "BOUND_TOL", "NOISE", "REFINE", "REFINE_IP", "WEAK", "WEAK_MIN", "implicit_tangent",
+           "interior_point_applies", "refine", "valid_derivatives"]
 
 #: inequalities with ``c_i > -ACT_TOL`` (normalised units) are candidates for the active set
 ACT_TOL = 1e-3
@@ -515,7 +515,7 @@ def _point(tr: Transcription, sol):
     return tr.controls_of(sol), sol.h
 
 
-def _interior_point_applies(problem: Problem, transcription: str) -> bool:
+def interior_point_applies(problem: Problem, transcription: str) -> bool:
     """Whether the interior-point method applies to the problem (the decoupled
     transcription, no path equalities, no jerk rows): the first stage of the refinement."""
     from .solver.core import resolve_method
@@ -529,7 +529,7 @@ def _refine_options(problem: Problem, transcription: str):
     from .solver.options import to_options
 
     al = resolve_method(to_options(REFINE), transcription, problem.robot, problem.jerk)
-    if not _interior_point_applies(problem, transcription):
+    if not interior_point_applies(problem, transcription):
         return None, al
     return resolve_method(to_options(REFINE_IP), transcription, problem.robot, problem.jerk), al
 

@@ -191,7 +191,7 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
     # the first one's optimum, is the one differentiated
     theta0 = jnp.asarray(_getter(wrt)(problem), dtype=float)
     warm = (tr.controls_of(sol), sol.h)
-    if implicit._interior_point_applies(problem, tr.name):
+    if implicit.interior_point_applies(problem, tr.name):
         # the first stage of the derivative's refinement (jtraj.implicit.refine): interior-point
         # iterations at a small barrier parameter bring the AL method's start near the optimum
         first = solve(problem, solver=implicit.REFINE_IP, transcription=tr.name, init=warm)
