@@ -135,30 +135,29 @@ class SpatialSerial(Robot):
         sin, cos = sincos(q)
         K = _skew(self.axes)
         rev = self._revolute_mask()
-        # each joint's placement and motion in its parent body, for all joints at once
-        # outside the chain: the rotation R0_i Rot_i(q_i) (Rodrigues: Rot = I + sin K +
-        # (1 - cos) K^2), the translation t0_i (plus q_i along the axis where prismatic)
-        # and the axis R0_i axis_i, so that the chain itself is one product per joint
-        turn = sin[:, None, None] * K + (1.0 - cos)[:, None, None] * _mm(K, K)
-        axis = _mv(self.joint_rotation, self.axes)
-        shift = self.joint_translation
-        if not self._all_revolute:
-            turn = rev[:, None, None] * turn
-            shift = shift + ((1.0 - rev) * q)[:, None] * axis
-        local = self.joint_rotation + _mm(self.joint_rotation, turn)
+        revolute = self._all_revolute
 
         # one joint per step of a scan: the solver differentiates this chain twice (forward
         # over reverse) inside vmap, and a rolled loop gives XLA less to compile than the
         # unrolled one (panda, the stage derivatives of 41 samples: 30-38 s against 37-48 s)
-        # and runs faster (the efforts' Jacobian of the 41 samples, reverse mode: 2.0 against
-        # 3.2 ms, one core)
+        # and runs faster (the efforts' Jacobian of the 41 samples by reverse mode, one
+        # core: unrolled about 1.6 times slower)
         def joint(carry, xs):
             R, p = carry
-            Li, ti, ai = xs
-            R_new, p_new = _mm(R, Li), p + _mv(R, ti)
-            return (R_new, p_new), (R_new, p_new, _mv(R, ai))
+            R0, t0, axis, Ki, s, c, qi, r = xs
+            Rj = _mm(R, R0)
+            pj = p + _mv(R, t0)
+            z = _mv(Rj, axis)
+            RK = _mm(Rj, Ki)  # Rodrigues: Rot = I + sin K + (1 - cos) K^2
+            turn = s * RK + (1.0 - c) * _mm(RK, Ki)
+            if revolute:  # (static: no prismatic terms)
+                return (Rj + turn, pj), (Rj + turn, pj, z)
+            R_new = Rj + r * turn
+            p_new = pj + (1.0 - r) * z * qi
+            return (R_new, p_new), (R_new, p_new, z)
 
-        _, out = jax.lax.scan(joint, (self.base_rotation, self.base_translation), (local, shift, axis))
+        xs = (self.joint_rotation, self.joint_translation, self.axes, K, sin, cos, q, rev)
+        _, out = jax.lax.scan(joint, (self.base_rotation, self.base_translation), xs)
         return out
 
     def tip_pose(self, q: Vec):
