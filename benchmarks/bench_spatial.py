@@ -3,7 +3,7 @@
     python benchmarks/bench_spatial.py [--pairs 64] [--batch 32] [--seed 0] [--N 40]
                                        [--latency-pairs 4] [--workers W] [--peer-jerk off|auto]
                                        [--first-solution] [--json out.json]
-    python benchmarks/bench_spatial.py --dataset [--pairs 64] [--batch 32] [--ipopt-pairs 8] [--json out.json]
+    python benchmarks/bench_spatial.py --dataset [--pairs 64] [--batch B] [--ipopt-pairs 8] [--json out.json]
 
 Problem family: ``jtraj.robots.get("panda")``, N = 40, weights time 1 / energy 0.1,
 q_start uniform in the middle 60 % of each joint range, q_goal = q_start + U(-0.5, 0.5)
@@ -211,16 +211,16 @@ def dataset_run(pairs, batch, seed, N, workers, ipopt_pairs, jerk):
     """``jtraj dataset --robot panda`` end to end against the IPOPT loop on the same pairs.
 
     The dataset (:func:`jtraj.dataset.make_spec`: joint-space sampling, weights time 1 /
-    energy 0.1, the dataset's period bound ``h_max="auto"``) is built three times into a
-    temporary folder by ``workers`` pinned processes: once untimed (every program its
-    chunks need compiled into the persistent cache: ``cold_build_s``), then timed, first
-    ``workers`` chunks (``first_chunks_s``, worker start-up included) and the rest by
-    resuming the same dataset (``resume_s``). The end-to-end pairs/s is ``pairs`` over
-    the two timed parts; the resumed dataset must equal the untimed one. The IPOPT loop
-    (:func:`jtraj_peers.ipopt_arm.solve_many`, one process per core, NLP built once per
-    process, not timed) solves the first ``ipopt_pairs`` pairs of the same dataset with
-    the same limits from jtraj's starting points; both sides' solutions of those pairs
-    are re-simulated and checked with Pinocchio."""
+    energy 0.1, the dataset's period bound ``h_max="auto"``; ``batch=None``: the default
+    chunk size) is first built untimed for its first ``workers`` chunks into a
+    temporary folder by ``workers`` pinned processes (every program its chunks need
+    compiled into the persistent cache: ``warmup_s``), then built whole into another
+    folder, timed end to end (worker start-up, loading the compiled programs, sampling,
+    solving and writing included: ``build_s``). The chunks both builds solved must be
+    equal. The IPOPT loop (:func:`jtraj_peers.ipopt_arm.solve_many`, one process per
+    core, NLP built once per process, not timed) solves the first ``ipopt_pairs`` pairs
+    of the same dataset with the same limits from jtraj's starting points; both sides'
+    solutions of those pairs are re-simulated and checked with Pinocchio."""
     import tempfile
 
     from jtraj import dataset
@@ -230,22 +230,21 @@ def dataset_run(pairs, batch, seed, N, workers, ipopt_pairs, jerk):
     spec = dataset.make_spec("panda", pairs, seed, N=N, batch=batch)
     robot = spec.robot_model()
     lim = _limits(robot)
+    keys = ("q_start", "q_goal", "v", "h", "cost", "converged", "status", "iterations")
     with tempfile.TemporaryDirectory(prefix="bench_spatial_dataset_") as tmp:
-        cold_dir, out = os.path.join(tmp, "cold"), os.path.join(tmp, "d")
+        warm_dir, out = os.path.join(tmp, "warmup"), os.path.join(tmp, "d")
         t0 = time.perf_counter()
-        dataset.build(spec, cold_dir, progress=False, workers=workers)
-        cold = time.perf_counter() - t0
+        dataset.build(spec, warm_dir, progress=False, max_chunks=workers, workers=workers)
+        warmup = time.perf_counter() - t0
         t0 = time.perf_counter()
-        dataset.build(spec, out, progress=False, max_chunks=workers, workers=workers)
-        first = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        resumed = dataset.build(spec, out, progress=False, workers=workers)
-        rest = time.perf_counter() - t0
-        data, ref = dataset.load(out), dataset.load(cold_dir)
-        keys = ("q_start", "q_goal", "v", "h", "cost", "converged", "status", "iterations")
+        stats = dataset.build(spec, out, progress=False, workers=workers)
+        wall = time.perf_counter() - t0
+        data, ref = dataset.load(out), dataset.load(warm_dir, partial=True)
         d = {k: np.asarray(data[k]).copy() for k in keys}
-        same = all(np.array_equal(d[k], np.asarray(ref[k])) for k in keys)
-    jt_thr = pairs / (first + rest)
+        both_built = np.asarray(ref["index"])
+        same = bool(both_built.size) and all(
+            np.array_equal(d[k][both_built], np.asarray(ref[k])) for k in keys)
+    jt_thr = pairs / wall
     M = min(ipopt_pairs, pairs)
     q0, q1 = d["q_start"][:M], d["q_goal"][:M]
     model, pspec = peer_spec(lim, jerk)
@@ -260,11 +259,10 @@ def dataset_run(pairs, batch, seed, N, workers, ipopt_pairs, jerk):
     both = jt_conv & jt_ver & ip_ver
     gap = (d["cost"][:M] - ip_cost) / ip_cost
     report = {
-        "pairs": pairs, "N": N, "batch": spec.batch, "workers": workers, "h_max": lim["h_max"],
-        "distribution": spec.distribution.describe(),
-        "cold_build_s": cold, "first_chunks_s": first, "resume_s": rest, "resumed_pairs": resumed["new_pairs"],
-        "resume_pairs_per_s": resumed["pairs_per_s"], "jtraj_pairs_per_s": jt_thr,
-        "resumed_equals_untimed_build": bool(same),
+        "pairs": pairs, "N": N, "batch": spec.batch, "chunks": spec.n_chunks, "workers": workers,
+        "h_max": lim["h_max"], "distribution": spec.distribution.describe(),
+        "warmup_s": warmup, "warmup_pairs": int(both_built.size), "build_s": wall, "complete": bool(stats["complete"]),
+        "jtraj_pairs_per_s": jt_thr, "warmup_chunks_equal": same,
         "converged": int(d["converged"].sum()), "iterations_median": float(np.median(d["iterations"])),
         "ipopt_pairs": M, "ipopt_processes": ip.processes, "ipopt_pairs_per_s": ip_thr,
         "ipopt_build_s_per_worker": ip.setup_seconds, "ratio": jt_thr / ip_thr,
@@ -275,9 +273,9 @@ def dataset_run(pairs, batch, seed, N, workers, ipopt_pairs, jerk):
         "projected_1000_pairs_s": 1000 / jt_thr, "ipopt_projected_1000_pairs_s": 1000 / ip_thr,
     }
     print(f"  dataset, {pairs} pairs (batch {spec.batch}, {workers} workers, N = {N}, h_max {lim['h_max']:g} s): "
-          f"converged {report['converged']}/{pairs}; untimed build {cold:.1f} s (compilation included); timed "
-          f"{first:.1f} s (first {workers} chunks) + {rest:.1f} s (resumed, {resumed['new_pairs']} pairs) -> "
-          f"{jt_thr:.3f} pairs/s end to end; resumed build equals the untimed one: {same}")
+          f"converged {report['converged']}/{pairs}, Newton iterations median {report['iterations_median']:g}; "
+          f"untimed warm-up build of {both_built.size} pairs {warmup:.1f} s (compilation included); timed build "
+          f"{wall:.1f} s -> {jt_thr:.3f} pairs/s end to end; the pairs both built equal: {same}")
     print(f"  IPOPT loop on the first {M} pairs: {ip_thr:.3f} pairs/s on {ip.processes} processes "
           f"(verified {report['ipopt_verified']}/{M}; jtraj verified {report['jtraj_verified_converged_subset']}/{M}, "
           f"false converged {report['jtraj_false_converged_subset']}) -> ratio {report['ratio']:.2f}x")
@@ -291,7 +289,8 @@ def dataset_run(pairs, batch, seed, N, workers, ipopt_pairs, jerk):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", type=int, default=64)
-    ap.add_argument("--batch", type=int, default=32)
+    ap.add_argument("--batch", type=int, default=None,
+                    help="jtraj's batch (default 32), with --dataset its chunk size (default: jtraj dataset's)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--N", type=int, default=40)
     ap.add_argument("--latency-pairs", type=int, default=4)
@@ -325,6 +324,7 @@ def main(argv=None):
             with open(args.json, "w") as f:
                 json.dump(report, f, indent=2)
         return report
+    args.batch = args.batch or 32
     model, spec = peer_spec(lim, jerk)
     q0, q1 = panda_pairs(args.pairs, args.seed, lim["q_min"], lim["q_max"])
     print(f"panda, N = {args.N}, weights time=1 energy=0.1, {args.pairs} pairs (seed {args.seed}), "

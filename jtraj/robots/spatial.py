@@ -59,6 +59,24 @@ def _mm(A, B):
     return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
 
 
+#: the linear map a -> [a]_x: [a]_x[i, j] = sum_k _SKEW_OF[i, j, k] a_k (minus Levi-Civita)
+_SKEW_OF = np.zeros((3, 3, 3))
+for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+    _SKEW_OF[_i, _j, _k], _SKEW_OF[_i, _k, _j] = -1.0, 1.0
+
+
+def _cross(a, b):
+    """a x b = [a]_x b over (broadcast) leading batch axes, with [a]_x one constant
+    linear map of a, elementwise like :func:`_mv`. ``jnp.cross`` slices and stacks the
+    components: a recursive Newton-Euler pass and its reverse-mode derivative then hold
+    many more small operations (each a fixed cost on a CPU): the efforts' Jacobian of
+    the Panda's 41 samples has about 2,000 HLO instructions instead of 3,500 and runs
+    about a third faster (``benchmarks/profile_spatial.py --pieces``)."""
+    E = jnp.asarray(_SKEW_OF, a.dtype).reshape((1,) * (a.ndim - 1) + (3, 3, 3))
+    A = jnp.sum(E * a[..., None, None, :], axis=-1)
+    return _mv(A, b)
+
+
 def _prefix(X, reverse=False):
     """Inclusive prefix sums over the bodies (axis 0) of X (n, 3), or suffix sums with
     ``reverse``, as a constant 0/1 triangle times X, elementwise (the form of
@@ -104,6 +122,12 @@ class SpatialSerial(Robot):
     def _revolute_mask(self):
         return jnp.asarray([t == "revolute" for t in self.joint_types], dtype=self.masses.dtype)
 
+    @property
+    def _all_revolute(self) -> bool:
+        """Whether every joint is revolute (static): the prismatic terms are then left
+        out of the traced programs rather than multiplied by a zero mask."""
+        return all(t == "revolute" for t in self.joint_types)
+
     def body_poses(self, q: Vec):
         """World poses of the bodies and joint axes: ``(R, p, z)`` with ``R`` (n, 3, 3)
         the body rotations, ``p`` (n, 3) the body origins (on the joint axes) and ``z``
@@ -111,11 +135,13 @@ class SpatialSerial(Robot):
         sin, cos = sincos(q)
         K = _skew(self.axes)
         rev = self._revolute_mask()
+        revolute = self._all_revolute
 
         # one joint per step of a scan: the solver differentiates this chain twice (forward
         # over reverse) inside vmap, and a rolled loop gives XLA less to compile than the
         # unrolled one (panda, the stage derivatives of 41 samples: 30-38 s against 37-48 s)
-        # at the same run time within the noise
+        # and runs faster (the efforts' Jacobian of the 41 samples by reverse mode, one
+        # core: unrolled about 1.6 times slower)
         def joint(carry, xs):
             R, p = carry
             R0, t0, axis, Ki, s, c, qi, r = xs
@@ -123,7 +149,10 @@ class SpatialSerial(Robot):
             pj = p + _mv(R, t0)
             z = _mv(Rj, axis)
             RK = _mm(Rj, Ki)  # Rodrigues: Rot = I + sin K + (1 - cos) K^2
-            R_new = Rj + r * (s * RK + (1.0 - c) * _mm(RK, Ki))
+            turn = s * RK + (1.0 - c) * _mm(RK, Ki)
+            if revolute:  # (static: no prismatic terms)
+                return (Rj + turn, pj), (Rj + turn, pj, z)
+            R_new = Rj + r * turn
             p_new = pj + (1.0 - r) * z * qi
             return (R_new, p_new), (R_new, p_new, z)
 
@@ -161,7 +190,7 @@ class SpatialSerial(Robot):
         body ``k`` (m = n) or with the last body (m = 1)."""
         rev = self._revolute_mask()
         n = self.n
-        lin = rev[None, :, None] * jnp.cross(z[None], points[:, None] - p[None]) + (1 - rev)[None, :, None] * z[None]
+        lin = rev[None, :, None] * _cross(z[None], points[:, None] - p[None]) + (1 - rev)[None, :, None] * z[None]
         ang = rev[None, :, None] * jnp.broadcast_to(z[None], lin.shape)
         if points.shape[0] == n:  # body k moves with joints 0..k only
             lower = (jnp.arange(n)[:, None] >= jnp.arange(n)[None, :]).astype(lin.dtype)[..., None]
@@ -209,35 +238,38 @@ class SpatialSerial(Robot):
     # ----- recursive Newton-Euler (the fast path) -----------------------------------
     def _newton_euler(self, q, qd, qdd, g):
         R, p, z = self.body_poses(q)
+        revolute = self._all_revolute
         rev = self._revolute_mask()[:, None]
         pri = 1.0 - rev
         zqd, zqdd = z * qd[:, None], z * qdd[:, None]
         # angular velocity and acceleration: prefix sums over the chain
-        dw = rev * zqd
+        dw = zqd if revolute else rev * zqd
         w = _prefix(dw)
         w_prev = w - dw
-        dwd = rev * (zqdd + jnp.cross(w_prev, zqd))
+        dwd = zqdd + _cross(w_prev, zqd)
+        dwd = dwd if revolute else rev * dwd
         wd = _prefix(dwd)
         wd_prev = wd - dwd
         # acceleration of the body origins (gravity as an upward base acceleration)
         r = p - jnp.concatenate([self.base_translation[None], p[:-1]])
-        da = (jnp.cross(wd_prev, r) + jnp.cross(w_prev, jnp.cross(w_prev, r))
-              + pri * (2.0 * jnp.cross(w_prev, zqd) + zqdd))
+        da = _cross(wd_prev, r) + _cross(w_prev, _cross(w_prev, r))
+        if not revolute:
+            da = da + pri * (2.0 * _cross(w_prev, zqd) + zqdd)
         a = _prefix(da) - g[None]
         rc = _mv(R, self.com)  # body origin -> centre of mass
-        ac = a + jnp.cross(wd, rc) + jnp.cross(w, jnp.cross(w, rc))
+        ac = a + _cross(wd, rc) + _cross(w, _cross(w, rc))
         # body wrenches; moments about the world origin, accumulated from the tip
         F = self.masses[:, None] * ac
         Rt = jnp.swapaxes(R, 1, 2)
         wb, wdb = _mv(Rt, w), _mv(Rt, wd)
         Iw = _mv(self.inertias, wb)
-        Nb = _mv(self.inertias, wdb) + jnp.cross(wb, Iw)
+        Nb = _mv(self.inertias, wdb) + _cross(wb, Iw)
         c = p + rc
-        moment = _mv(R, Nb) + jnp.cross(c, F)
+        moment = _mv(R, Nb) + _cross(c, F)
         f = _prefix(F, reverse=True)
         n_o = _prefix(moment, reverse=True)
-        n_j = n_o - jnp.cross(p, f)  # about each joint's origin
-        return jnp.sum(z * (rev * n_j + pri * f), axis=-1)
+        n_j = n_o - _cross(p, f)  # about each joint's origin
+        return jnp.sum(z * (n_j if revolute else rev * n_j + pri * f), axis=-1)
 
     def rigid_body_forces(self, q, qd, qdd):
         """Recursive Newton-Euler: M(q) qdd + c(q, qd) + g(q)."""
