@@ -14,9 +14,17 @@ up to ``--pairs`` with fresh pairs of the dataset's own sampling law (seed + 100
 
 Printed and written (``--json``):
 
-* latency of one jitted plan (``Planner._plan`` on device arrays, the repair and the
-  coverage included; median and p99 over ``--repeat`` calls cycling through the pairs),
-  of the Python call ``Planner.plan`` (input checks included) and of the model alone;
+* latency of one jitted plan (the repair and the coverage included; median and p99 over
+  ``--repeat`` calls cycling through the pairs): ``Planner._flat``, the program
+  ``Planner.plan`` runs (start and goal in one device array, the plan out as one), and
+  ``Planner._plan`` (two device arrays in, the Plan's twenty out); of the Python call
+  ``Planner.plan`` (input checks, NumPy in and out) and of the model alone. The same
+  again in a child process with JAX's asynchronous CPU dispatch off
+  (``jax_cpu_enable_async_dispatch=False``, set before JAX's first computation): with it
+  on, XLA's CPU client hands every program of more than about a thousand flops to a
+  worker thread and the caller waits for it, a thread switch per call
+  (``--sync-dispatch`` runs the whole benchmark so; ``--latency-only`` stops after the
+  latencies);
 * feasibility (each plan re-verified independently by ``jtraj_peers/verify.py``,
   NumPy recursion and Pinocchio's RNEA, serial3 only: bounds within 1e-6 relative,
   goal within 1e-6), the goal error, the raw model's goal error;
@@ -72,6 +80,25 @@ def _lat(f, args_list, repeat):
                 min_us=float(ts.min() * 1e6), p10_us=float(np.percentile(ts, 10) * 1e6))
 
 
+def _child_latency(args, model):
+    """The latencies measured again in a child process with asynchronous dispatch off."""
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = args.model
+        if path is None:
+            path = os.path.join(tmp, "plan.anfis")
+            model.save(path)
+        cmd = [sys.executable, os.path.abspath(__file__), "--data", args.data, "--model", path, "--pairs",
+               str(args.pairs), "--repeat", str(args.repeat), "--sync-dispatch", "--latency-only"]
+        res = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    lines = res.stdout.strip().splitlines()
+    print(lines[-2], flush=True)
+    return json.loads(lines[-1])
+
+
 def _q(a, qs):
     a = np.asarray(a, float)
     return {f"p{q}": float(np.percentile(a, q)) for q in qs} | {"max": float(a.max()), "mean": float(a.mean())}
@@ -86,7 +113,11 @@ def main(argv=None):
     ap.add_argument("--batch", type=int, default=4096)
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--json")
+    ap.add_argument("--sync-dispatch", action="store_true")
+    ap.add_argument("--latency-only", action="store_true")
     args = ap.parse_args(argv)
+    if args.sync_dispatch:
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
     variants = [v for v in args.variants.split(",") if v]
     bad = set(variants) - set(VARIANTS)
     if bad:
@@ -142,18 +173,26 @@ def main(argv=None):
 
     # --- latency
     dev = [(jnp.asarray(a), jnp.asarray(b)) for a, b in zip(QS, QG)]
-    lat = dict(plan_jitted=_lat(planner._plan, dev, args.repeat))
+    lat = dict(plan_jitted=_lat(planner._flat, [(jnp.concatenate(d),) for d in dev], args.repeat),
+               plan_jitted_fields=_lat(planner._plan, dev, args.repeat))
     f_model = jax.jit(lambda x: model.predict_fn()(x[None])[0])
     lat["model_only"] = _lat(f_model, [(jnp.concatenate(d),) for d in dev], args.repeat)
     lat["plan_python_call"] = _lat(planner.plan, list(zip(QS, QG)), max(args.repeat // 4, 50))
     lat["load_average_1min"] = os.getloadavg()[0]
     lat["cpus"] = os.cpu_count()
+    lat["async_dispatch"] = not args.sync_dispatch
     out["latency"] = lat
-    print(f"latency (us, median / p99): plan jitted {lat['plan_jitted']['median_us']:.1f} / "
-          f"{lat['plan_jitted']['p99_us']:.1f} (min {lat['plan_jitted']['min_us']:.1f}); model alone "
-          f"{lat['model_only']['median_us']:.1f}; Planner.plan (checks included) "
-          f"{lat['plan_python_call']['median_us']:.1f}; load average {lat['load_average_1min']:.1f} on "
-          f"{lat['cpus']} CPUs")
+    print(f"latency (us, median / p99; {'synchronous' if args.sync_dispatch else 'asynchronous'} dispatch): plan "
+          f"jitted {lat['plan_jitted']['median_us']:.1f} / {lat['plan_jitted']['p99_us']:.1f} (min "
+          f"{lat['plan_jitted']['min_us']:.1f}; with the Plan's twenty outputs "
+          f"{lat['plan_jitted_fields']['median_us']:.1f}); model alone {lat['model_only']['median_us']:.1f}; "
+          f"Planner.plan (checks included) {lat['plan_python_call']['median_us']:.1f}; load average "
+          f"{lat['load_average_1min']:.1f} on {lat['cpus']} CPUs", flush=True)
+    if args.latency_only:
+        print(json.dumps(out))
+        return out
+    if not args.sync_dispatch:
+        out["latency_sync_dispatch"] = _child_latency(args, model)["latency"]
 
     # --- feasibility, goal, coverage of the held-out plans
     pb = planner.plan(QS, QG)

@@ -131,14 +131,12 @@ def _packed(core, n: int):
         out = jax.tree.leaves(jax.vmap(core)(x[:, :n], x[:, n:]))
         return jnp.concatenate([y.reshape(y.shape[0], -1).astype(dtype) for y in out], axis=1)
 
-    scalars = [a if shape == () else None for a, _, shape, _ in fields]
     cast = [(i, d) for i, (_, _, _, d) in enumerate(fields) if d is not None]
 
     def unpack(values) -> Plan:
         values = np.asarray(values)
         if values.ndim == 1:
-            out = [values[a:b].reshape(shape) if k is None else values[k]
-                   for (a, b, shape, _), k in zip(fields, scalars)]
+            out = [values[a:b].reshape(shape) for a, b, shape, _ in fields]
         else:
             B = values.shape[0]
             out = [values[:, a:b].reshape((B,) + shape) for a, b, shape, _ in fields]
@@ -146,7 +144,8 @@ def _packed(core, n: int):
             out[i] = out[i].astype(d)
         return Plan(*out)
 
-    return _options_jit(flat), _options_jit(flat_batch), unpack
+    # (the single plan as _plan compiles it, without options: the same program, bit for bit)
+    return jax.jit(flat), _options_jit(flat_batch), unpack
 
 
 def _load(model):
