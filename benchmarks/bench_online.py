@@ -68,13 +68,16 @@ import numpy as np  # noqa: E402
 VARIANTS = ("cold", "plan_primal", "plan_full", "nn_primal", "plan_mu3", "al_cold", "al_plan_full")
 
 
-def _lat(f, args_list, repeat):
-    jax.block_until_ready(f(*args_list[0]))
+def _lat(f, args_list, repeat, block=True):
+    """Wall times of ``f`` over ``repeat`` calls; ``block=False`` for a function returning
+    NumPy arrays (already there: no ``block_until_ready`` walking its outputs)."""
+    wait = jax.block_until_ready if block else (lambda x: x)
+    wait(f(*args_list[0]))
     ts = np.empty(repeat)
     for i in range(repeat):
         a = args_list[i % len(args_list)]
         t0 = time.perf_counter()
-        jax.block_until_ready(f(*a))
+        wait(f(*a))
         ts[i] = time.perf_counter() - t0
     return dict(median_us=float(np.median(ts) * 1e6), p99_us=float(np.percentile(ts, 99) * 1e6),
                 min_us=float(ts.min() * 1e6), p10_us=float(np.percentile(ts, 10) * 1e6))
@@ -177,7 +180,7 @@ def main(argv=None):
                plan_jitted_fields=_lat(planner._plan, dev, args.repeat))
     f_model = jax.jit(lambda x: model.predict_fn()(x[None])[0])
     lat["model_only"] = _lat(f_model, [(jnp.concatenate(d),) for d in dev], args.repeat)
-    lat["plan_python_call"] = _lat(planner.plan, list(zip(QS, QG)), max(args.repeat // 4, 50))
+    lat["plan_python_call"] = _lat(planner.plan, list(zip(QS, QG)), max(args.repeat // 4, 50), block=False)
     lat["load_average_1min"] = os.getloadavg()[0]
     lat["cpus"] = os.cpu_count()
     lat["async_dispatch"] = not args.sync_dispatch

@@ -293,20 +293,18 @@ class Planner:
 
     def _predict(self):
         """``(q_start, q_goal) -> (q, qd, v, h)`` of the raw prediction (periods clipped into
-        the box)."""
+        the box); ``q`` and ``qd`` None for a plan model (:meth:`_core` integrates them
+        where it needs them)."""
         lim = self.robot.limits
         N, n = self.N, self.n
         if self.periods is None:
-            from .repair import rollout as integrate
-
             f = self.model.predict_fn()
 
             def predict(qs, qg):
                 y = f(jnp.concatenate([qs, qg])[None, :])[0]
                 v = y[: N * n].reshape(N, n)
                 h = jnp.clip(y[N * n:], lim.h_min, lim.h_max)
-                q, qd = integrate(qs, jnp.zeros_like(qs), v, h)
-                return q, qd, v, h
+                return None, None, v, h
             return predict
         ctl, per = self.model.predict_fn(), self.periods.predict_fn()
         mc, mp = self.model.metadata, self.periods.metadata
@@ -326,7 +324,7 @@ class Planner:
         return predict
 
     def _core(self):
-        from .repair import cost_of, make_repair
+        from .repair import cost_of, make_repair, rollout, terminal_rows
 
         predict, rb, lim = self._predict(), self.robot, self.robot.limits
         repair = (make_repair(rb, self.weights, effort=self.effort, switch=self.switch, uniform_projection=False)
@@ -335,7 +333,13 @@ class Planner:
 
         def core(qs, qg):
             q, qd, v, h = predict(qs, qg)
-            pred_err = jnp.linalg.norm(q[-1] - qg)
+            if q is None and repair is not None:
+                # the raw prediction's end from rest: q_N = q_0 + sum_k c_k v_k (jtraj.repair)
+                pred_err = jnp.linalg.norm(qs + jnp.sum(terminal_rows(h)[1][:, None] * v, axis=0) - qg)
+            else:
+                if q is None:
+                    q, qd = rollout(qs, jnp.zeros_like(qs), v, h)
+                pred_err = jnp.linalg.norm(q[-1] - qg)
             if repair is None:
                 tau = jax.vmap(rb.inverse_dynamics)(q[:-1], qd[:-1], v)
                 cost, s = cost_of(rb, weights, q, qd, tau, h), jnp.ones(())
