@@ -36,8 +36,9 @@ Printed and written (``--json``):
   the others);
 * batch: plans per second of ``Planner.plan`` on ``--batch`` fresh pairs (NumPy in and
   out; calls of ``Planner.chunk`` pairs on ``Planner.threads`` threads; best of 5) and the
-  share of them feasible, with the default repair and with its least-effort candidates
-  too (``effort=True``, whose held-out plans are re-verified and their cost gap reported);
+  share of them feasible, with the default repair, with its least-effort candidates too
+  (``effort=True``) and without the projected prediction (``projection=False``), the
+  latter two's held-out plans re-verified and their cost gaps reported;
 * refinement, one compiled solve per pair and variant, compilation excluded (one untimed
   solve of each variant first): ``cold`` (default options from the cycloidal guess, the
   exact warm solve's latency of the reference), ``plan_primal`` / ``plan_full``
@@ -236,11 +237,13 @@ def main(argv=None):
           f"range flagged {ood_w[far].sum()}/{far.sum()}, the others {ood_w[~far].sum()}/{(~far).sum()}")
 
     # --- batch throughput: Planner.plan (NumPy in and out, chunked over threads), the
-    # default repair and the one with the least-effort candidates too (effort=True)
+    # default repair, the one with the least-effort candidates too (effort=True) and the
+    # one without the projected prediction (projection=False)
     b0, b1 = sampling.sample_pairs(robot, sampling.Distribution(**dist_kw), seed + 2, 0, args.batch)
-    other = Planner(model, robot, weights=weights, effort=True)
+    others = {"effort_true": Planner(model, robot, weights=weights, effort=True),
+              "projection_false": Planner(model, robot, weights=weights, projection=False)}
     out["batch"] = dict(size=args.batch, chunk=planner.chunk, threads=planner.threads)
-    for label, pl in (("default", planner), ("effort_true", other)):
+    for label, pl in (("default", planner), *others.items()):
         pl.plan(b0[: planner.chunk], b1[: planner.chunk])  # compiles
         best = np.inf
         for _ in range(5):
@@ -255,13 +258,15 @@ def main(argv=None):
               f"distribution {int(np.asarray(pbb.ood).sum())}", flush=True)
     out["batch"]["load_average_1min"] = os.getloadavg()[0]
     if verify is not None:  # feasibility of the other plans on the held-out pairs, re-verified
-        pf = other.plan(QS, QG)
-        ok = [verify.verify(QS[i], QG[i], np.asarray(pf.v[i]), np.asarray(pf.h[i]), h_max=float(robot.limits.h_max),
-                            weights=(float(weights.time), float(weights.energy), float(weights.kinetic)), tol=tol)["ok"]
-              for i in range(P)]
-        for i, r in enumerate(rows):
-            r["effort_true_cost"] = float(pf.cost[i])
-        out["plans"]["effort_true_feasible"] = int(sum(ok))
+        for label, pl in others.items():
+            pf = pl.plan(QS, QG)
+            ok = [verify.verify(QS[i], QG[i], np.asarray(pf.v[i]), np.asarray(pf.h[i]),
+                                h_max=float(robot.limits.h_max), weights=(float(weights.time), float(weights.energy),
+                                                                          float(weights.kinetic)), tol=tol)["ok"]
+                  for i in range(P)]
+            for i, r in enumerate(rows):
+                r[f"{label}_cost"] = float(pf.cost[i])
+            out["plans"][f"{label}_feasible"] = int(sum(ok))
 
     # --- nearest training trajectory, repaired (lookup baseline), and its raw (v, h)
     from jtraj import coverage
@@ -320,17 +325,18 @@ def main(argv=None):
         gnn = np.array([(r["nn_repaired_cost"] - r[ref]["cost"]) / abs(r[ref]["cost"]) for r in ok])
         for r in ok:
             r["gap"] = (r["cost"] - r[ref]["cost"]) / abs(r[ref]["cost"])
-        gfast = np.array([(r["effort_true_cost"] - r[ref]["cost"]) / abs(r[ref]["cost"]) for r in ok
-                          if "effort_true_cost" in r])
+        alt = {label: np.array([(r[f"{label}_cost"] - r[ref]["cost"]) / abs(r[ref]["cost"]) for r in ok
+                                if f"{label}_cost" in r]) for label in ("effort_true", "projection_false")}
         out["gap"] = dict(pairs=len(ok), plan=_q(gap, (50, 90)), nn_repaired=_q(gnn, (50, 90)),
-                          effort_true=_q(gfast, (50, 90)) if len(gfast) else None,
+                          **{label: _q(g, (50, 90)) if len(g) else None for label, g in alt.items()},
                           within_3pct_median=bool(np.median(gap) <= 0.03),
                           within_10pct_p90=bool(np.percentile(gap, 90) <= 0.10))
         print(f"cost gap to the exact optimum ({len(ok)} pairs where it converged): plan median "
               f"{100 * np.median(gap):.2f} %, p90 {100 * np.percentile(gap, 90):.2f} %, max {100 * gap.max():.2f} %; "
               f"nearest training trajectory repaired: median {100 * np.median(gnn):.2f} %, "
-              f"p90 {100 * np.percentile(gnn, 90):.2f} %" + (f"; effort=True: median {100 * np.median(gfast):.2f} %, "
-                                                             f"p90 {100 * np.percentile(gfast, 90):.2f} %" if len(gfast) else ""))
+              f"p90 {100 * np.percentile(gnn, 90):.2f} %" + "".join(
+                  f"; {label}: median {100 * np.median(g):.2f} %, p90 {100 * np.percentile(g, 90):.2f} %, max "
+                  f"{100 * g.max():.2f} %" for label, g in alt.items() if len(g)))
     ref_it = np.array([r[ref]["iterations"] for r in rows]) if ref else None
     out["refine"] = {}
     for lab in variants:

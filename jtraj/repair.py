@@ -250,13 +250,16 @@ def violation(robot, q, qd, v, tau, h):
 
 
 def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = GRID, rho: float | None = None,
-                effort: bool = True, switch: bool = True, uniform_projection: bool = True):
+                effort: bool = True, switch: bool = True, projection: bool = True, uniform_projection: bool = True):
     """``repair(q0, qd0, q_goal, qd_goal, v, h) -> Repaired``: a jit-, vmap-able pure function
     (see the module doc). ``homogeneous`` defaults to :func:`is_homogeneous` (tested here,
     on the host). ``effort=False`` leaves out the two :func:`effort_step` candidates,
-    ``switch=False`` the two :func:`switch_profile` candidates, ``uniform_projection=False``
-    the projection on uniform periods (``repair.candidates`` names them, in the order of
-    :attr:`Repaired.candidate`)."""
+    ``switch=False`` the two :func:`switch_profile` candidates, ``projection=False`` and
+    ``uniform_projection=False`` the projected prediction on its own and on uniform periods
+    (``repair.candidates`` names the candidates, in the order of
+    :attr:`Repaired.candidate`). Without the projected prediction, the prediction's
+    accelerations serve only the effort steps (the switching profiles use its periods
+    alone)."""
     lim = robot.limits
     if homogeneous is None:
         homogeneous = is_homogeneous(robot)
@@ -328,11 +331,15 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
     step = jax.vmap(effort_step_at, in_axes=(None, None, None, None, None, 0, 0, 0, 0, None))
 
     # the candidates' periods: 0 the predicted ones, 1 uniform ones of the same total time
-    names = ["projected"] + (["projected_uniform"] if uniform_projection else [])
+    # the projections kept as candidates: a slice of the two (predicted, uniform periods)
+    keep = slice(0 if projection else 1, 2 if uniform_projection else 1)
+    names = ["projected", "projected_uniform"][keep]
     if effort:
         names += ["effort", "effort_uniform"]
     if switch:
         names += ["switch", "switch_uniform"]
+    if not names:
+        raise ValueError("make_repair: no candidates (projection, uniform_projection, effort and switch all off)")
     uniform_flags = np.array([n.endswith("_uniform") for n in names])
 
     def repair(q0, qd0, q_goal, qd_goal, v, h):
@@ -340,14 +347,13 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
         h2 = jnp.stack([h, jnp.full_like(h, jnp.mean(h))])
         proj = jax.vmap(goal_projection, in_axes=(None, None, None, None, None, 0))
         v2 = proj(q0, qd0, q_goal, qd_goal, v, h2)
-        vs, hs = (v2, h2) if uniform_projection else (v2[:1], h2[:1])
+        vs, hs = v2[keep], h2[keep]
         known = None  # the states and efforts of the candidates so far, where computed
         if effort:  # an effort step from each projection
             # the projections' states and efforts serve both their own candidates and the
             # linearisation of the steps
             q, qd, tau, J = lin(robot, q0, qd0, v2, h2)
             w = step(U, q0, qd0, q_goal, qd_goal, v2, h2, tau, J, rho * u_scale)
-            keep = slice(None) if uniform_projection else slice(0, 1)
             known = (q[keep], qd[keep], tau[keep])
             q1, qd1, tau1 = jax.vmap(states, in_axes=(None, None, 0, 0))(q0, qd0, w, h2)
             vs, hs = jnp.concatenate([vs, w]), jnp.concatenate([hs, h2])
