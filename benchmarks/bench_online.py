@@ -14,9 +14,17 @@ up to ``--pairs`` with fresh pairs of the dataset's own sampling law (seed + 100
 
 Printed and written (``--json``):
 
-* latency of one jitted plan (``Planner._plan`` on device arrays, the repair and the
-  coverage included; median and p99 over ``--repeat`` calls cycling through the pairs),
-  of the Python call ``Planner.plan`` (input checks included) and of the model alone;
+* latency of one jitted plan (the repair and the coverage included; median and p99 over
+  ``--repeat`` calls cycling through the pairs): ``Planner._flat``, the program
+  ``Planner.plan`` runs (start and goal in one device array, the plan out as one), and
+  ``Planner._plan`` (two device arrays in, the Plan's twenty out); of the Python call
+  ``Planner.plan`` (input checks, NumPy in and out) and of the model alone. The same
+  again in a child process with JAX's asynchronous CPU dispatch off
+  (``jax_cpu_enable_async_dispatch=False``, set before JAX's first computation): with it
+  on, XLA's CPU client hands every program of more than about a thousand flops to a
+  worker thread and the caller waits for it, a thread switch per call
+  (``--sync-dispatch`` runs the whole benchmark so; ``--latency-only`` stops after the
+  latencies);
 * feasibility (each plan re-verified independently by ``jtraj_peers/verify.py``,
   NumPy recursion and Pinocchio's RNEA, serial3 only: bounds within 1e-6 relative,
   goal within 1e-6), the goal error, the raw model's goal error;
@@ -28,8 +36,9 @@ Printed and written (``--json``):
   the others);
 * batch: plans per second of ``Planner.plan`` on ``--batch`` fresh pairs (NumPy in and
   out; calls of ``Planner.chunk`` pairs on ``Planner.threads`` threads; best of 5) and the
-  share of them feasible, with the default repair and with its least-effort candidates
-  too (``effort=True``, whose held-out plans are re-verified and their cost gap reported);
+  share of them feasible, with the default repair, with its least-effort candidates too
+  (``effort=True``) and without the projected prediction (``projection=False``), the
+  latter two's held-out plans re-verified and their cost gaps reported;
 * refinement, one compiled solve per pair and variant, compilation excluded (one untimed
   solve of each variant first): ``cold`` (default options from the cycloidal guess, the
   exact warm solve's latency of the reference), ``plan_primal`` / ``plan_full``
@@ -60,16 +69,38 @@ import numpy as np  # noqa: E402
 VARIANTS = ("cold", "plan_primal", "plan_full", "nn_primal", "plan_mu3", "al_cold", "al_plan_full")
 
 
-def _lat(f, args_list, repeat):
-    jax.block_until_ready(f(*args_list[0]))
+def _lat(f, args_list, repeat, block=True):
+    """Wall times of ``f`` over ``repeat`` calls; ``block=False`` for a function returning
+    NumPy arrays (already there: no ``block_until_ready`` walking its outputs)."""
+    wait = jax.block_until_ready if block else (lambda x: x)
+    wait(f(*args_list[0]))
     ts = np.empty(repeat)
     for i in range(repeat):
         a = args_list[i % len(args_list)]
         t0 = time.perf_counter()
-        jax.block_until_ready(f(*a))
+        wait(f(*a))
         ts[i] = time.perf_counter() - t0
     return dict(median_us=float(np.median(ts) * 1e6), p99_us=float(np.percentile(ts, 99) * 1e6),
                 min_us=float(ts.min() * 1e6), p10_us=float(np.percentile(ts, 10) * 1e6))
+
+
+def _child_latency(args, model):
+    """The latencies measured again in a child process with asynchronous dispatch off."""
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = args.model
+        if path is None:
+            path = os.path.join(tmp, "plan.anfis")
+            model.save(path)
+        cmd = [sys.executable, os.path.abspath(__file__), "--data", args.data, "--model", path, "--pairs",
+               str(args.pairs), "--repeat", str(args.repeat), "--sync-dispatch", "--latency-only"]
+        res = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    lines = res.stdout.strip().splitlines()
+    print(lines[-2], flush=True)
+    return json.loads(lines[-1])
 
 
 def _q(a, qs):
@@ -86,7 +117,11 @@ def main(argv=None):
     ap.add_argument("--batch", type=int, default=4096)
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--json")
+    ap.add_argument("--sync-dispatch", action="store_true")
+    ap.add_argument("--latency-only", action="store_true")
     args = ap.parse_args(argv)
+    if args.sync_dispatch:
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
     variants = [v for v in args.variants.split(",") if v]
     bad = set(variants) - set(VARIANTS)
     if bad:
@@ -142,18 +177,26 @@ def main(argv=None):
 
     # --- latency
     dev = [(jnp.asarray(a), jnp.asarray(b)) for a, b in zip(QS, QG)]
-    lat = dict(plan_jitted=_lat(planner._plan, dev, args.repeat))
+    lat = dict(plan_jitted=_lat(planner._flat, [(jnp.concatenate(d),) for d in dev], args.repeat),
+               plan_jitted_fields=_lat(planner._plan, dev, args.repeat))
     f_model = jax.jit(lambda x: model.predict_fn()(x[None])[0])
     lat["model_only"] = _lat(f_model, [(jnp.concatenate(d),) for d in dev], args.repeat)
-    lat["plan_python_call"] = _lat(planner.plan, list(zip(QS, QG)), max(args.repeat // 4, 50))
+    lat["plan_python_call"] = _lat(planner.plan, list(zip(QS, QG)), max(args.repeat // 4, 50), block=False)
     lat["load_average_1min"] = os.getloadavg()[0]
     lat["cpus"] = os.cpu_count()
+    lat["async_dispatch"] = not args.sync_dispatch
     out["latency"] = lat
-    print(f"latency (us, median / p99): plan jitted {lat['plan_jitted']['median_us']:.1f} / "
-          f"{lat['plan_jitted']['p99_us']:.1f} (min {lat['plan_jitted']['min_us']:.1f}); model alone "
-          f"{lat['model_only']['median_us']:.1f}; Planner.plan (checks included) "
-          f"{lat['plan_python_call']['median_us']:.1f}; load average {lat['load_average_1min']:.1f} on "
-          f"{lat['cpus']} CPUs")
+    print(f"latency (us, median / p99; {'synchronous' if args.sync_dispatch else 'asynchronous'} dispatch): plan "
+          f"jitted {lat['plan_jitted']['median_us']:.1f} / {lat['plan_jitted']['p99_us']:.1f} (min "
+          f"{lat['plan_jitted']['min_us']:.1f}; with the Plan's twenty outputs "
+          f"{lat['plan_jitted_fields']['median_us']:.1f}); model alone {lat['model_only']['median_us']:.1f}; "
+          f"Planner.plan (checks included) {lat['plan_python_call']['median_us']:.1f}; load average "
+          f"{lat['load_average_1min']:.1f} on {lat['cpus']} CPUs", flush=True)
+    if args.latency_only:
+        print(json.dumps(out))
+        return out
+    if not args.sync_dispatch:
+        out["latency_sync_dispatch"] = _child_latency(args, model)["latency"]
 
     # --- feasibility, goal, coverage of the held-out plans
     pb = planner.plan(QS, QG)
@@ -194,11 +237,13 @@ def main(argv=None):
           f"range flagged {ood_w[far].sum()}/{far.sum()}, the others {ood_w[~far].sum()}/{(~far).sum()}")
 
     # --- batch throughput: Planner.plan (NumPy in and out, chunked over threads), the
-    # default repair and the one with the least-effort candidates too (effort=True)
+    # default repair, the one with the least-effort candidates too (effort=True) and the
+    # one without the projected prediction (projection=False)
     b0, b1 = sampling.sample_pairs(robot, sampling.Distribution(**dist_kw), seed + 2, 0, args.batch)
-    other = Planner(model, robot, weights=weights, effort=True)
+    others = {"effort_true": Planner(model, robot, weights=weights, effort=True),
+              "projection_false": Planner(model, robot, weights=weights, projection=False)}
     out["batch"] = dict(size=args.batch, chunk=planner.chunk, threads=planner.threads)
-    for label, pl in (("default", planner), ("effort_true", other)):
+    for label, pl in (("default", planner), *others.items()):
         pl.plan(b0[: planner.chunk], b1[: planner.chunk])  # compiles
         best = np.inf
         for _ in range(5):
@@ -213,13 +258,15 @@ def main(argv=None):
               f"distribution {int(np.asarray(pbb.ood).sum())}", flush=True)
     out["batch"]["load_average_1min"] = os.getloadavg()[0]
     if verify is not None:  # feasibility of the other plans on the held-out pairs, re-verified
-        pf = other.plan(QS, QG)
-        ok = [verify.verify(QS[i], QG[i], np.asarray(pf.v[i]), np.asarray(pf.h[i]), h_max=float(robot.limits.h_max),
-                            weights=(float(weights.time), float(weights.energy), float(weights.kinetic)), tol=tol)["ok"]
-              for i in range(P)]
-        for i, r in enumerate(rows):
-            r["effort_true_cost"] = float(pf.cost[i])
-        out["plans"]["effort_true_feasible"] = int(sum(ok))
+        for label, pl in others.items():
+            pf = pl.plan(QS, QG)
+            ok = [verify.verify(QS[i], QG[i], np.asarray(pf.v[i]), np.asarray(pf.h[i]),
+                                h_max=float(robot.limits.h_max), weights=(float(weights.time), float(weights.energy),
+                                                                          float(weights.kinetic)), tol=tol)["ok"]
+                  for i in range(P)]
+            for i, r in enumerate(rows):
+                r[f"{label}_cost"] = float(pf.cost[i])
+            out["plans"][f"{label}_feasible"] = int(sum(ok))
 
     # --- nearest training trajectory, repaired (lookup baseline), and its raw (v, h)
     from jtraj import coverage
@@ -278,17 +325,18 @@ def main(argv=None):
         gnn = np.array([(r["nn_repaired_cost"] - r[ref]["cost"]) / abs(r[ref]["cost"]) for r in ok])
         for r in ok:
             r["gap"] = (r["cost"] - r[ref]["cost"]) / abs(r[ref]["cost"])
-        gfast = np.array([(r["effort_true_cost"] - r[ref]["cost"]) / abs(r[ref]["cost"]) for r in ok
-                          if "effort_true_cost" in r])
+        alt = {label: np.array([(r[f"{label}_cost"] - r[ref]["cost"]) / abs(r[ref]["cost"]) for r in ok
+                                if f"{label}_cost" in r]) for label in ("effort_true", "projection_false")}
         out["gap"] = dict(pairs=len(ok), plan=_q(gap, (50, 90)), nn_repaired=_q(gnn, (50, 90)),
-                          effort_true=_q(gfast, (50, 90)) if len(gfast) else None,
+                          **{label: _q(g, (50, 90)) if len(g) else None for label, g in alt.items()},
                           within_3pct_median=bool(np.median(gap) <= 0.03),
                           within_10pct_p90=bool(np.percentile(gap, 90) <= 0.10))
         print(f"cost gap to the exact optimum ({len(ok)} pairs where it converged): plan median "
               f"{100 * np.median(gap):.2f} %, p90 {100 * np.percentile(gap, 90):.2f} %, max {100 * gap.max():.2f} %; "
               f"nearest training trajectory repaired: median {100 * np.median(gnn):.2f} %, "
-              f"p90 {100 * np.percentile(gnn, 90):.2f} %" + (f"; effort=True: median {100 * np.median(gfast):.2f} %, "
-                                                             f"p90 {100 * np.percentile(gfast, 90):.2f} %" if len(gfast) else ""))
+              f"p90 {100 * np.percentile(gnn, 90):.2f} %" + "".join(
+                  f"; {label}: median {100 * np.median(g):.2f} %, p90 {100 * np.percentile(g, 90):.2f} %, max "
+                  f"{100 * g.max():.2f} %" for label, g in alt.items() if len(g)))
     ref_it = np.array([r[ref]["iterations"] for r in rows]) if ref else None
     out["refine"] = {}
     for lab in variants:

@@ -66,7 +66,8 @@ def distance_fn(pairs):
 
     def distance(x):
         u = (features(x) - lo) / span
-        nearest = jnp.sqrt(jnp.maximum(jnp.min(sq - 2 * (A @ u)) + u @ u, 0.0))
+        # (a broadcast product, not a dot: XLA fuses it, where a dot is a library call)
+        nearest = jnp.sqrt(jnp.maximum(jnp.min(sq - 2 * jnp.sum(A * u[None], axis=1)) + jnp.sum(u * u), 0.0))
         return nearest, jnp.linalg.norm(jnp.maximum(jnp.maximum(-u, u - 1.0), 0.0))
     return distance
 

@@ -51,7 +51,7 @@ import numpy as np
 from .lq import small_cho_solve
 
 
-#: longest axis summed by unrolled additions (:func:`_cumsum`)
+#: longest axis summed without jnp.cumsum (:func:`_cumsum`)
 UNROLL = 64
 #: points of the time-scaling grid for robots whose efforts are not homogeneous
 GRID = 32
@@ -73,18 +73,29 @@ class Repaired(NamedTuple):
     cost: jax.Array
     scale: jax.Array  # the time scaling s of the chosen candidate
     uniform: jax.Array  # whether the chosen candidate has uniform periods
+    candidate: jax.Array  # the chosen candidate's index (make_repair's order)
+
+
+def _mm(a, b):
+    """``a @ b`` for small matrices (a (..., i, j), b (..., j, k), or a vector b (j,)) as a
+    broadcast product and a sum, which XLA fuses with its neighbours: on a CPU a dot is a
+    library call, about ten times the cost of a fused loop of this size."""
+    if b.ndim == 1:
+        return jnp.sum(a * b.reshape((1,) * (a.ndim - 1) + b.shape), axis=-1)
+    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
 def _cumsum(x):
-    """Cumulative sums along axis 0: unrolled additions up to :data:`UNROLL` rows (a CPU
-    runs XLA's cumulative sum, a reduce-window, several times slower for rows this
-    few, under ``vmap`` most of all), ``jnp.cumsum`` beyond."""
-    if x.shape[0] > UNROLL:
+    """Cumulative sums along axis 0: up to :data:`UNROLL` rows, the rows summed under the
+    lower triangle of ones, one fused loop (on a CPU XLA's cumulative sum, a
+    reduce-window, costs several times more for rows this few, and unrolled additions
+    cost one operation each: a single plan's time is mostly the per-operation cost of its
+    program; in a batch the three forms cost about the same), ``jnp.cumsum`` beyond."""
+    N = x.shape[0]
+    if N > UNROLL:
         return jnp.cumsum(x, axis=0)
-    out = [x[0]]
-    for k in range(1, x.shape[0]):
-        out.append(out[-1] + x[k])
-    return jnp.stack(out)
+    L = jnp.asarray(np.tril(np.ones((N, N), bool)))
+    return jnp.sum(jnp.where(L.reshape((N, N) + (1,) * (x.ndim - 1)), x[None], 0), axis=1)
 
 
 def rollout(q0, qd0, v, h):
@@ -98,7 +109,8 @@ def rollout(q0, qd0, v, h):
 
 def _quad(x, M):
     """``x_k^T M x_k`` for each row of x."""
-    return jnp.sum((x @ M) * x, axis=-1)
+    M = jnp.reshape(M, (1,) * (x.ndim - 1) + M.shape[-2:]) if M.ndim == 2 else M
+    return jnp.sum(x[..., :, None] * M * x[..., None, :], axis=(-2, -1))
 
 
 def terminal_rows(h):
@@ -114,11 +126,12 @@ def goal_projection(q0, qd0, q_goal, qd_goal, v, h):
     A = terminal_rows(h)
     T = jnp.sum(h)
     target = jnp.stack([qd_goal - qd0, q_goal - q0 - T * qd0])  # (2, n)
-    r = target - A @ v
+    r = target - _mm(A, v)
     Winv_At = (A / h[None]).T  # (N, 2): W^{-1} A^T with W = diag(h)
-    G = A @ Winv_At  # symmetric positive definite 2x2: inverted in closed form
-    Ginv = jnp.array([[G[1, 1], -G[0, 1]], [-G[1, 0], G[0, 0]]]) / (G[0, 0] * G[1, 1] - G[0, 1] * G[1, 0])
-    return v + Winv_At @ (Ginv @ r)
+    G = _mm(A, Winv_At)  # symmetric positive definite 2x2: inverted in closed form
+    Ginv = jnp.stack([jnp.stack([G[1, 1], -G[0, 1]]), jnp.stack([-G[1, 0], G[0, 0]])]) / (
+        G[0, 0] * G[1, 1] - G[0, 1] * G[1, 0])
+    return v + _mm(Winv_At, _mm(Ginv, r))
 
 
 def switch_profile(q0, qd0, q_goal, h, width=None):
@@ -134,7 +147,7 @@ def switch_profile(q0, qd0, q_goal, h, width=None):
     T = jnp.sum(h)
     shape = -jnp.clip((t - 0.5 * T) / (0.5 * width * T), -1.0, 1.0)
     c = terminal_rows(h)[1]
-    den = c @ shape  # > 0 but for periods far from uniform: then a zero profile
+    den = jnp.sum(c * shape)  # > 0 but for periods far from uniform: then a zero profile
     safe = jnp.abs(den) > 1e-12 * jnp.sum(c)
     return shape[:, None] * jnp.where(safe, (q_goal - q0 - T * qd0) / jnp.where(safe, den, 1.0), 0.0)[None]
 
@@ -237,11 +250,16 @@ def violation(robot, q, qd, v, tau, h):
 
 
 def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = GRID, rho: float | None = None,
-                effort: bool = True, switch: bool = True):
+                effort: bool = True, switch: bool = True, projection: bool = True, uniform_projection: bool = True):
     """``repair(q0, qd0, q_goal, qd_goal, v, h) -> Repaired``: a jit-, vmap-able pure function
     (see the module doc). ``homogeneous`` defaults to :func:`is_homogeneous` (tested here,
     on the host). ``effort=False`` leaves out the two :func:`effort_step` candidates,
-    ``switch=False`` the two :func:`switch_profile` candidates."""
+    ``switch=False`` the two :func:`switch_profile` candidates, ``projection=False`` and
+    ``uniform_projection=False`` the projected prediction on its own and on uniform periods
+    (``repair.candidates`` names the candidates, in the order of
+    :attr:`Repaired.candidate`). Without the projected prediction, the prediction's
+    accelerations serve only the effort steps (the switching profiles use its periods
+    alone)."""
     lim = robot.limits
     if homogeneous is None:
         homogeneous = is_homogeneous(robot)
@@ -312,33 +330,52 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
     lin = jax.vmap(linearise, in_axes=(None, None, None, 0, 0))
     step = jax.vmap(effort_step_at, in_axes=(None, None, None, None, None, 0, 0, 0, 0, None))
 
+    # the candidates' periods: 0 the predicted ones, 1 uniform ones of the same total time
+    # the projections kept as candidates: a slice of the two (predicted, uniform periods)
+    keep = slice(0 if projection else 1, 2 if uniform_projection else 1)
+    names = ["projected", "projected_uniform"][keep]
+    if effort:
+        names += ["effort", "effort_uniform"]
+    if switch:
+        names += ["switch", "switch_uniform"]
+    if not names:
+        raise ValueError("make_repair: no candidates (projection, uniform_projection, effort and switch all off)")
+    uniform_flags = np.array([n.endswith("_uniform") for n in names])
+
     def repair(q0, qd0, q_goal, qd_goal, v, h):
         h = jnp.clip(h, h_min, h_max)
-        hs = jnp.stack([h, jnp.full_like(h, jnp.mean(h))])
-        vs = jax.vmap(goal_projection, in_axes=(None, None, None, None, None, 0))(q0, qd0, q_goal, qd_goal, v, hs)
-        if effort:  # an effort step from each projection: four candidates
+        h2 = jnp.stack([h, jnp.full_like(h, jnp.mean(h))])
+        proj = jax.vmap(goal_projection, in_axes=(None, None, None, None, None, 0))
+        v2 = proj(q0, qd0, q_goal, qd_goal, v, h2)
+        vs, hs = v2[keep], h2[keep]
+        known = None  # the states and efforts of the candidates so far, where computed
+        if effort:  # an effort step from each projection
             # the projections' states and efforts serve both their own candidates and the
             # linearisation of the steps
-            q, qd, tau, J = lin(robot, q0, qd0, vs, hs)
-            w = step(U, q0, qd0, q_goal, qd_goal, vs, hs, tau, J, rho * u_scale)
-            q1, qd1, tau1 = jax.vmap(states, in_axes=(None, None, 0, 0))(q0, qd0, w, hs)
-            vs, hs = jnp.concatenate([vs, w]), jnp.concatenate([hs, hs])
-            q, qd, tau = jnp.concatenate([q, q1]), jnp.concatenate([qd, qd1]), jnp.concatenate([tau, tau1])
-        else:
-            q, qd, tau = jax.vmap(states, in_axes=(None, None, 0, 0))(q0, qd0, vs, hs)
-        if switch:  # the switching profile on both periods: two more candidates
-            h2 = hs[:2]
-            w = jax.vmap(lambda h_: goal_projection(q0, qd0, q_goal, qd_goal, switch_profile(q0, qd0, q_goal, h_),
-                                                    h_))(h2)
+            q, qd, tau, J = lin(robot, q0, qd0, v2, h2)
+            w = step(U, q0, qd0, q_goal, qd_goal, v2, h2, tau, J, rho * u_scale)
+            known = (q[keep], qd[keep], tau[keep])
             q1, qd1, tau1 = jax.vmap(states, in_axes=(None, None, 0, 0))(q0, qd0, w, h2)
             vs, hs = jnp.concatenate([vs, w]), jnp.concatenate([hs, h2])
-            q, qd, tau = jnp.concatenate([q, q1]), jnp.concatenate([qd, qd1]), jnp.concatenate([tau, tau1])
+            known = tuple(jnp.concatenate([x, y]) for x, y in zip(known, (q1, qd1, tau1)))
+        if switch:  # the switching profile on both periods
+            w = jax.vmap(goal_projection, in_axes=(None, None, None, None, 0, 0))(
+                q0, qd0, q_goal, qd_goal, jax.vmap(switch_profile, in_axes=(None, None, None, 0))(q0, qd0, q_goal, h2), h2)
+            vs, hs = jnp.concatenate([vs, w]), jnp.concatenate([hs, h2])
+        # the states and efforts of every candidate not yet known, in one batch
+        rest = slice(0 if known is None else known[0].shape[0], None)
+        new = jax.vmap(states, in_axes=(None, None, 0, 0))(q0, qd0, vs[rest], hs[rest])
+        q, qd, tau = new if known is None else tuple(jnp.concatenate([x, y]) for x, y in zip(known, new))
         out = jax.vmap(candidate, in_axes=(None, None, None, None, 0, 0, 0, 0, 0))(q0, qd0, q_goal, qd_goal, vs, hs,
                                                                                  q, qd, tau)
         cost, viol = out[5], jnp.where(jnp.isnan(out[7]), jnp.inf, out[7])
         ok = viol <= 1e-9
         i = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
-        vs, hh, q, qd, tau, c, s, _ = (a[i] for a in out)
-        return Repaired(vs, hh, q, qd, tau, c, s, i % 2 == 1)
+        # the chosen candidate by a mask and a sum (fused loops) rather than gathers
+        pick = jnp.arange(len(names)) == i
+        vs, hh, q, qd, tau, c, s, _ = (jnp.sum(jnp.where(pick.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0), axis=0)
+                                      for a in out)
+        return Repaired(vs, hh, q, qd, tau, c, s, jnp.any(pick & uniform_flags), i)
 
+    repair.candidates = tuple(names)
     return repair

@@ -347,6 +347,10 @@ def test_planner_refuses_bad_input(planner_and_data):
         Planner(planner.model, correct="yes")
     with pytest.raises(ValueError, match="effort must be"):
         Planner(planner.model, effort=1)
+    with pytest.raises(ValueError, match="projection must be"):
+        Planner(planner.model, projection=None)
+    with pytest.raises(ValueError, match="no candidate"):
+        Planner(planner.model, projection=False, switch=False)
 
 
 @pytest.mark.slow
@@ -379,3 +383,68 @@ def test_a_feasible_plan_never_beats_the_exact_optimum_and_its_cost_is_the_solve
             (out["cost"] - out["refined_cost"]) / out["refined_cost"], rel=1e-12)
         assert out["gap"] >= -1e-5
     assert checked >= 2
+
+
+def test_cumulative_sums_and_small_products_match_numpy():
+    from jtraj.repair import UNROLL, _cumsum, _mm
+
+    rng = np.random.default_rng(11)
+    for shape in ((20,), (20, 3), (7, 2, 3), (UNROLL + 5, 2)):
+        x = rng.normal(size=shape)
+        np.testing.assert_allclose(np.asarray(_cumsum(jnp.asarray(x))), np.cumsum(x, axis=0), rtol=1e-13, atol=1e-13)
+    a, b, c = rng.normal(size=(2, 20)), rng.normal(size=(20, 3)), rng.normal(size=(4, 3, 5))
+    np.testing.assert_allclose(np.asarray(_mm(jnp.asarray(a), jnp.asarray(b))), a @ b, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(_mm(jnp.asarray(c), jnp.asarray(c[0].T[None].repeat(4, 0)))),
+                               c @ c[0].T, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(_mm(jnp.asarray(b), jnp.asarray(b[0]))), b @ b[0], rtol=1e-13)
+
+
+def test_without_the_uniform_projection_the_repair_picks_among_the_others(serial3_repair):
+    """A repair without the projection on uniform periods (the planner's): the same plan
+    as the full repair wherever that one chose another candidate, never a cheaper one,
+    and the chosen candidate named; without the switching candidates and projections
+    nothing is left (refused)."""
+    rb = robots.get("serial3")
+    full = make_repair(rb, W)
+    rep = make_repair(rb, W, uniform_projection=False)
+    assert full.candidates == ("projected", "projected_uniform", "effort", "effort_uniform", "switch",
+                               "switch_uniform")
+    assert rep.candidates == ("projected", "effort", "effort_uniform", "switch", "switch_uniform")
+    assert make_repair(rb, W, effort=False, projection=False).candidates == ("projected_uniform", "switch",
+                                                                           "switch_uniform")
+    assert make_repair(rb, W, effort=False, projection=False, uniform_projection=False).candidates == (
+        "switch", "switch_uniform")
+    with pytest.raises(ValueError, match="no candidates"):
+        make_repair(rb, W, effort=False, switch=False, projection=False, uniform_projection=False)
+    rng = np.random.default_rng(2)
+    P = [_prediction(rng, scale) for scale in (0.3, 1.0, 0.0, 0.05, 0.5, 0.2)]
+    qs, qg, v, h = (jnp.asarray(np.array([p[i] for p in P])) for i in range(4))
+    z = jnp.zeros(n)
+    a = serial3_repair(qs, z, qg, z, v, h)
+    b = jax.jit(jax.vmap(rep, in_axes=(0, None, 0, None, 0, 0)))(qs, z, qg, z, v, h)
+    for i in range(len(P)):
+        name = full.candidates[int(a.candidate[i])]
+        assert float(b.cost[i]) >= float(a.cost[i]) * (1 - 1e-12)
+        if name != "projected_uniform":
+            assert rep.candidates[int(b.candidate[i])] == name
+            np.testing.assert_allclose(np.asarray(b.v[i]), np.asarray(a.v[i]), rtol=1e-12, atol=1e-12)
+            assert float(b.cost[i]) == pytest.approx(float(a.cost[i]), rel=1e-12)
+        assert bool(b.uniform[i]) == rep.candidates[int(b.candidate[i])].endswith("_uniform")
+
+
+@pytest.mark.slow  # one more batched program
+def test_planner_without_the_projection_plans_re_verified_and_never_cheaper(planner_and_data):
+    """projection=False: feasible plans (re-verified), each the cheaper switching candidate
+    of the default planner's or dearer than the default's plan where the projection won."""
+    from jtraj.online import Planner
+
+    planner, data = planner_and_data
+    other = Planner(planner.model, planner.robot, weights=W, projection=False)
+    qs, qg = data["q_start"][:8], data["q_goal"][:8]
+    pa, pb = planner.plan(qs, qg), other.plan(qs, qg)
+    for i in range(8):
+        chk = V.verify(qs[i], qg[i], np.asarray(pb.v[i]), np.asarray(pb.h[i]), h_max=1.5,
+                       weights=(1.0, 0.1, 0.0), tol=1e-9)
+        assert chk["ok"], chk["max_rel_violation"]
+        assert float(pb.cost[i]) == pytest.approx(chk["cost"], rel=1e-12)
+        assert float(pb.cost[i]) >= float(pa.cost[i]) * (1 - 1e-12)
