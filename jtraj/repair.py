@@ -28,7 +28,8 @@ period box ``h_min <= s h_k <= h_max``. For other robots it takes the cheapest f
 ``s`` of a fixed log-spaced grid over the period box (the efforts evaluated at every grid
 point).
 
-Six candidates are repaired side by side: the predicted periods (clipped into the
+Up to six candidates are repaired side by side (:func:`make_repair` leaves out any of
+them; :class:`jtraj.online.Planner` repairs three by default): the predicted periods (clipped into the
 box) and uniform periods of the same total time (which leave the time scaling the
 widest period box), each with the projected accelerations, with one
 :func:`effort_step` from them (a Gauss-Newton step towards less effort on the goal,
@@ -330,8 +331,8 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
     lin = jax.vmap(linearise, in_axes=(None, None, None, 0, 0))
     step = jax.vmap(effort_step_at, in_axes=(None, None, None, None, None, 0, 0, 0, 0, None))
 
-    # the candidates' periods: 0 the predicted ones, 1 uniform ones of the same total time
-    # the projections kept as candidates: a slice of the two (predicted, uniform periods)
+    # the periods are the predicted ones and uniform ones of the same total time; the
+    # projections kept as candidates are a slice of the two
     keep = slice(0 if projection else 1, 2 if uniform_projection else 1)
     names = ["projected", "projected_uniform"][keep]
     if effort:
@@ -363,9 +364,12 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
                 q0, qd0, q_goal, qd_goal, jax.vmap(switch_profile, in_axes=(None, None, None, 0))(q0, qd0, q_goal, h2), h2)
             vs, hs = jnp.concatenate([vs, w]), jnp.concatenate([hs, h2])
         # the states and efforts of every candidate not yet known, in one batch
-        rest = slice(0 if known is None else known[0].shape[0], None)
-        new = jax.vmap(states, in_axes=(None, None, 0, 0))(q0, qd0, vs[rest], hs[rest])
-        q, qd, tau = new if known is None else tuple(jnp.concatenate([x, y]) for x, y in zip(known, new))
+        done = 0 if known is None else known[0].shape[0]
+        if done == vs.shape[0]:
+            q, qd, tau = known
+        else:
+            new = jax.vmap(states, in_axes=(None, None, 0, 0))(q0, qd0, vs[done:], hs[done:])
+            q, qd, tau = new if known is None else tuple(jnp.concatenate([x, y]) for x, y in zip(known, new))
         out = jax.vmap(candidate, in_axes=(None, None, None, None, 0, 0, 0, 0, 0))(q0, qd0, q_goal, qd_goal, vs, hs,
                                                                                  q, qd, tau)
         cost, viol = out[5], jnp.where(jnp.isnan(out[7]), jnp.inf, out[7])

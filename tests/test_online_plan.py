@@ -399,23 +399,28 @@ def test_cumulative_sums_and_small_products_match_numpy():
     np.testing.assert_allclose(np.asarray(_mm(jnp.asarray(b), jnp.asarray(b[0]))), b @ b[0], rtol=1e-13)
 
 
-def test_without_the_uniform_projection_the_repair_picks_among_the_others(serial3_repair):
-    """A repair without the projection on uniform periods (the planner's): the same plan
-    as the full repair wherever that one chose another candidate, never a cheaper one,
-    and the chosen candidate named; without the switching candidates and projections
-    nothing is left (refused)."""
+def test_repair_candidates_are_named_and_an_empty_set_refused():
     rb = robots.get("serial3")
-    full = make_repair(rb, W)
-    rep = make_repair(rb, W, uniform_projection=False)
-    assert full.candidates == ("projected", "projected_uniform", "effort", "effort_uniform", "switch",
-                               "switch_uniform")
-    assert rep.candidates == ("projected", "effort", "effort_uniform", "switch", "switch_uniform")
+    assert make_repair(rb, W).candidates == ("projected", "projected_uniform", "effort", "effort_uniform",
+                                             "switch", "switch_uniform")
+    assert make_repair(rb, W, uniform_projection=False).candidates == ("projected", "effort", "effort_uniform",
+                                                                       "switch", "switch_uniform")
     assert make_repair(rb, W, effort=False, projection=False).candidates == ("projected_uniform", "switch",
                                                                            "switch_uniform")
     assert make_repair(rb, W, effort=False, projection=False, uniform_projection=False).candidates == (
         "switch", "switch_uniform")
     with pytest.raises(ValueError, match="no candidates"):
         make_repair(rb, W, effort=False, switch=False, projection=False, uniform_projection=False)
+
+
+@pytest.mark.slow  # one more repair program
+def test_without_the_uniform_projection_the_repair_picks_among_the_others(serial3_repair):
+    """A repair without the projection on uniform periods (the planner's): the same plan
+    as the full repair wherever that one chose another candidate, never a cheaper one,
+    and the chosen candidate named."""
+    rb = robots.get("serial3")
+    full = make_repair(rb, W)
+    rep = make_repair(rb, W, uniform_projection=False)
     rng = np.random.default_rng(2)
     P = [_prediction(rng, scale) for scale in (0.3, 1.0, 0.0, 0.05, 0.5, 0.2)]
     qs, qg, v, h = (jnp.asarray(np.array([p[i] for p in P])) for i in range(4))
@@ -434,8 +439,8 @@ def test_without_the_uniform_projection_the_repair_picks_among_the_others(serial
 
 @pytest.mark.slow  # one more batched program
 def test_planner_without_the_projection_plans_re_verified_and_never_cheaper(planner_and_data):
-    """projection=False: feasible plans (re-verified), each the cheaper switching candidate
-    of the default planner's or dearer than the default's plan where the projection won."""
+    """projection=False: feasible plans (re-verified), never cheaper than the default
+    planner's (it chooses among a subset of the same candidates)."""
     from jtraj.online import Planner
 
     planner, data = planner_and_data
