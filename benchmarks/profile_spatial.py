@@ -4,6 +4,7 @@ curvature of the dynamics (``SolverOptions.ip_curvature``, :mod:`jtraj.solver.cu
     python benchmarks/profile_spatial.py [--robot panda] [--N 40] [--curvature exact|gauss_newton]
                                          [--pieces] [--iteration] [--no-program] [--tight]
                                          [--opt-level L] [--repeats 3] [--cache DIR] [--json F]
+    taskset -c 0 python benchmarks/profile_spatial.py --dataset-chunks 4 [--dataset-batch 64] [--N 40]
 
 One problem of ``bench_spatial``'s family (pair 0 of seed 0 for the panda; for other arms
 the same rule on their joint ranges). ``--pieces``: the per-sample functions over the
@@ -14,7 +15,12 @@ iteration at the starting point, compiled apart (the Newton model, the KKT solve
 shift ladder, one trial point of the line search, the whole step). Without ``--no-program``: the interior-point program
 of a concrete solve (``jtraj.T.staged_ip_jit``: guess, interior point, light
 finish), its compile s and HLO size, then warm solves (best of ``--repeats``) and the
-run's iterations, status and cost. ``--opt-level`` sets XLA's LLVM optimisation level
+run's iterations, status and cost. ``--dataset-chunks K``: instead, a dataset worker's
+pieces: ``jtraj dataset``'s spec for the robot (1,000 pairs, seed 0, chunks of
+``--dataset-batch`` pairs) and :func:`jtraj.dataset.build.compute_chunk` on its first K
+chunks in this process, each timed (the first includes loading or compiling the
+programs), with its sampling time and Newton iterations; run it under ``taskset -c 0``
+(one CPU, as the workers). ``--opt-level`` sets XLA's LLVM optimisation level
 (default: XLA's own). Run each curvature in its own fresh process.
 """
 
@@ -41,8 +47,12 @@ def main(argv=None):
     ap.add_argument("--cache", default=None, help="JAX's persistent compilation cache folder")
     ap.add_argument("--opt-level", type=int, default=None)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--dataset-chunks", type=int, default=0, help="time a dataset worker's first K chunks instead")
+    ap.add_argument("--dataset-batch", type=int, default=64)
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
+    if args.dataset_chunks:
+        return dataset_chunks(args)
     if args.opt_level is not None:
         os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level={args.opt_level}"
 
@@ -188,6 +198,44 @@ def main(argv=None):
             full = jtraj.solve(problem, solver=jtraj.Auto(ipm=jtraj.IPM(curvature=args.curvature)))
             print(f"  undecided: jtraj.solve with the AL fallback {time.perf_counter() - t0:.1f} s, converged "
                   f"{bool(full.converged)}, iterations {int(full.iterations)}, cost {float(full.cost):.8f}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=2)
+    return report
+
+
+def dataset_chunks(args):
+    """``--dataset-chunks``: see the module docstring."""
+    import importlib
+
+    t0 = time.perf_counter()
+
+    from jtraj._setup import setup_jax
+
+    setup_jax()
+    from jtraj import dataset
+    from jtraj.dataset import sampling
+
+    build = importlib.import_module("jtraj.dataset.build")
+    spec = dataset.make_spec(args.robot, 1000, 0, N=args.N, batch=args.dataset_batch)
+    robot = spec.robot_model()
+    print(f"{args.robot}, N = {args.N}, chunks of {spec.batch} pairs, h_max {float(robot.limits.h_max):g} s; "
+          f"import and spec {time.perf_counter() - t0:.2f} s", flush=True)
+    report = {"robot": args.robot, "N": args.N, "batch": spec.batch, "chunks": []}
+    for c in range(args.dataset_chunks):
+        start, stop = spec.chunk_range(c)
+        t1 = time.perf_counter()
+        sampling.sample_pairs(robot, spec.distribution, spec.seed, start, stop)
+        t2 = time.perf_counter()
+        out = build.compute_chunk(spec, c)
+        t3 = time.perf_counter()
+        it = out["iterations"]
+        report["chunks"].append({"sample_s": t2 - t1, "chunk_s": t3 - t2, "pairs_per_s": (stop - start) / (t3 - t2),
+                                 "iterations_mean": float(it.mean()), "iterations_max": int(it.max()),
+                                 "converged": int(out["converged"].sum())})
+        print(f"  chunk {c}: sampling {t2 - t1:.3f} s, compute_chunk {t3 - t2:.2f} s ({(stop - start) / (t3 - t2):.2f} "
+              f"pairs/s), Newton iterations mean {it.mean():.1f} max {it.max()}, converged "
+              f"{int(out['converged'].sum())}/{stop - start}", flush=True)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(report, f, indent=2)
