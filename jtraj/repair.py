@@ -49,6 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._math import small_matmul
 from .lq import small_cho_solve
 
 
@@ -75,15 +76,6 @@ class Repaired(NamedTuple):
     scale: jax.Array  # the time scaling s of the chosen candidate
     uniform: jax.Array  # whether the chosen candidate has uniform periods
     candidate: jax.Array  # the chosen candidate's index (make_repair's order)
-
-
-def _mm(a, b):
-    """``a @ b`` for small matrices (a (..., i, j), b (..., j, k), or a vector b (j,)) as a
-    broadcast product and a sum, which XLA fuses with its neighbours: on a CPU a dot is a
-    library call, about ten times the cost of a fused loop of this size."""
-    if b.ndim == 1:
-        return jnp.sum(a * b.reshape((1,) * (a.ndim - 1) + b.shape), axis=-1)
-    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
 def _cumsum(x):
@@ -127,12 +119,12 @@ def goal_projection(q0, qd0, q_goal, qd_goal, v, h):
     A = terminal_rows(h)
     T = jnp.sum(h)
     target = jnp.stack([qd_goal - qd0, q_goal - q0 - T * qd0])  # (2, n)
-    r = target - _mm(A, v)
+    r = target - small_matmul(A, v)
     Winv_At = (A / h[None]).T  # (N, 2): W^{-1} A^T with W = diag(h)
-    G = _mm(A, Winv_At)  # symmetric positive definite 2x2: inverted in closed form
+    G = small_matmul(A, Winv_At)  # symmetric positive definite 2x2: inverted in closed form
     Ginv = jnp.stack([jnp.stack([G[1, 1], -G[0, 1]]), jnp.stack([-G[1, 0], G[0, 0]])]) / (
         G[0, 0] * G[1, 1] - G[0, 1] * G[1, 0])
-    return v + _mm(Winv_At, _mm(Ginv, r))
+    return v + small_matmul(Winv_At, small_matmul(Ginv, r))
 
 
 def switch_profile(q0, qd0, q_goal, h, width=None):

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._math import sincos
+from .._math import sincos, small_matmul
 from ._base import Actuator, Friction, Limits, Robot, Vec
 
 JOINT_TYPES = ("revolute", "prismatic")
@@ -54,9 +54,8 @@ def _mv(A, v):
     return jnp.sum(A * v[..., None, :], axis=-1)
 
 
-def _mm(A, B):
-    """A @ B for 3 x 3 matrices over leading batch axes, elementwise."""
-    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
+#: A @ B for 3 x 3 matrices over leading batch axes, elementwise
+_mm = small_matmul
 
 
 #: the linear map a -> [a]_x: [a]_x[i, j] = sum_k _SKEW_OF[i, j, k] a_k (minus Levi-Civita)
