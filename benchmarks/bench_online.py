@@ -44,7 +44,8 @@ Printed and written (``--json``):
   exact warm solve's latency of the reference), ``plan_primal`` / ``plan_full``
   (``jtraj.solve(init=plan, warm=...)``), ``nn_primal`` (from the nearest training
   trajectory), ``plan_mu3`` (interior point with a shortened barrier schedule,
-  ``ip_mu_init=1e-3``, from the plan), ``al_cold`` / ``al_plan_full`` (the augmented-
+  ``ip_mu_init=1e-3``, from the plan), ``plan_warm`` (from the plan with
+  ``jtraj.online.WARM_IPM``, what ``Planner.query(refine=True)`` runs), ``al_cold`` / ``al_plan_full`` (the augmented-
   Lagrangian method alone, cold and from the plan with multipliers estimated there):
   Newton iterations, wall time, convergence, and the final cost against ``cold``'s
   (the same optimum where within 1e-3 relative: the solver's optimality tolerance is 3e-4).
@@ -66,7 +67,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-VARIANTS = ("cold", "plan_primal", "plan_full", "nn_primal", "plan_mu3", "al_cold", "al_plan_full")
+VARIANTS = ("cold", "plan_primal", "plan_full", "nn_primal", "plan_mu3", "plan_warm", "al_cold", "al_plan_full")
 
 
 def _lat(f, args_list, repeat, block=True):
@@ -131,7 +132,7 @@ def main(argv=None):
     from jtraj import anfis, dataset
     from jtraj import mappings
     from jtraj.dataset import sampling
-    from jtraj.online import Planner
+    from jtraj.online import WARM_IPM, Planner
     from jtraj.repair import make_repair
 
     verify = None
@@ -287,7 +288,8 @@ def main(argv=None):
 
     # --- exact solves
     solvers = {"cold": jtraj.Auto(), "plan_primal": jtraj.Auto(), "plan_full": jtraj.Auto(), "nn_primal": jtraj.Auto(),
-               "plan_mu3": jtraj.Auto(ipm=jtraj.IPM(mu_init=1e-3)), "al_cold": jtraj.AugmentedLagrangian(),
+               "plan_mu3": jtraj.Auto(ipm=jtraj.IPM(mu_init=1e-3)),
+               "plan_warm": jtraj.Auto(ipm=jtraj.IPM(**WARM_IPM)), "al_cold": jtraj.AugmentedLagrangian(),
                "al_plan_full": jtraj.AugmentedLagrangian()}
 
     def run(label, i):
@@ -297,7 +299,7 @@ def main(argv=None):
         elif label == "nn_primal":
             init, warm = (jnp.asarray(nn_v[i]), jnp.asarray(nn_h[i])), "primal"
         else:
-            init, warm = (pb.v[i], pb.h[i]), ("primal" if label == "plan_primal" else "full")
+            init, warm = (pb.v[i], pb.h[i]), ("primal" if label in ("plan_primal", "plan_warm") else "full")
         t0 = time.perf_counter()
         sol = jtraj.solve(prob, init=init, solver=solvers[label], warm=warm)
         jax.block_until_ready(sol.status)

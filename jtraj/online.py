@@ -68,6 +68,14 @@ BOX_MARGIN = 0.05
 CHUNK = 256
 #: threads :meth:`Planner.plan` runs a chunked batch's calls on (XLA releases the GIL)
 THREADS = min(os.cpu_count() or 1, 8)
+#: the interior-point settings of :meth:`Planner.query`'s refinement from the plan where no
+#: solver is given: a shorter barrier schedule (``mu_init``) and a start kept near the
+#: plan (``bound_push``, 1e-2 in a cold start). Both are traced options, so the refinement
+#: runs the cold solve's compiled program. On 30 held-out serial3 pairs (dataset family,
+#: N = 20) the plan then needs 0.87x the cold start's Newton iterations (per-pair median;
+#: 1.03x with the cold settings), every pair converging to the cold start's optimum within
+#: 1e-3 (``benchmarks/bench_online.py``, variant ``plan_warm``)
+WARM_IPM = dict(mu_init=1e-4, bound_push=1e-4)
 #: XLA CPU options of the programs :meth:`Planner.plan` runs: no YNNPACK library fusions
 #: (jaxlib hands the small reductions over 2 to 60 numbers per plan to YNNPACK, slower
 #: than XLA's own loops for arrays of this shape), and the legacy loop emitters (a batch
@@ -466,9 +474,12 @@ class Planner:
         at each new interval's midpoint), which keeps the plan's total time.
 
         ``weights`` of the refined problem default to the planner's (the training
-        dataset's); ``solver`` is its solver (:class:`jtraj.Auto` by default,
-        :class:`jtraj.IPM` or :class:`jtraj.AugmentedLagrangian`; ``options``, a
-        :class:`jtraj.SolverOptions`, is deprecated as in :func:`jtraj.solve`). Returns
+        dataset's); ``solver`` is its solver (:class:`jtraj.IPM` or
+        :class:`jtraj.AugmentedLagrangian`, or :class:`jtraj.Auto`; ``options``, a
+        :class:`jtraj.SolverOptions`, is deprecated as in :func:`jtraj.solve`). Without
+        one, the solve from the plan is ``jtraj.Auto(ipm=jtraj.IPM(**WARM_IPM))``
+        (:data:`WARM_IPM`: a short barrier schedule from a start kept near the plan) and
+        the comparison's ``jtraj.Auto()``. Returns
         :meth:`report`'s dict with ``seconds`` (the plan's wall time,
         Python included); with ``refine`` it adds the solver's status, iterations, time,
         cost, the plan's ``gap`` to the refined optimum (``(cost - refined_cost) /
@@ -485,6 +496,11 @@ class Planner:
         from jtraj.solver.api import solver_argument
 
         solver = solver_argument(solver, options)
+        warm_solver = solver
+        if solver is None:
+            import jtraj
+
+            warm_solver = jtraj.Auto(ipm=jtraj.IPM(**WARM_IPM))
         if warm not in ("primal", "full"):
             raise ValueError(f"warm must be 'primal' or 'full', got {warm!r}")
         if N is not None and (isinstance(N, bool) or not isinstance(N, (int, np.integer)) or N < 2):
@@ -514,7 +530,7 @@ class Planner:
                 if init is None:
                     sol = jtraj.solve(prob, solver=solver)
                 else:
-                    sol = jtraj.solve(prob, init=init, solver=solver, warm=warm)
+                    sol = jtraj.solve(prob, init=init, solver=warm_solver, warm=warm)
                     out["refined_warm"] = warm
                 jax.block_until_ready(sol)
                 dt = time.perf_counter() - t1

@@ -278,6 +278,23 @@ def test_single_ip_solve_equals_its_batch_lane(batch):
     assert float(one.cost) == pytest.approx(float(sol.cost[0]), rel=1e-9)
 
 
+def test_warm_start_kept_at_an_optimum_needs_few_iterations():
+    """A warm start at a returned optimum: with the cold start's settings (first barrier
+    parameter 0.1, pushed 1e-2 inside the boxes) the run walks the barrier path again;
+    with a small barrier parameter and bound push it stays there: at most half the
+    iterations, the same optimum (cost within the solver's 3e-4 optimality tolerance),
+    and no new compiled program (both settings are traced numbers)."""
+    problem = jtraj.Problem(jtraj.robots.get("serial3"), Q0, Q1, N=N, weights=W)
+    sol = jtraj.solve(problem, solver=jtraj.IPM())
+    init = (sol.v, sol.h)
+    again = jtraj.solve(problem, init=init, solver=jtraj.IPM(), warm="primal")
+    kept = jtraj.solve(problem, init=init, solver=jtraj.IPM(mu_init=1e-6, bound_push=1e-8), warm="primal")
+    assert bool(sol.converged) and bool(again.converged) and bool(kept.converged)
+    assert 0 < int(kept.iterations) <= int(again.iterations) // 2, (int(kept.iterations), int(again.iterations))
+    assert float(kept.cost) == pytest.approx(float(sol.cost), rel=3e-4)
+    assert float(kept.max_violation["overall"]) <= jtraj.AugmentedLagrangian().verify_tol
+
+
 def test_split_tolerances_stop_early_near_the_strict_optimum(batch):
     """A run also ends where the dual, primal and complementarity errors are each within
     their own tolerance (the defaults), before the barrier parameter's last fall: fewer

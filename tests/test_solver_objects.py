@@ -33,7 +33,7 @@ TRACED = {"max_iter", "max_inner", "tol_feasibility", "tol_optimality", "inner_t
           "penalty_init", "penalty_growth", "penalty_max", "feasibility_ratio", "damping_init", "verify_tol",
           "detect_infeasible", "restart_iter", "restart_penalty_max", "kink_margin", "kink_after", "stall_window",
           "stall_ratio", "stall_min_viol", "stall_after", "pbm_fallback_iter", "detect_min_viol", "ip_dual_tol",
-          "ip_compl_tol", "ip_project_tol", "ip_damping"}
+          "ip_compl_tol", "ip_project_tol", "ip_damping", "ip_mu_init", "ip_bound_push"}
 SWITCHES = {"inner_tol_ratio", "pbm_inner_tol_ratio", "kink_margin", "pbm_fallback_iter"}
 
 
@@ -91,7 +91,10 @@ def test_numbers_share_a_program_structure_does_not():
     base = S.split_options(to_options(IPM()))
     assert S.split_options(to_options(IPM(dual_tol=1e-3, fallback=AugmentedLagrangian(tol_optimality=1e-4)))).static \
         == base.static
-    assert S.split_options(to_options(IPM(mu_init=0.01))).static != base.static
+    # the start's barrier parameter and bound push are numbers too (a warm start's
+    # settings reuse the cold start's program); the iteration cap shapes the program
+    assert S.split_options(to_options(IPM(mu_init=1e-3, bound_push=1e-6))).static == base.static
+    assert S.split_options(to_options(IPM(max_iter=80))).static != base.static
 
 
 def test_bad_solver_options_raise_naming_the_field(problem):
@@ -99,6 +102,9 @@ def test_bad_solver_options_raise_naming_the_field(problem):
         IPM(tol=-1.0)
     with pytest.raises(ValueError, match=r"IPM\.damping"):
         IPM(damping=float("nan"))
+    for push in (0.0, 0.5, float("inf")):
+        with pytest.raises(ValueError, match=r"IPM\.bound_push"):
+            IPM(bound_push=push)
     with pytest.raises(ValueError, match="schedule"):
         AugmentedLagrangian(schedule="fast")
     with pytest.raises(ValueError, match=r"AugmentedLagrangian\.penalty_growth"):

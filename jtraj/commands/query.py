@@ -100,9 +100,11 @@ def run(args) -> int:
     check_joint_values(planner.robot, {"--start": q_start, "--goal": q_goal}, deg)
     solver = None
     if args.refine:
-        from jtraj.commands import solver_from_args
+        from jtraj.commands import solver_from_args, solver_overrides
 
-        solver = solver_from_args(args)
+        # no solver argument: the planner's own warm-start settings (jtraj.online.WARM_IPM)
+        if solver_overrides(args) != {"method": "auto"}:
+            solver = solver_from_args(args)
     out = planner.query(q_start, q_goal, refine=args.refine, warm=getattr(args, "warm", "primal"),
                         weights=weights, solver=solver, N=getattr(args, "N", None))
     cov = out["coverage"]

@@ -87,6 +87,8 @@ _RHO_E = 1e3  # the terminal equalities' term added to the Hessian (see the modu
 #: lowering it (one feasible pair froze at 0.087 with mu at 2e-6 and went to the AL loop)
 _STALL_WINDOW = 20
 _MU0 = 0.1
+#: the default least distance of a start inside its boxes (``SolverOptions.ip_bound_push``)
+_PUSH = 1e-2
 _STALL_THETA = 1.0  # the stall test applies above this violation (or above _INFEASIBLE_THETA at mu0)
 #: with the Gauss-Newton model (spatial arms, see :mod:`jtraj.solver.curvature`) the test
 #: above _STALL_THETA is off, the one at mu0 kept: runs whose violation is above 1 and
@@ -225,17 +227,20 @@ def _theta(p: _Pieces, s, sT):
     return jnp.sum(jnp.abs(p.e)) + jnp.sum(jnp.abs(p.G + s)) + jnp.sum(jnp.abs(p.gT + sT))
 
 
-def init(nlp, z0, mu0=_MU0) -> IPState:
+def init(nlp, z0, mu0=_MU0, push=_PUSH) -> IPState:
+    """The state at z0 moved at least ``push`` inside its boxes (relative to
+    ``max(1, |bound|)``, at most 0.49 of the box), slacks at least ``push``, the
+    inequalities' multipliers ``mu0 / s`` and the bounds' 1 (IPOPT's constant rule)."""
     lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
     rng = jnp.where(jnp.isfinite(hi - lo), hi - lo, jnp.inf)
-    push_lo = jnp.minimum(1e-2 * jnp.maximum(1.0, jnp.abs(lo)), 0.49 * rng)
-    push_hi = jnp.minimum(1e-2 * jnp.maximum(1.0, jnp.abs(hi)), 0.49 * rng)
+    push_lo = jnp.minimum(push * jnp.maximum(1.0, jnp.abs(lo)), 0.49 * rng)
+    push_hi = jnp.minimum(push * jnp.maximum(1.0, jnp.abs(hi)), 0.49 * rng)
     z = jnp.clip(z0, jnp.where(jnp.isfinite(lo), lo + push_lo, -jnp.inf), jnp.where(jnp.isfinite(hi), hi - push_hi, jnp.inf))
     p = _parts(nlp, z)
     dt = z.dtype
     mu = jnp.asarray(mu0, dt)
-    s = jnp.maximum(-p.G, 1e-2)
-    sT = jnp.maximum(-p.gT, 1e-2)
+    s = jnp.maximum(-p.G, push)
+    sT = jnp.maximum(-p.gT, push)
     th0 = _theta(p, s, sT)
     _, _, has_lo, has_hi = _bounds(nlp, z)
     return IPState(
@@ -669,9 +674,10 @@ class InteriorPoint(NamedTuple):
     max_iter: Any = None
     tol: Any = None
 
-    def init(self, nlp, z0, mu0=_MU0) -> IPState:
-        """:func:`init`: the state at z0 (pushed inside its boxes), first barrier parameter ``mu0``."""
-        return init(nlp, z0, mu0)
+    def init(self, nlp, z0, mu0=_MU0, push=_PUSH) -> IPState:
+        """:func:`init`: the state at z0 (pushed at least ``push`` inside its boxes), first
+        barrier parameter ``mu0``."""
+        return init(nlp, z0, mu0, push)
 
     def enter(self, nlp, st: IPState):
         return nlp

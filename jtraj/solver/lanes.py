@@ -19,7 +19,7 @@ from ..transcription import Transcription
 from . import ipm, loop
 from .al import ALMethod
 from .core import finish, ip_method, prepare, solve_core
-from .options import TracedOptions, options_jit, split_options, static_options
+from .options import TracedOptions, options_jit, split_options
 from .results import Solution
 
 
@@ -167,7 +167,7 @@ def _ip_init_batch_jit(nlps, states, opts):
     """The interior-point states of a batch (a state the AL loop would not run, a warm
     start already optimal, starts finished)."""
     def one(n, s):
-        st = ipm.InteriorPoint().init(n, s.z, static_options(opts).ip_mu_init)
+        st = ipm.InteriorPoint().init(n, s.z, opts.ip_mu_init, opts.ip_bound_push)
         return st._replace(done=s.done)
 
     return eqx.filter_vmap(one)(nlps, states)

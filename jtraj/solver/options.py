@@ -129,6 +129,10 @@ class SolverOptions(eqx.Module):
             (default 1e-2; 0 switches it off).
         ip_mu_init: the interior-point method's first barrier parameter (default 0.1); a
             smaller one shortens the barrier schedule for a start near an optimum.
+        ip_bound_push: how far inside its boxes an interior-point run starts (default
+            1e-2): z at least ``ip_bound_push * max(1, |bound|)`` inside each finite bound
+            (at most 0.49 of the box), every inequality's slack at least
+            ``ip_bound_push``; smaller keeps a warm start where it is.
         ip_curvature: the interior-point method's Newton model of the dynamics terms
             (:mod:`jtraj.solver.curvature`). "exact": the Lagrangian's Hessian;
             "gauss_newton": without the effort multipliers' second derivatives of the
@@ -180,6 +184,7 @@ class SolverOptions(eqx.Module):
     ip_project_tol: float = eqx.field(static=True, default=1e-4)
     ip_damping: float = eqx.field(static=True, default=1e-2)
     ip_mu_init: float = eqx.field(static=True, default=0.1)
+    ip_bound_push: float = eqx.field(static=True, default=1e-2)
     ip_curvature: str = eqx.field(static=True, default="auto")
 
     @classmethod
