@@ -25,9 +25,10 @@ Printed and written (``--json``):
   worker thread and the caller waits for it, a thread switch per call
   (``--sync-dispatch`` runs the whole benchmark so; ``--latency-only`` stops after the
   latencies);
-* feasibility (each plan re-verified independently by ``jtraj_peers/verify.py``,
-  NumPy recursion and Pinocchio's RNEA, serial3 only: bounds within 1e-6 relative,
-  goal within 1e-6), the goal error, the raw model's goal error;
+* feasibility (each plan re-verified independently, NumPy recursion and Pinocchio's
+  RNEA: serial3 by ``jtraj_peers/verify.py``, the panda by ``jtraj_peers/verify_arm.py``
+  on example-robot-data's URDF; bounds within 1e-6 relative, goal within 1e-6; other
+  robots by the planner's own report), the goal error, the raw model's goal error;
 * the cost gap ``(plan - optimum) / optimum`` to the exact solve from the cycloidal
   guess, where it converged; the same for the nearest training trajectory (inputs
   scaled as the coverage scales them) put through the same repair (a lookup baseline);
@@ -104,6 +105,40 @@ def _child_latency(args, model):
     return json.loads(lines[-1])
 
 
+def _verifier(robot, name, weights, tol):
+    """``(check, label)``: ``check(q_start, q_goal, v, h)`` -> dict(ok, goal_error, violation,
+    cost) of an independent re-verification of a plan, or ``(None, None)`` where the robot has
+    none. serial3: :mod:`jtraj_peers.verify` (NumPy recursion, Pinocchio's RNEA of its own
+    model); the panda: :mod:`jtraj_peers.verify_arm` (the same recursion, Pinocchio's RNEA of
+    example-robot-data's URDF), with jtraj's limits of the robot."""
+    w = (float(weights.time), float(weights.energy), float(weights.kinetic))
+    lim = robot.limits
+    if name == "serial3":
+        from jtraj_peers import verify
+
+        def run(qs, qg, v, h):
+            return verify.verify(qs, qg, np.asarray(v), np.asarray(h), h_max=float(lim.h_max), weights=w, tol=tol)
+        label = "jtraj_peers.verify (NumPy + Pinocchio)"
+    elif name == "panda":
+        from jtraj_peers import casadi_rnea, verify_arm
+
+        model = casadi_rnea.panda_model()
+        kw = {k: np.asarray(getattr(lim, k), float) for k in ("tau_max", "qd_max", "qdd_max", "q_min", "q_max")}
+        kw.update(h_min=float(lim.h_min), h_max=float(lim.h_max), weights=w, tol=tol)
+
+        def run(qs, qg, v, h):
+            return verify_arm.verify(model, qs, qg, np.asarray(v), np.asarray(h), **kw)
+        label = "jtraj_peers.verify_arm (NumPy + Pinocchio, example-robot-data's URDF)"
+    else:
+        return None, None
+
+    def check(qs, qg, v, h):
+        c = run(qs, qg, v, h)
+        return dict(ok=c["ok"], goal_error=c["goal_error"], violation=max(c["max_rel_violation"].values()),
+                    cost=c["cost"])
+    return check, label
+
+
 def _q(a, qs):
     a = np.asarray(a, float)
     return {f"p{q}": float(np.percentile(a, q)) for q in qs} | {"max": float(a.max()), "mean": float(a.mean())}
@@ -135,16 +170,15 @@ def main(argv=None):
     from jtraj.online import WARM_IPM, Planner
     from jtraj.repair import make_repair
 
-    verify = None
     data = dataset.load(args.data)
     meta = data["metadata"]
     h_max = (meta.get("limits") or {}).get("h_max")
     robot = jtraj.robots.get(meta["robot"], **({"h_max": float(h_max)} if h_max else {}))
-    if meta["robot"] == "serial3":
-        from jtraj_peers import verify
     N, n = int(meta["N"]), robot.n
     wtext = meta.get("weights_text", "time=1,energy=0.1")
     weights = jtraj.Weights.parse(wtext)
+    tol = 1e-6
+    verify, verifier = _verifier(robot, meta["robot"], weights, tol)
     out = dict(robot=meta["robot"], N=N, weights=wtext, h_max=float(robot.limits.h_max))
 
     X, Y, traj, _, _ = mappings.view(data, "plan")
@@ -201,7 +235,6 @@ def main(argv=None):
 
     # --- feasibility, goal, coverage of the held-out plans
     pb = planner.plan(QS, QG)
-    tol = 1e-6
     rows = []
     for i in range(P):
         r = dict(source=pairs[i][0], q_start=QS[i].tolist(), q_goal=QG[i].tolist(),
@@ -209,15 +242,13 @@ def main(argv=None):
                  goal_error=float(pb.goal_error[i]), predicted_goal_error=float(pb.predicted_goal_error[i]),
                  scale=float(pb.scale[i]), coverage_distance=float(pb.coverage_distance[i]), ood=bool(pb.ood[i]))
         if verify is not None:
-            chk = verify.verify(QS[i], QG[i], np.asarray(pb.v[i]), np.asarray(pb.h[i]), h_max=float(robot.limits.h_max),
-                                weights=(float(weights.time), float(weights.energy), float(weights.kinetic)), tol=tol)
-            r.update(verified=chk["ok"], verified_goal_error=chk["goal_error"],
-                     verified_violation=max(chk["max_rel_violation"].values()), verified_cost=chk["cost"])
+            chk = verify(QS[i], QG[i], pb.v[i], pb.h[i])
+            r.update(verified=chk["ok"], verified_goal_error=chk["goal_error"], verified_violation=chk["violation"],
+                     verified_cost=chk["cost"])
         rows.append(r)
     feas = np.array([r.get("verified", planner.feasible(jax.tree.map(lambda a, i=i: a[i], pb))) for i, r in
                      enumerate(rows)])
-    out["plans"] = dict(feasible=int(feas.sum()), of=P, verifier="jtraj_peers.verify (NumPy + Pinocchio)" if verify else
-                        "the planner's own report", goal_error=_q([r["goal_error"] for r in rows], (50, 90)),
+    out["plans"] = dict(feasible=int(feas.sum()), of=P, verifier=verifier or "the planner's own report", goal_error=_q([r["goal_error"] for r in rows], (50, 90)),
                         predicted_goal_error=_q([r["predicted_goal_error"] for r in rows], (50, 90)),
                         ood=int(sum(r["ood"] for r in rows)))
     print(f"plans: feasible {feas.sum()}/{P} (re-verified: {out['plans']['verifier']}, tol {tol}); goal error "
@@ -261,10 +292,7 @@ def main(argv=None):
     if verify is not None:  # feasibility of the other plans on the held-out pairs, re-verified
         for label, pl in others.items():
             pf = pl.plan(QS, QG)
-            ok = [verify.verify(QS[i], QG[i], np.asarray(pf.v[i]), np.asarray(pf.h[i]),
-                                h_max=float(robot.limits.h_max), weights=(float(weights.time), float(weights.energy),
-                                                                          float(weights.kinetic)), tol=tol)["ok"]
-                  for i in range(P)]
+            ok = [verify(QS[i], QG[i], pf.v[i], pf.h[i])["ok"] for i in range(P)]
             for i, r in enumerate(rows):
                 r[f"{label}_cost"] = float(pf.cost[i])
             out["plans"][f"{label}_feasible"] = int(sum(ok))
