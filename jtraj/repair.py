@@ -25,8 +25,10 @@ and the cost of the scaled plan is
 convex in ``s``, minimised in closed form (a quadratic in ``s^2``): :func:`make_repair`
 takes the smallest ``s`` of the feasible ones that is at least that minimiser, within the
 period box ``h_min <= s h_k <= h_max``. For other robots it takes the cheapest feasible
-``s`` of a fixed log-spaced grid over the period box (the efforts evaluated at every grid
-point).
+``s`` of a fixed log-spaced grid over the period box, the efforts at every grid point
+from their polynomial in ``1 / s`` where they are one (gravity and viscous friction:
+:func:`is_quadratic_in_rate`; two inverse-dynamics passes besides the plan's own), else
+evaluated there.
 
 Up to six candidates are repaired side by side (:func:`make_repair` leaves out any of
 them; :class:`jtraj.online.Planner` repairs three by default): the predicted periods (clipped into the
@@ -208,6 +210,33 @@ def is_homogeneous(robot, trials: int = 3, seed: int = 0) -> bool:
     return True
 
 
+def is_quadratic_in_rate(robot, trials: int = 3, seed: int = 0) -> bool:
+    """Whether ``robot``'s efforts under the time scaling, ``tau(q, qd / s, v / s^2)``, are a
+    polynomial of degree two in ``u = 1 / s``: ``tau_0(q) + u tau_1(q, qd) + u^2
+    tau_2(q, qd, v)`` (rigid bodies with gravity, viscous friction or drive damping; not
+    a smoothed Coulomb friction). Tested at random states: the efforts at ``u = 3``
+    against the polynomial through ``u = 1/2, 1, 2`` (:func:`_rate_polynomial`), relative
+    tolerance 1e-9."""
+    rng = np.random.default_rng(seed)
+    n = robot.n
+    ID = robot.inverse_dynamics
+    for _ in range(trials):
+        q, qd, v = (jnp.asarray(rng.uniform(-1, 1, n)) for _ in range(3))
+        a, b, c = _rate_polynomial(ID(q, qd / 2, v / 4), ID(q, qd, v), ID(q, 2 * qd, 4 * v))
+        t3 = np.asarray(ID(q, 3 * qd, 9 * v))
+        fit = np.asarray(a + 3 * b + 9 * c)
+        if not np.all(np.abs(t3 - fit) <= 1e-9 * (1 + np.abs(t3))):
+            return False
+    return True
+
+
+def _rate_polynomial(t_half, t_one, t_two):
+    """``(a, b, c)`` of ``tau(u) = a + b u + c u^2`` through the efforts at ``u = 1/2, 1, 2``."""
+    c = (2.0 / 3.0) * (t_two - 3.0 * t_one + 2.0 * t_half)
+    b = t_two - t_one - 3.0 * c
+    return t_one - b - c, b, c
+
+
 def _ratio(x, bound):
     """Largest |x| / bound (0 without a bound)."""
     if bound is None:
@@ -242,11 +271,17 @@ def violation(robot, q, qd, v, tau, h):
     return jnp.max(jnp.stack(ex))
 
 
-def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = GRID, rho: float | None = None,
-                effort: bool = True, switch: bool = True, projection: bool = True, uniform_projection: bool = True):
+def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: bool | None = None,
+                grid: int = GRID, rho: float | None = None, effort: bool = True, switch: bool = True,
+                projection: bool = True, uniform_projection: bool = True):
     """``repair(q0, qd0, q_goal, qd_goal, v, h) -> Repaired``: a jit-, vmap-able pure function
     (see the module doc). ``homogeneous`` defaults to :func:`is_homogeneous` (tested here,
-    on the host). ``effort=False`` leaves out the two :func:`effort_step` candidates,
+    on the host). For a robot that is not, ``quadratic`` (default
+    :func:`is_quadratic_in_rate`, tested on the host) evaluates the efforts at the time
+    scaling's grid points from the polynomial in ``1 / s`` through three scalings
+    (``s = 2, 1, 1/2``: two inverse-dynamics passes besides the plan's own) instead of
+    one inverse-dynamics pass per grid point; the chosen scaling's efforts are computed
+    by the inverse dynamics either way. ``effort=False`` leaves out the two :func:`effort_step` candidates,
     ``switch=False`` the two :func:`switch_profile` candidates, ``projection=False`` and
     ``uniform_projection=False`` the projected prediction on its own and on uniform periods
     (``repair.candidates`` names the candidates, in the order of
@@ -256,6 +291,8 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
     lim = robot.limits
     if homogeneous is None:
         homogeneous = is_homogeneous(robot)
+    if quadratic is None:
+        quadratic = not homogeneous and is_quadratic_in_rate(robot)
     ID = jax.vmap(robot.inverse_dynamics)
     h_min, h_max = lim.h_min, lim.h_max
 
@@ -299,6 +336,23 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
         pick = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
         return ss[pick]
 
+    def scale_quadratic(q, qd, tau, v, h):
+        # the grid of scale_grid, the efforts at each point from their polynomial in
+        # u = 1 / s (the positions do not change with s)
+        s_lo, s_hi = s_range(h)
+        ss = jnp.exp(jnp.linspace(jnp.log(s_lo), jnp.log(s_hi), grid))
+        a, b, c = _rate_polynomial(ID(q[:-1], qd[:-1] / 2, v / 4), tau, ID(q[:-1], 2 * qd[:-1], 4 * v))
+
+        def one(s):
+            u = 1 / s
+            tau_s, qd_s, v_s, h_s = a + u * (b + u * c), qd * u, v * (u * u), h * s
+            return violation(robot, q, qd_s, v_s, tau_s, h_s), cost_of(robot, weights, q, qd_s, tau_s, h_s)
+
+        viol, cost = jax.vmap(one)(ss)
+        ok = viol <= 0
+        pick = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
+        return ss[pick]
+
     rho = RHO if rho is None else rho
     U = weights.matrices(robot)[0]
     # the effort term's curvature scale: rho relative to it keeps the step's Hessian
@@ -313,7 +367,7 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, grid: int = 
             s = scale_homogeneous(q, qd, tau, v, h)
             qd, tau, vs, hs = qd / s, tau / s**2, v / s**2, h * s
         else:
-            s = scale_grid(q0, qd0, v, h)
+            s = scale_quadratic(q, qd, tau, v, h) if quadratic else scale_grid(q0, qd0, v, h)
             q, qd, tau, vs, hs = scaled(q0, qd0, v, h, s)
         err = jnp.maximum(jnp.linalg.norm(q[-1] - q_goal), jnp.linalg.norm(qd[-1] - qd_goal))
         return (vs, hs, q, qd, tau, cost_of(robot, weights, q, qd, tau, hs), s,

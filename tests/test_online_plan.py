@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jtraj import Weights, coverage, robots
-from jtraj.repair import cost_of, goal_projection, is_homogeneous, make_repair
+from jtraj.repair import cost_of, goal_projection, is_homogeneous, is_quadratic_in_rate, make_repair
 
 V = pytest.importorskip("jtraj_peers.verify")
 
@@ -210,6 +210,39 @@ def test_non_homogeneous_robot_takes_the_cheapest_feasible_grid_scaling():
     assert float(lim.h_min) - 1e-12 <= np.min(np.asarray(r.h)) and np.max(np.asarray(r.h)) <= float(lim.h_max) + 1e-12
     assert float(r.cost) == pytest.approx(float(cost_of(rb, W, jnp.asarray(q), jnp.asarray(qd), jnp.asarray(tau),
                                                         r.h)), rel=1e-9)
+
+
+def test_efforts_polynomial_in_the_rate_give_the_scaling_of_efforts_evaluated_at_every_grid_point():
+    # serial3_vertical (gravity, drive damping): the efforts of tau(q, qd / s, v / s^2) are a
+    # quadratic in 1 / s; the repair's grid from that polynomial picks the candidate, the
+    # scaling and the plan of the grid with the inverse dynamics run at every point. Tighter
+    # effort bounds and a larger energy weight put the cheapest scalings inside the feasible
+    # range, where the efforts set them (efforts 5 % off in their 1 / s^2 term change picks)
+    tau_max = 0.6 * np.asarray(robots.get("serial3_vertical").limits.tau_max)
+    rb = robots.get("serial3_vertical", h_max=0.3, tau_max=tau_max)
+    assert not is_homogeneous(rb) and is_quadratic_in_rate(rb)
+    w = Weights(time=1.0, energy=3.0)
+    poly = jax.jit(make_repair(rb, w, grid=128))
+    evaluated = jax.jit(make_repair(rb, w, grid=128, quadratic=False))
+    rng = np.random.default_rng(5)
+    z = jnp.zeros(n)
+    scales = []
+    for _ in range(8):
+        qs, qg, v, h = (jnp.asarray(a) for a in _prediction(rng, 0.5))
+        a, b = poly(qs, z, qg, z, v, h), evaluated(qs, z, qg, z, v, h)
+        assert int(a.candidate) == int(b.candidate)
+        np.testing.assert_allclose(float(a.scale), float(b.scale), rtol=1e-12)
+        for x, y in zip((a.v, a.h, a.tau, a.cost), (b.v, b.h, b.tau, b.cost)):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-9, atol=1e-9)
+        scales.append(float(a.scale))
+    assert len(set(scales)) > 1  # not one scaling for all (the grid is exercised)
+    # a smoothed Coulomb friction is not a polynomial in the rate: the repair evaluates
+    from jtraj.robots import Friction
+
+    args = ((1.0, 0.8, 0.45), (10.0, 8.0, 4.0), (9.23, 7.5, 5.21))
+    coulomb = robots.serial_planar(*args, gravity=9.81, friction=Friction(jnp.full(3, 0.2), jnp.full(3, 0.5)))
+    viscous = robots.serial_planar(*args, gravity=9.81, friction=Friction(jnp.full(3, 0.2), jnp.zeros(3)))
+    assert not is_quadratic_in_rate(coulomb) and is_quadratic_in_rate(viscous)
 
 
 def test_coverage_radius_and_distances_by_brute_force():
