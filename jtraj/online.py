@@ -366,8 +366,9 @@ class Planner:
             hv = jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0))
             qv = jnp.zeros(())
             if lim.q_min is not None:
-                width = jnp.where(jnp.isfinite(lim.q_max - lim.q_min), lim.q_max - lim.q_min, 1.0)
-                qv = jnp.max(jnp.maximum(jnp.maximum(lim.q_min - q, q - lim.q_max) / width, 0.0))
+                lo, hi = jnp.broadcast_to(lim.q_min, q.shape), jnp.broadcast_to(lim.q_max, q.shape)
+                width = jnp.where(jnp.isfinite(hi - lo), hi - lo, 1.0)
+                qv = jnp.max(jnp.maximum(jnp.maximum(lo - q, q - hi) / width, 0.0))
             parts = (_excess(tau, lim.tau_max), _excess(qd[1:], lim.qd_max), _excess(v, lim.qdd_max), qv, hv)
             d, box = distance(jnp.concatenate([qs, qg]))
             return Plan(q, qd, v, tau, h, jnp.sum(h), cost, jnp.max(jnp.stack(parts)), *parts,

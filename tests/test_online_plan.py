@@ -486,3 +486,34 @@ def test_planner_without_the_projection_plans_re_verified_and_never_cheaper(plan
         assert chk["ok"], chk["max_rel_violation"]
         assert float(pb.cost[i]) == pytest.approx(chk["cost"], rel=1e-12)
         assert float(pb.cost[i]) >= float(pa.cost[i]) * (1 - 1e-12)
+
+
+def test_planner_on_the_panda_plans_re_verified_by_pinocchio():
+    # a spatial arm with gravity (the repair's grid from the efforts' polynomial in 1 / s):
+    # every plan re-simulated and its efforts from Pinocchio's RNEA of example-robot-data's
+    # URDF (jtraj_peers/verify_arm.py), bounds and goal within 1e-9
+    VA = pytest.importorskip("jtraj_peers.verify_arm")
+    from jtraj import mappings
+    from jtraj.online import Planner
+    from jtraj_peers.casadi_rnea import panda_model
+
+    data = mappings.synthetic_dataset(P=12, N=8, seed=0, robot="panda")
+    model = mappings.train_mapping(data, "plan", n_rules=2, epochs=2)[0]
+    # the synthetic trajectories take 3 s over 8 periods: a period bound that admits them
+    rb = robots.get("panda", h_max=0.5)
+    planner = Planner(model, rb, weights=W)
+    qs, qg = data["q_start"], data["q_goal"]
+    pb = planner.plan(qs, qg)
+    assert pb.q.shape == (12, 9, 7) and pb.tau.shape == (12, 8, 7)
+    assert planner.feasible(pb).all()
+    lim = rb.limits
+    kw = {k: np.asarray(getattr(lim, k)) for k in ("tau_max", "qd_max", "qdd_max", "q_min", "q_max")}
+    pin_model = panda_model()
+    scales = np.asarray(pb.scale)
+    assert np.ptp(scales) > 0  # the time scaling is at work, not one scaling for all
+    for i in range(len(qs)):
+        chk = VA.verify(pin_model, qs[i], qg[i], pb.v[i], pb.h[i], h_min=float(lim.h_min), h_max=float(lim.h_max),
+                        weights=(1.0, 0.1, 0.0), tol=1e-9, **kw)
+        assert chk["ok"], chk["max_rel_violation"]
+        np.testing.assert_allclose(pb.tau[i], chk["tau"], rtol=1e-9, atol=1e-9)
+        assert float(pb.cost[i]) == pytest.approx(chk["cost"], rel=1e-12)
