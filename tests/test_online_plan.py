@@ -294,6 +294,17 @@ def test_coverage_radius_and_distances_by_brute_force():
     boxd = coverage.box_distance_fn(lo, span)
     assert float(boxd(jnp.asarray(lo))[1]) == 0.0
     assert float(boxd(jnp.asarray(lo - span))[1]) == pytest.approx(np.sqrt(6), rel=1e-12)
+    # more pairs than one block of the search (coverage.BLOCK), the last block partial
+    P = 3 * coverage.BLOCK + 5
+    starts, steps = rng.uniform(-1, 1, (P, 3)), rng.uniform(-0.5, 0.5, (P, 3))
+    F = np.c_[starts, steps]
+    lo, span = F.min(0), np.ptp(F, 0)
+    A = (F - lo) / span
+    dist = jax.jit(jax.vmap(coverage.distance_fn(np.c_[starts, starts + steps])))
+    X = np.c_[starts, starts + steps][rng.integers(0, P, 40)] + rng.normal(0.0, 0.1, (40, 6))
+    U = (np.c_[X[:, :3], X[:, 3:] - X[:, :3]] - lo) / span
+    near = np.asarray(dist(jnp.asarray(X))[0])
+    np.testing.assert_allclose(near, np.linalg.norm(U[:, None] - A[None], axis=2).min(1), rtol=1e-7)
 
 
 @pytest.fixture(scope="module")
