@@ -155,9 +155,12 @@ def _load(model):
 
 
 def _excess(x, bound):
+    """Largest relative excess of |x| over bound (0 when within). The largest ratio first,
+    then the excess: the same number (both steps are monotone), and a batch's reductions
+    about twice as fast as over the elementwise excesses."""
     if bound is None:
         return jnp.zeros(())
-    return jnp.max(jnp.maximum(jnp.abs(x) / jnp.broadcast_to(bound, x.shape) - 1.0, 0.0))
+    return jnp.maximum(jnp.max(jnp.abs(x) / jnp.broadcast_to(bound, x.shape)) - 1.0, 0.0)
 
 
 def model_inputs(meta: dict, robot, q, qd, q_goal, k, N: int):
