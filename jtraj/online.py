@@ -196,9 +196,10 @@ class Planner:
     the switching candidates run, and cost more than half the batch's time;
     :func:`jtraj.repair.make_repair`); ``projection``: with the candidate of the model's
     own accelerations projected onto the goal (default; ``False`` keeps the switching
-    profiles on the model's periods alone, a third less work per plan: on 1000 fresh
-    serial3 pairs the projection won 5 %, by at most 3 % of the cost). The projection on
-    uniform periods is left out (it won 6 of those 1000 pairs, by at most 0.54 %).
+    profiles on the model's periods alone, about a fifth less CPU time per plan: on 1000
+    fresh serial3 pairs the projection won 5 %, by at most 3 % of the cost). The
+    projection on uniform periods is left out (it won 6 of those 1000 pairs, by at most
+    0.54 %).
 
     Coverage (``coverage_distance``, ``coverage_box``, ``ood``; :mod:`jtraj.coverage`):
     with the training pairs in the model's metadata (models from
