@@ -48,8 +48,9 @@ Printed and written (``--json``):
   (``jtraj.solve(init=plan, warm=...)``), ``nn_primal`` (from the nearest training
   trajectory), ``plan_mu3`` (interior point with a shortened barrier schedule,
   ``ip_mu_init=1e-3``, from the plan), ``plan_warm`` (from the plan with
-  ``jtraj.online.WARM_IPM``, what ``Planner.query(refine=True)`` runs), ``al_cold`` / ``al_plan_full`` (the augmented-
-  Lagrangian method alone, cold and from the plan with multipliers estimated there):
+  ``jtraj.online.WARM_IPM``, what ``Planner.query(refine=True)`` runs), ``al_cold`` /
+  ``al_plan_full`` (the augmented-Lagrangian method alone, cold and from the plan with
+  multipliers estimated there):
   Newton iterations, wall time, convergence, and the final cost against ``cold``'s
   (the same optimum where within 1e-3 relative: the solver's optimality tolerance is 3e-4).
 
