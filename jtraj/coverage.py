@@ -56,18 +56,33 @@ def radius(pairs, chunk: int = 1024) -> float:
     return worst
 
 
+#: the training pairs are searched in blocks of this many (:func:`distance_fn`)
+BLOCK = 32
+
+
 def distance_fn(pairs):
     """A jit-, vmap-able ``x (2n,) -> (distance to the nearest training pair, distance
     outside the training box)`` (module doc)."""
     lo, span = normaliser(pairs)
-    A = jnp.asarray((features(pairs) - lo) / span)
-    sq = jnp.sum(A**2, axis=1)
+    A = (features(pairs) - lo) / span
+    # the pairs in blocks of BLOCK (the last one padded with pairs at infinite distance),
+    # one feature at a time: |u - a|^2 - |u|^2 = |a|^2 - 2 a.u as a sum of broadcast
+    # products over contiguous rows of pairs, then the nearest of each block and of the
+    # blocks (XLA fuses products and the first minimum into one loop; one minimum over
+    # hundreds of pairs becomes a windowed reduction, several times slower on a CPU)
+    P, d = A.shape
+    nb = -(-P // BLOCK)
+    sq = np.full(nb * BLOCK, np.inf)
+    sq[:P] = np.sum(A**2, axis=1)
+    At = np.zeros((d, nb * BLOCK))
+    At[:, :P] = A.T
+    sq, At = jnp.asarray(sq.reshape(nb, BLOCK)), jnp.asarray(At.reshape(d, nb, BLOCK))
     lo, span = jnp.asarray(lo), jnp.asarray(span)
 
     def distance(x):
         u = (features(x) - lo) / span
-        # (a broadcast product, not a dot: XLA fuses it, where a dot is a library call)
-        nearest = jnp.sqrt(jnp.maximum(jnp.min(sq - 2 * jnp.sum(A * u[None], axis=1)) + jnp.sum(u * u), 0.0))
+        d2 = sq - 2 * sum(At[j] * u[j] for j in range(d))
+        nearest = jnp.sqrt(jnp.maximum(jnp.min(jnp.min(d2, axis=1)) + jnp.sum(u * u), 0.0))
         return nearest, jnp.linalg.norm(jnp.maximum(jnp.maximum(-u, u - 1.0), 0.0))
     return distance
 

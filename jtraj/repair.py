@@ -310,8 +310,10 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         return jnp.max(h_min / h), jnp.min(h_max / h)
 
     def scale_homogeneous(q, qd, tau, v, h):
-        s_f = jnp.maximum(jnp.maximum(_ratio(qd, lim.qd_max), jnp.sqrt(_ratio(v, lim.qdd_max))),
-                          jnp.sqrt(_ratio(tau, lim.tau_max))) * (1 + 1e-12)
+        """(s, cost, violation of the scaled plan) from the unscaled plan's reductions
+        (the scaled plan has the same q, qd / s, tau / s^2, v / s^2, h s: module doc)."""
+        r_qd, r_v, r_tau = _ratio(qd, lim.qd_max), _ratio(v, lim.qdd_max), _ratio(tau, lim.tau_max)
+        s_f = jnp.maximum(jnp.maximum(r_qd, jnp.sqrt(r_v)), jnp.sqrt(r_tau)) * (1 + 1e-12)
         U, Q = weights.matrices(robot)
         B = jnp.sum(h * _quad(tau, U))
         C = jnp.sum(h * _quad(qd[:-1], Q)) if weights.has_kinetic else 0.0
@@ -323,7 +325,16 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         x = (C + jnp.sqrt(C**2 + 12 * A * B)) / (2 * safe_A)
         s_lo, s_hi = s_range(h)
         s_opt = jnp.where(A > 0, jnp.sqrt(x), s_hi)
-        return jnp.minimum(jnp.maximum(jnp.maximum(s_opt, s_f), s_lo), s_hi)
+        s = jnp.minimum(jnp.maximum(jnp.maximum(s_opt, s_f), s_lo), s_hi)
+        # violation() of the scaled plan, term by term
+        hs = h * s
+        ex = [jnp.maximum(r_tau / s**2 - 1, 0.0), jnp.maximum(_ratio(qd[1:], lim.qd_max) / s - 1, 0.0),
+              jnp.maximum(r_v / s**2 - 1, 0.0),
+              jnp.max(jnp.maximum(jnp.maximum(lim.h_min - hs, hs - lim.h_max) / lim.h_max, 0.0))]
+        if lim.q_min is not None:
+            width = jnp.where(jnp.isfinite(lim.q_max - lim.q_min), lim.q_max - lim.q_min, 1.0)
+            ex.append(jnp.max(jnp.maximum(jnp.maximum(lim.q_min - q, q - lim.q_max) / width, 0.0)))
+        return s, A * s + C / s + B / s**3, jnp.max(jnp.stack(ex))
 
     def scale_grid(q0, qd0, v, h):
         s_lo, s_hi = s_range(h)
@@ -362,18 +373,21 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
     u_scale = jnp.maximum(jnp.trace(U) / U.shape[0], 1e-12)
 
     def candidate(q0, qd0, q_goal, qd_goal, v, h, q, qd, tau):
-        # (q, qd, tau): the states and efforts of (v, h)
-        if homogeneous:
-            # the scaled plan's states and efforts follow from the unscaled ones: same q,
-            # qd / s, tau / s^2 (exact, up to rounding; the tests re-verify them)
-            s = scale_homogeneous(q, qd, tau, v, h)
-            qd, tau, vs, hs = qd / s, tau / s**2, v / s**2, h * s
-        else:
-            s = scale_quadratic(q, qd, tau, v, h) if quadratic else scale_grid(q0, qd0, v, h)
-            q, qd, tau, vs, hs = scaled(q0, qd0, v, h, s)
+        # (q, qd, tau): the states and efforts of (v, h); the scaled plan (grid robots), its
+        # cost and its violation (the goal error included)
+        s = scale_quadratic(q, qd, tau, v, h) if quadratic else scale_grid(q0, qd0, v, h)
+        q, qd, tau, vs, hs = scaled(q0, qd0, v, h, s)
         err = jnp.maximum(jnp.linalg.norm(q[-1] - q_goal), jnp.linalg.norm(qd[-1] - qd_goal))
         return (vs, hs, q, qd, tau, cost_of(robot, weights, q, qd, tau, hs), s,
                 jnp.maximum(violation(robot, q, qd, vs, tau, hs), err))
+
+    def candidate_homogeneous(q_goal, qd_goal, v, h, q, qd, tau):
+        # the scaled plan's cost and violation (the goal error included) from the unscaled
+        # plan's reductions: the candidates' scaled arrays are never formed, only the
+        # chosen one's (repair)
+        s, cost, viol = scale_homogeneous(q, qd, tau, v, h)
+        err = jnp.maximum(jnp.linalg.norm(q[-1] - q_goal), jnp.linalg.norm(qd[-1] / s - qd_goal))
+        return s, cost, jnp.maximum(viol, err)
 
     # over the candidates
     lin = jax.vmap(linearise, in_axes=(None, None, None, 0, 0))
@@ -418,16 +432,28 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         else:
             new = jax.vmap(states, in_axes=(None, None, 0, 0))(q0, qd0, vs[done:], hs[done:])
             q, qd, tau = new if known is None else tuple(jnp.concatenate([x, y]) for x, y in zip(known, new))
-        out = jax.vmap(candidate, in_axes=(None, None, None, None, 0, 0, 0, 0, 0))(q0, qd0, q_goal, qd_goal, vs, hs,
-                                                                                 q, qd, tau)
-        cost, viol = out[5], jnp.where(jnp.isnan(out[7]), jnp.inf, out[7])
+        if homogeneous:
+            s, cost, viol = jax.vmap(candidate_homogeneous, in_axes=(None, None, 0, 0, 0, 0, 0))(
+                q_goal, qd_goal, vs, hs, q, qd, tau)
+            arrays = (vs, hs, q, qd, tau)
+        else:
+            out = jax.vmap(candidate, in_axes=(None, None, None, None, 0, 0, 0, 0, 0))(
+                q0, qd0, q_goal, qd_goal, vs, hs, q, qd, tau)
+            arrays, cost, s, viol = out[:5], out[5], out[6], out[7]
+        viol = jnp.where(jnp.isnan(viol), jnp.inf, viol)
         ok = viol <= 1e-9
         i = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
         # the chosen candidate by a mask and a sum (fused loops) rather than gathers
         pick = jnp.arange(len(names)) == i
-        vs, hh, q, qd, tau, c, s, _ = (jnp.sum(jnp.where(pick.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0), axis=0)
-                                      for a in out)
-        return Repaired(vs, hh, q, qd, tau, c, s, jnp.any(pick & uniform_flags), i)
+        chosen = lambda a: jnp.sum(jnp.where(pick.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0), axis=0)  # noqa: E731
+        v, h, q, qd, tau = (chosen(a) for a in arrays)
+        s, c = chosen(s), chosen(cost)
+        if homogeneous:
+            # the chosen plan scaled: the same q, qd / s, tau / s^2 (exact, up to rounding; the
+            # tests re-verify them), its cost measured on the scaled arrays
+            qd, tau, v, h = qd / s, tau / s**2, v / s**2, h * s
+            c = cost_of(robot, weights, q, qd, tau, h)
+        return Repaired(v, h, q, qd, tau, c, s, jnp.any(pick & uniform_flags), i)
 
     repair.candidates = tuple(names)
     return repair

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from jtraj import Weights, coverage, robots
-from jtraj.repair import cost_of, goal_projection, is_homogeneous, is_quadratic_in_rate, make_repair
+from jtraj.repair import (cost_of, goal_projection, is_homogeneous, is_quadratic_in_rate, make_repair,
+                          switch_profile)
 
 V = pytest.importorskip("jtraj_peers.verify")
 
@@ -178,6 +179,60 @@ def test_repaired_plans_are_feasible_and_the_cheapest_time_scaling(serial3_repai
     assert feasible >= 4 and costs_checked >= 1  # a time scaling set by the cost
 
 
+def test_the_repair_returns_the_cheapest_feasible_scaled_candidate():
+    """The planner's repair (the projected prediction and the switching profiles on both
+    periods), candidate by candidate: each rebuilt from the public functions, its time
+    scaling from the module doc's formulas on Pinocchio's efforts (jtraj_peers.verify),
+    the scaled plan verified; the repair returns the feasible one of least verified
+    cost, with that cost. Predictions: noisy cycloids, and the repaired plans again with
+    periods perturbed by up to 10 % (closer to the switching shape: other winners)."""
+    rb = robots.get("serial3")
+    lim = rb.limits
+    tau_max, qd_max, qdd_max = (np.asarray(x, float) for x in (lim.tau_max, lim.qd_max, lim.qdd_max))
+    h_min, h_max = float(lim.h_min), float(lim.h_max)
+    rep = make_repair(rb, W, effort=False, uniform_projection=False)
+    assert rep.candidates == ("projected", "switch", "switch_uniform")
+    batch = jax.jit(jax.vmap(rep, in_axes=(0, None, 0, None, 0, 0)))
+    z = jnp.zeros(n)
+
+    def reference(qs, qg, v, h):
+        """The verified cost of each candidate's scaled plan (inf where infeasible)."""
+        hc = np.clip(h, h_min, h_max)
+        cands = [(np.asarray(goal_projection(qs, z, qg, z, v, hc)), hc)]
+        for hh in (hc, np.full(N, hc.mean())):
+            w = switch_profile(jnp.asarray(qs), z, jnp.asarray(qg), jnp.asarray(hh))
+            cands.append((np.asarray(goal_projection(qs, z, qg, z, w, hh)), hh))
+        costs = []
+        for vk, hk in cands:
+            u = V.verify(qs, qg, vk, hk, weights=(1.0, 0.1, 0.0), tol=np.inf)  # unscaled
+            s_f = max(np.max(np.abs(u["qd"]) / qd_max), np.sqrt(np.max(np.abs(vk) / qdd_max)),
+                      np.sqrt(np.max(np.abs(u["tau"]) / tau_max))) * (1 + 1e-12)
+            A = float(W.time) * hk.sum()
+            B = float(W.energy) * np.sum(hk * np.sum((u["tau"] / tau_max) ** 2, axis=1))
+            s_opt = (3 * B / A) ** 0.25  # the minimiser of A s + B / s^3
+            s = min(max(s_opt, s_f, np.max(h_min / hk)), np.min(h_max / hk))
+            chk = V.verify(qs, qg, vk / s**2, hk * s, weights=(1.0, 0.1, 0.0), tol=1e-9)
+            costs.append(chk["cost"] if chk["ok"] else np.inf)
+        return np.array(costs)
+
+    rng = np.random.default_rng(5)
+    P = [_prediction(rng, scale) for scale in (0.3, 1.0, 0.0, 0.05, 0.5, 0.2, 0.1, 0.7)]
+    qs, qg, v, h = (np.array([p[i] for p in P]) for i in range(4))
+    r = batch(jnp.asarray(qs), z, jnp.asarray(qg), z, jnp.asarray(v), jnp.asarray(h))
+    v2, h2 = np.asarray(r.v), np.asarray(r.h) * rng.uniform(0.9, 1.1, h.shape)
+    chosen = set()
+    for v, h in ((v, h), (v2, h2)):
+        r = batch(jnp.asarray(qs), z, jnp.asarray(qg), z, jnp.asarray(v), jnp.asarray(h))
+        for i in range(len(P)):
+            costs = reference(qs[i], qg[i], v[i], h[i])
+            best = int(np.argmin(costs))
+            assert np.isfinite(costs[best])
+            assert int(r.candidate[i]) == best
+            assert float(r.cost[i]) == pytest.approx(costs[best], rel=1e-12)
+            chosen.add(best)
+    assert chosen == {0, 1, 2}  # every candidate wins somewhere
+
+
 def test_repair_of_an_optimum_keeps_it():
     # an optimal trajectory (time scaling at its cost minimum, on the goal) is a fixed
     # point up to the active bounds' rounding: cost and time within 1e-6
@@ -273,6 +328,17 @@ def test_coverage_radius_and_distances_by_brute_force():
     boxd = coverage.box_distance_fn(lo, span)
     assert float(boxd(jnp.asarray(lo))[1]) == 0.0
     assert float(boxd(jnp.asarray(lo - span))[1]) == pytest.approx(np.sqrt(6), rel=1e-12)
+    # more pairs than one block of the search (coverage.BLOCK), the last block partial
+    P = 3 * coverage.BLOCK + 5
+    starts, steps = rng.uniform(-1, 1, (P, 3)), rng.uniform(-0.5, 0.5, (P, 3))
+    F = np.c_[starts, steps]
+    lo, span = F.min(0), np.ptp(F, 0)
+    A = (F - lo) / span
+    dist = jax.jit(jax.vmap(coverage.distance_fn(np.c_[starts, starts + steps])))
+    X = np.c_[starts, starts + steps][rng.integers(0, P, 40)] + rng.normal(0.0, 0.1, (40, 6))
+    U = (np.c_[X[:, :3], X[:, 3:] - X[:, :3]] - lo) / span
+    near = np.asarray(dist(jnp.asarray(X))[0])
+    np.testing.assert_allclose(near, np.linalg.norm(U[:, None] - A[None], axis=2).min(1), rtol=1e-7)
 
 
 @pytest.fixture(scope="module")
