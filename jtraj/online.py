@@ -71,10 +71,11 @@ THREADS = min(os.cpu_count() or 1, 8)
 #: the interior-point settings of :meth:`Planner.query`'s refinement from the plan where no
 #: solver is given: a shorter barrier schedule (``mu_init``) and a start kept near the
 #: plan (``bound_push``, 1e-2 in a cold start). Both are traced options, so the refinement
-#: runs the cold solve's compiled program. On 30 held-out serial3 pairs (dataset family,
-#: N = 20) the plan then needs 0.87x the cold start's Newton iterations (per-pair median;
-#: 1.03x with the cold settings), every pair converging to the cold start's optimum within
-#: 1e-3 (``benchmarks/bench_online.py``, variant ``plan_warm``)
+#: runs the cold solve's compiled program. On 40 held-out serial3 pairs (dataset family,
+#: N = 20) the plan then needs 0.90x the cold start's Newton iterations (per-pair median;
+#: 1.00x with the cold settings), every pair converging to the cold start's optimum within
+#: 1e-3 (``benchmarks/bench_online.py``, variant ``plan_warm``; the solver guide's "Warm
+#: starts" says why a plan gains little)
 WARM_IPM = dict(mu_init=1e-4, bound_push=1e-4)
 #: XLA CPU options of the programs :meth:`Planner.plan` runs, for one plan and for a batch:
 #: no YNNPACK library fusions (jaxlib hands the small reductions over 2 to 60 numbers per
