@@ -346,7 +346,7 @@ class Planner:
         return predict
 
     def _core(self):
-        from .repair import cost_of, make_repair, rollout, terminal_rows
+        from .repair import q_excess, cost_of, make_repair, rollout, terminal_rows
 
         predict, rb, lim = self._predict(), self.robot, self.robot.limits
         repair = (make_repair(rb, self.weights, effort=self.effort, switch=self.switch,
@@ -373,9 +373,7 @@ class Planner:
             hv = jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0))
             qv = jnp.zeros(())
             if lim.q_min is not None:
-                lo, hi = jnp.broadcast_to(lim.q_min, q.shape), jnp.broadcast_to(lim.q_max, q.shape)
-                width = jnp.where(jnp.isfinite(hi - lo), hi - lo, 1.0)
-                qv = jnp.max(jnp.maximum(jnp.maximum(lo - q, q - hi) / width, 0.0))
+                qv = q_excess(q, lim)
             parts = (_excess(tau, lim.tau_max), _excess(qd[1:], lim.qd_max), _excess(v, lim.qdd_max), qv, hv)
             d, box = distance(jnp.concatenate([qs, qg]))
             return Plan(q, qd, v, tau, h, jnp.sum(h), cost, jnp.max(jnp.stack(parts)), *parts,

@@ -266,11 +266,17 @@ def violation(robot, q, qd, v, tau, h):
           jnp.maximum(_ratio(v, lim.qdd_max) - 1, 0.0),
           jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0))]
     if lim.q_min is not None:
-        # the (n,) box broadcast to q's (N+1, n) explicitly (under rank promotion 'raise' too)
-        lo, hi = jnp.broadcast_to(lim.q_min, q.shape), jnp.broadcast_to(lim.q_max, q.shape)
-        width = jnp.where(jnp.isfinite(hi - lo), hi - lo, 1.0)
-        ex.append(jnp.max(jnp.maximum(jnp.maximum(lo - q, q - hi) / width, 0.0)))
+        ex.append(q_excess(q, lim))
     return jnp.max(jnp.stack(ex))
+
+
+def q_excess(q, lim):
+    """Largest excess of the positions q (N+1, n) over the joint box, relative to its width
+    (1 where the box is infinite); the (n,) box broadcast to q's shape explicitly (under
+    rank promotion 'raise' too)."""
+    lo, hi = jnp.broadcast_to(lim.q_min, q.shape), jnp.broadcast_to(lim.q_max, q.shape)
+    width = jnp.where(jnp.isfinite(hi - lo), hi - lo, 1.0)
+    return jnp.max(jnp.maximum(jnp.maximum(lo - q, q - hi) / width, 0.0))
 
 
 def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: bool | None = None,
@@ -332,8 +338,7 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
               jnp.maximum(r_v / s**2 - 1, 0.0),
               jnp.max(jnp.maximum(jnp.maximum(lim.h_min - hs, hs - lim.h_max) / lim.h_max, 0.0))]
         if lim.q_min is not None:
-            width = jnp.where(jnp.isfinite(lim.q_max - lim.q_min), lim.q_max - lim.q_min, 1.0)
-            ex.append(jnp.max(jnp.maximum(jnp.maximum(lim.q_min - q, q - lim.q_max) / width, 0.0)))
+            ex.append(q_excess(q, lim))
         return s, A * s + C / s + B / s**3, jnp.max(jnp.stack(ex))
 
     def scale_grid(q0, qd0, v, h):

@@ -583,3 +583,26 @@ def test_planner_on_the_panda_plans_re_verified_by_pinocchio():
         assert chk["ok"], chk["max_rel_violation"]
         np.testing.assert_allclose(pb.tau[i], chk["tau"], rtol=1e-9, atol=1e-9)
         assert float(pb.cost[i]) == pytest.approx(chk["cost"], rel=1e-12)
+
+
+def test_repair_of_a_homogeneous_robot_with_a_joint_box():
+    # serial3 (no gravity: the repair compares its candidates from the unscaled plans'
+    # reductions) with a joint box that the goal leaves: the box term of the repaired
+    # plan's violation against NumPy's, under the tests' rank promotion 'raise'
+    import equinox as eqx
+
+    from jtraj.repair import q_excess, violation
+
+    base = robots.get("serial3")
+    assert is_homogeneous(base)
+    lo, hi = np.array([-3.0, -3.0, -3.0]), np.array([0.4, 3.0, 3.0])
+    rb = eqx.tree_at(lambda r: (r.limits.q_min, r.limits.q_max), base, (jnp.asarray(lo), jnp.asarray(hi)),
+                     is_leaf=lambda x: x is None)
+    rep = jax.jit(make_repair(rb, Weights()))
+    z = jnp.zeros(3)
+    out = rep(z, z, jnp.array([0.5, 0.2, -0.3]), z, jnp.zeros((20, 3)), jnp.full(20, 0.1))
+    q = np.asarray(out.q)
+    expected = np.max(np.maximum(np.maximum(lo - q, q - hi) / (hi - lo), 0.0))
+    assert expected >= 0.1 / 3.4 - 1e-12  # the goal's first joint 0.1 past a box 3.4 wide
+    assert float(q_excess(out.q, rb.limits)) == pytest.approx(expected, rel=1e-13)
+    assert float(violation(rb, out.q, out.qd, out.v, out.tau, out.h)) >= expected - 1e-15
