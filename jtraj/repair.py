@@ -341,12 +341,15 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
             ex.append(q_excess(q, lim))
         return s, A * s + C / s + B / s**3, jnp.max(jnp.stack(ex))
 
-    def scale_grid(q0, qd0, v, h):
+    def cheapest_on_grid(h, plan_at):
+        """The scaling of the log-spaced grid over the period box whose plan
+        (``plan_at(s) -> (q, qd, v, tau, h)``) is the cheapest feasible one, else the least
+        infeasible."""
         s_lo, s_hi = s_range(h)
         ss = jnp.exp(jnp.linspace(jnp.log(s_lo), jnp.log(s_hi), grid))
 
         def one(s):
-            q, qd, tau, vs, hs = scaled(q0, qd0, v, h, s)
+            q, qd, vs, tau, hs = plan_at(s)
             return violation(robot, q, qd, vs, tau, hs), cost_of(robot, weights, q, qd, tau, hs)
 
         viol, cost = jax.vmap(one)(ss)
@@ -354,22 +357,21 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         pick = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
         return ss[pick]
 
+    def scale_grid(q0, qd0, v, h):
+        def plan_at(s):
+            q, qd, tau, vs, hs = scaled(q0, qd0, v, h, s)
+            return q, qd, vs, tau, hs
+        return cheapest_on_grid(h, plan_at)
+
     def scale_quadratic(q, qd, tau, v, h):
-        # the grid of scale_grid, the efforts at each point from their polynomial in
-        # u = 1 / s (the positions do not change with s)
-        s_lo, s_hi = s_range(h)
-        ss = jnp.exp(jnp.linspace(jnp.log(s_lo), jnp.log(s_hi), grid))
+        # the efforts at each grid point from their polynomial in u = 1 / s (the positions
+        # do not change with s)
         a, b, c = _rate_polynomial(ID(q[:-1], qd[:-1] / 2, v / 4), tau, ID(q[:-1], 2 * qd[:-1], 4 * v))
 
-        def one(s):
+        def plan_at(s):
             u = 1 / s
-            tau_s, qd_s, v_s, h_s = a + u * (b + u * c), qd * u, v * (u * u), h * s
-            return violation(robot, q, qd_s, v_s, tau_s, h_s), cost_of(robot, weights, q, qd_s, tau_s, h_s)
-
-        viol, cost = jax.vmap(one)(ss)
-        ok = viol <= 0
-        pick = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
-        return ss[pick]
+            return q, qd * u, v * (u * u), a + u * (b + u * c), h * s
+        return cheapest_on_grid(h, plan_at)
 
     rho = RHO if rho is None else rho
     U = weights.matrices(robot)[0]
