@@ -1,0 +1,166 @@
+"""Why a warm start from a learned plan saves few Newton iterations: where the
+interior-point runs from the cold start and from the plan end, and whether they end at
+one optimum.
+
+    python benchmarks/refine_landscape.py --data ds300 --model plan.anfis [--pairs 16] [--json out.json]
+
+Held-out pairs as ``bench_online.py`` takes them (the dataset's test split, in order).
+For each pair, on the dataset's problem (robot, N, weights, default options), the
+interior-point method (:mod:`jtraj.solver.ipm`, the solver's default) runs
+
+* from the cycloidal guess with the default settings (the cold start), and
+* from the ``Planner``'s plan with ``jtraj.online.WARM_IPM`` (what
+  ``Planner.query(refine=True)`` runs),
+
+each to the solver's default stopping test, then each continued from its final state
+to a tight one (IPOPT's overall scaled error at most 1e-9, at most 400 more iterations).
+Printed per pair: the iterations of both runs and of both continuations; the relative
+cost difference of the two tight optima and their distance in the scaled unknowns
+(accelerations and periods apart; the same optimum where every component agrees within
+1e-5); the distances of the cycloidal guess and of the plan to the cold start's tight
+optimum; and the constraints active there (stage inequalities whose multiplier exceeds
+their slack, box bounds whose multiplier exceeds their distance). The summary counts the
+pairs whose two runs reach one optimum and gives the ranges of the others.
+
+The scaled unknowns are those the solver iterates on (``Transcription.layout``:
+accelerations divided by their scale, periods by ``h_max / 4``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+#: every scaled component within this: the two tight runs reached the same optimum
+SAME = 1e-5
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--model", required=True)
+    ap.add_argument("--pairs", type=int, default=16)
+    ap.add_argument("--json")
+    args = ap.parse_args(argv)
+
+    import equinox as eqx
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    import jtraj
+    from jtraj import anfis, dataset, mappings
+    from jtraj.online import WARM_IPM, Planner
+    from jtraj.solver import core, ipm, loop
+    from jtraj.solver.api import solver_options
+    from jtraj.transcription import Transcription
+
+    data = dataset.load(args.data)
+    meta = data["metadata"]
+    h_max = (meta.get("limits") or {}).get("h_max")
+    robot = jtraj.robots.get(meta["robot"], **({"h_max": float(h_max)} if h_max else {}))
+    N, n = int(meta["N"]), robot.n
+    weights = jtraj.Weights.parse(meta.get("weights_text", "time=1,energy=0.1"))
+    planner = Planner(anfis.load(args.model, mapping="plan"), robot, weights=weights)
+    _, _, traj, _, _ = mappings.view(data, "plan")
+    _, te = mappings.split(traj)
+    ids = np.unique(traj[te])[: args.pairs]
+    QS, QG = np.asarray(data["q_start"], float)[ids], np.asarray(data["q_goal"], float)[ids]
+
+    tr = Transcription("decoupled")
+    opts = core.resolve_method(solver_options(jtraj.Auto(), None), "decoupled", robot, False)
+    default_tol, tight_tol = core.ip_tolerances(opts), ipm.Tolerances(1e-9)
+
+    @eqx.filter_jit
+    def run(nlp, z, mu0, push):
+        m = ipm.InteriorPoint(max_iter=opts.ip_max_iter, tol=default_tol)
+        return loop.iterate(m, nlp, ipm.init(nlp, z, mu0, push))
+
+    @eqx.filter_jit
+    def tighten(nlp, st):
+        st = st._replace(done=jnp.asarray(False), it=jnp.asarray(0))
+        return loop.iterate(ipm.InteriorPoint(max_iter=400, tol=tight_tol), nlp, st)
+
+    @eqx.filter_jit
+    def cost(nlp, z):
+        return ipm._parts(nlp, z).f
+
+    rows, t0 = [], time.perf_counter()
+    nv = N * n
+    for i in range(len(ids)):
+        prob = jtraj.Problem(robot, QS[i], QG[i], N=N, weights=weights)
+        start = core.prepare(prob, opts, tr, core.initial_guess(prob, opts, tr), False)
+        nlp, z_cyc = start.nlp, start.state.z
+        p = planner.plan(QS[i], QG[i])
+        z_plan = nlp.layout.pack(jnp.asarray(p.v), jnp.asarray(p.h))
+        cold = run(nlp, z_cyc, opts.ip_mu_init, opts.ip_bound_push)
+        warm = run(nlp, z_plan, WARM_IPM["mu_init"], WARM_IPM["bound_push"])
+        ct, wt = tighten(nlp, cold), tighten(nlp, warm)
+
+        def dist(a, b):
+            d = np.asarray(a - b)
+            return [float(np.linalg.norm(d[:nv])), float(np.linalg.norm(d[nv:]))]
+
+        lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
+        fc, fw = float(cost(nlp, ct.z)), float(cost(nlp, wt.z))
+        r = dict(pair=int(ids[i]), cold_iterations=int(cold.it), warm_iterations=int(warm.it),
+                 tight_iterations=[int(ct.it), int(wt.it)], tight_solved=[bool(ct.done), bool(wt.done)],
+                 same_optimum=bool(np.max(np.abs(np.asarray(ct.z - wt.z))) <= SAME),
+                 cost_difference=(fw - fc) / abs(fc), optima_distance=dist(wt.z, ct.z),
+                 cycloid_distance=dist(z_cyc, ct.z), plan_distance=dist(z_plan, ct.z),
+                 default_end_distance=[dist(cold.z, ct.z), dist(warm.z, wt.z)],
+                 active_inequalities=int(jnp.sum(ct.y > ct.s)), inequalities=int(ct.y.size),
+                 active_bounds=int(jnp.sum((ct.zu > hi - ct.z) & jnp.isfinite(hi))
+                                   + jnp.sum((ct.zl > ct.z - lo) & jnp.isfinite(lo))))
+        rows.append(r)
+        print(f"pair {r['pair']:4d}: iterations cold {r['cold_iterations']:3d}, plan {r['warm_iterations']:3d}; "
+              f"tight +{r['tight_iterations'][0]}/+{r['tight_iterations'][1]}; "
+              + ("one optimum" if r["same_optimum"] else
+                 f"two optima, cost {r['cost_difference']:+.1e}, apart {r['optima_distance'][0]:.2f} (acc.) / "
+                 f"{r['optima_distance'][1]:.2f} (periods)")
+              + f"; to the cold optimum: cycloid {r['cycloid_distance'][0]:.2f} / {r['cycloid_distance'][1]:.2f}, "
+              f"plan {r['plan_distance'][0]:.2f} / {r['plan_distance'][1]:.2f}; active {r['active_inequalities']} of "
+              f"{r['inequalities']} inequalities, {r['active_bounds']} bounds", flush=True)
+
+    solved = [r for r in rows if all(r["tight_solved"])]
+    two = [r for r in solved if not r["same_optimum"]]
+    ratio = np.array([np.linalg.norm(r["plan_distance"]) / np.linalg.norm(r["cycloid_distance"]) for r in rows])
+    summary = dict(
+        pairs=len(rows), tight_solved=len(solved), one_optimum=len(solved) - len(two), two_optima=len(two),
+        two_optima_cost_difference_abs=[float(min(abs(r["cost_difference"]) for r in two)),
+                                        float(max(abs(r["cost_difference"]) for r in two))] if two else None,
+        two_optima_period_distance=[float(min(r["optima_distance"][1] for r in two)),
+                                    float(max(r["optima_distance"][1] for r in two))] if two else None,
+        plan_over_cycloid_distance_median=float(np.median(ratio)),
+        warm_over_cold_iterations_median=float(np.median([r["warm_iterations"] / r["cold_iterations"] for r in rows])),
+        active_inequalities=[int(min(r["active_inequalities"] for r in rows)),
+                             int(max(r["active_inequalities"] for r in rows))],
+        active_bounds=[int(min(r["active_bounds"] for r in rows)), int(max(r["active_bounds"] for r in rows))],
+        seconds=time.perf_counter() - t0, load_average_1min=os.getloadavg()[0])
+    print(f"{summary['pairs']} pairs, both tight runs solved on {summary['tight_solved']}: one optimum on "
+          f"{summary['one_optimum']}, two on {summary['two_optima']}"
+          + (f" (costs {summary['two_optima_cost_difference_abs'][0]:.1e} to "
+             f"{summary['two_optima_cost_difference_abs'][1]:.1e} apart, periods "
+             f"{summary['two_optima_period_distance'][0]:.1f} to {summary['two_optima_period_distance'][1]:.1f})"
+             if two else "")
+          + f"; the plan's distance to the cold optimum / the cycloid's: median "
+          f"{summary['plan_over_cycloid_distance_median']:.2f}; iterations from the plan / cold: median "
+          f"{summary['warm_over_cold_iterations_median']:.2f}; active at the optimum: "
+          f"{summary['active_inequalities'][0]}-{summary['active_inequalities'][1]} inequalities, "
+          f"{summary['active_bounds'][0]}-{summary['active_bounds'][1]} bounds")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(dict(summary=summary, rows=rows, data=args.data, model=args.model), f, indent=1)
+    return summary
+
+
+if __name__ == "__main__":
+    main()
