@@ -80,9 +80,9 @@ def main(argv=None):
     default_tol, tight_tol = core.ip_tolerances(opts), ipm.Tolerances(1e-9)
 
     @eqx.filter_jit
-    def run(nlp, z, mu0, push):
+    def run(nlp, z, mu0, push, shift0):
         m = ipm.InteriorPoint(max_iter=opts.ip_max_iter, tol=default_tol)
-        return loop.iterate(m, nlp, ipm.init(nlp, z, mu0, push))
+        return loop.iterate(m, nlp, ipm.init(nlp, z, mu0, push, shift0))
 
     @eqx.filter_jit
     def tighten(nlp, st):
@@ -101,8 +101,8 @@ def main(argv=None):
         nlp, z_cyc = start.nlp, start.state.z
         p = planner.plan(QS[i], QG[i])
         z_plan = nlp.layout.pack(jnp.asarray(p.v), jnp.asarray(p.h))
-        cold = run(nlp, z_cyc, opts.ip_mu_init, opts.ip_bound_push)
-        warm = run(nlp, z_plan, WARM_IPM["mu_init"], WARM_IPM["bound_push"])
+        cold = run(nlp, z_cyc, opts.ip_mu_init, opts.ip_bound_push, opts.ip_first_shift)
+        warm = run(nlp, z_plan, WARM_IPM["mu_init"], WARM_IPM["bound_push"], WARM_IPM["first_shift"])
         ct, wt = tighten(nlp, cold), tighten(nlp, warm)
 
         def dist(a, b):

@@ -94,4 +94,4 @@ def ip_run(nlp, state, opts):
     import jax.numpy as jnp
 
     method = ip_method(opts, jnp.where(state.done, 0, static_options(opts).ip_max_iter))
-    return loop.iterate(method, nlp, method.init(nlp, state.z, opts.ip_mu_init, opts.ip_bound_push))
+    return loop.iterate(method, nlp, method.init(nlp, state.z, opts.ip_mu_init, opts.ip_bound_push, opts.ip_first_shift))

@@ -559,7 +559,8 @@ def refine(problem: Problem, tr: Transcription, at, need):
         nlp, state, _ = prepare(problem, ip_opts, tr, at, True)
         state = state._replace(done=state.done | ~need)
         method = ip_method(ip_opts, jnp.where(state.done, 0, static_options(ip_opts).ip_max_iter))
-        ip = loop.iterate(method, nlp, method.init(nlp, state.z, ip_opts.ip_mu_init, ip_opts.ip_bound_push))
+        ip = loop.iterate(method, nlp, method.init(nlp, state.z, ip_opts.ip_mu_init, ip_opts.ip_bound_push,
+                                                    ip_opts.ip_first_shift))
         # its point where it is certified (active bounds snapped on), else its last iterate
         # (near the optimum: the small barrier parameter keeps it there), which the AL stage
         # finishes either way

@@ -69,14 +69,13 @@ CHUNK = 256
 #: threads :meth:`Planner.plan` runs a chunked batch's calls on (XLA releases the GIL)
 THREADS = min(os.cpu_count() or 1, 8)
 #: the interior-point settings of :meth:`Planner.query`'s refinement from the plan where no
-#: solver is given: a shorter barrier schedule (``mu_init``) and a start kept near the
-#: plan (``bound_push``, 1e-2 in a cold start). Both are traced options, so the refinement
-#: runs the cold solve's compiled program. On 40 held-out serial3 pairs (dataset family,
-#: N = 20) the plan then needs 0.90x the cold start's Newton iterations (per-pair median;
-#: 1.00x with the cold settings), every pair converging to the cold start's optimum within
-#: 1e-3 (``benchmarks/bench_online.py``, variant ``plan_warm``; the solver guide's "Warm
-#: starts" says why a plan gains little)
-WARM_IPM = dict(mu_init=1e-4, bound_push=1e-4)
+#: solver is given: a shorter barrier schedule (``mu_init``), a start kept near the plan
+#: (``bound_push``, 1e-2 in a cold start) and a small first Hessian shift
+#: (``first_shift``, 1.0 in a cold start: a plan's Hessians need little). All are traced
+#: options, so the refinement runs the cold solve's compiled program. The benchmarks page
+#: ("Online planner") has the iterations against a cold start (``benchmarks/bench_online.py``,
+#: variant ``plan_warm``); the solver guide's "Warm starts" says why a plan gains little
+WARM_IPM = dict(mu_init=1e-4, bound_push=1e-4, first_shift=1e-2)
 #: XLA CPU options of the programs :meth:`Planner.plan` runs, for one plan and for a batch:
 #: no YNNPACK library fusions (jaxlib hands the small reductions over 2 to 60 numbers per
 #: plan to YNNPACK, slower than XLA's own loops for arrays of this shape), and the legacy
@@ -484,7 +483,8 @@ class Planner:
         :class:`jtraj.AugmentedLagrangian`, or :class:`jtraj.Auto`; ``options``, a
         :class:`jtraj.SolverOptions`, is deprecated as in :func:`jtraj.solve`). Without
         one, the solve from the plan is ``jtraj.Auto(ipm=jtraj.IPM(**WARM_IPM))``
-        (:data:`WARM_IPM`: a short barrier schedule from a start kept near the plan) and
+        (:data:`WARM_IPM`: a short barrier schedule from a start kept near the plan, a small
+        first Hessian shift) and
         the comparison's ``jtraj.Auto()``. Returns
         :meth:`report`'s dict with ``seconds`` (the plan's wall time,
         Python included); with ``refine`` it adds the solver's status, iterations, time,

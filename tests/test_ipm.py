@@ -61,7 +61,7 @@ def test_shift_ladder_for_one_problem_takes_the_batch_choice():
     model, Ex = _ip_model(nlp, _ip_init(nlp, z0))[:2]
     m = model.R.shape[1]
     # as it is (shift 0 positive definite) and with R made indefinite (it is not)
-    cases = [model, model._replace(R=model.R - 30.0 * jnp.eye(m))]
+    cases = [model, model._replace(R=model.R - 30.0 * jnp.eye(m)[None])]
     shifts = 40.0 * jnp.asarray(S.IPM_SHIFT_LADDER)
     taken = []
     for mdl in cases:
@@ -293,6 +293,28 @@ def test_warm_start_kept_at_an_optimum_needs_few_iterations():
     assert 0 < int(kept.iterations) <= int(again.iterations) // 2, (int(kept.iterations), int(again.iterations))
     assert float(kept.cost) == pytest.approx(float(sol.cost), rel=3e-4)
     assert float(kept.max_violation["overall"]) <= jtraj.AugmentedLagrangian().verify_tol
+
+
+def test_first_shift_is_the_runs_first_reference_shift():
+    """``IPM(first_shift=s)`` (``SolverOptions.ip_first_shift``) is the reference shift a
+    run starts with (1.0 by default), and a warm start with the online planner's settings
+    (``jtraj.online.WARM_IPM``) from an optimum moved off it reaches the cold start's
+    optimum (cost within the solver's 3e-4 optimality tolerance), verified."""
+    from jtraj.online import WARM_IPM
+    from jtraj.solver.options import to_options
+
+    nlp, z0 = _nlp()
+    for solver, expected in ((jtraj.IPM(), 1.0), (jtraj.IPM(**WARM_IPM), WARM_IPM["first_shift"])):
+        opts = to_options(solver)
+        st = _ip_init(nlp, z0, opts.ip_mu_init, opts.ip_bound_push, opts.ip_first_shift)
+        assert float(st.delta) == expected
+    problem = jtraj.Problem(jtraj.robots.get("serial3"), Q0, Q1, N=N, weights=W)
+    sol = jtraj.solve(problem, solver=jtraj.IPM())
+    init = (sol.v * 1.05, sol.h * 1.02)  # off the optimum and its bounds, as a plan is
+    warm = jtraj.solve(problem, init=init, solver=jtraj.IPM(**WARM_IPM), warm="primal")
+    assert bool(sol.converged) and bool(warm.converged), warm.status_message
+    assert float(warm.cost) == pytest.approx(float(sol.cost), rel=3e-4)
+    assert float(warm.max_violation["overall"]) <= jtraj.AugmentedLagrangian().verify_tol
 
 
 def test_split_tolerances_stop_early_near_the_strict_optimum(batch):

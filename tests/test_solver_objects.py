@@ -33,7 +33,7 @@ TRACED = {"max_iter", "max_inner", "tol_feasibility", "tol_optimality", "inner_t
           "penalty_init", "penalty_growth", "penalty_max", "feasibility_ratio", "damping_init", "verify_tol",
           "detect_infeasible", "restart_iter", "restart_penalty_max", "kink_margin", "kink_after", "stall_window",
           "stall_ratio", "stall_min_viol", "stall_after", "pbm_fallback_iter", "detect_min_viol", "ip_dual_tol",
-          "ip_compl_tol", "ip_project_tol", "ip_damping", "ip_mu_init", "ip_bound_push"}
+          "ip_compl_tol", "ip_project_tol", "ip_damping", "ip_mu_init", "ip_bound_push", "ip_first_shift"}
 SWITCHES = {"inner_tol_ratio", "pbm_inner_tol_ratio", "kink_margin", "pbm_fallback_iter"}
 
 
@@ -91,9 +91,9 @@ def test_numbers_share_a_program_structure_does_not():
     base = S.split_options(to_options(IPM()))
     assert S.split_options(to_options(IPM(dual_tol=1e-3, fallback=AugmentedLagrangian(tol_optimality=1e-4)))).static \
         == base.static
-    # the start's barrier parameter and bound push are numbers too (a warm start's
-    # settings reuse the cold start's program); the iteration cap shapes the program
-    assert S.split_options(to_options(IPM(mu_init=1e-3, bound_push=1e-6))).static == base.static
+    # the start's barrier parameter, bound push and first shift are numbers too (a warm
+    # start's settings reuse the cold start's program); the iteration cap shapes the program
+    assert S.split_options(to_options(IPM(mu_init=1e-3, bound_push=1e-6, first_shift=1e-2))).static == base.static
     assert S.split_options(to_options(IPM(max_iter=80))).static != base.static
 
 
@@ -105,6 +105,9 @@ def test_bad_solver_options_raise_naming_the_field(problem):
     for push in (0.0, 0.5, float("inf")):
         with pytest.raises(ValueError, match=r"IPM\.bound_push"):
             IPM(bound_push=push)
+    for shift in (0.0, 1e-7, 1e9, float("nan")):
+        with pytest.raises(ValueError, match=r"IPM\.first_shift"):
+            IPM(first_shift=shift)
     with pytest.raises(ValueError, match="schedule"):
         AugmentedLagrangian(schedule="fast")
     with pytest.raises(ValueError, match=r"AugmentedLagrangian\.penalty_growth"):

@@ -84,7 +84,8 @@ def solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, w
         # one problem: a real branch (vmapped, both sides would run; solve_batch does not
         # come here with "ip")
         method = ip_method(opts, jnp.where(state.done, 0, static_options(opts).ip_max_iter))
-        ip = loop.iterate(method, nlp, method.init(nlp, state.z, opts.ip_mu_init, opts.ip_bound_push))
+        ip = loop.iterate(method, nlp, method.init(nlp, state.z, opts.ip_mu_init, opts.ip_bound_push,
+                                                    opts.ip_first_shift))
         solved = ipm.decided(state, ip)
         state = jax.lax.cond(solved, lambda: method.postprocess(nlp, ip, state),
                              lambda: loop.run(al, nlp, state))

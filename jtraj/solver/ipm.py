@@ -89,6 +89,10 @@ _STALL_WINDOW = 20
 _MU0 = 0.1
 #: the default least distance of a start inside its boxes (``SolverOptions.ip_bound_push``)
 _PUSH = 1e-2
+#: the default reference shift a run starts with (``SolverOptions.ip_first_shift``; see
+#: _SHIFT_LADDER). Runs from a plan of the online planner (``jtraj.online.WARM_IPM``),
+#: whose Hessians need small shifts, take fewer iterations from 1e-2
+_SHIFT0 = 1.0
 _STALL_THETA = 1.0  # the stall test applies above this violation (or above _INFEASIBLE_THETA at mu0)
 #: with the Gauss-Newton model (spatial arms, see :mod:`jtraj.solver.curvature`) the test
 #: above _STALL_THETA is off, the one at mu0 kept: runs whose violation is above 1 and
@@ -227,10 +231,11 @@ def _theta(p: _Pieces, s, sT):
     return jnp.sum(jnp.abs(p.e)) + jnp.sum(jnp.abs(p.G + s)) + jnp.sum(jnp.abs(p.gT + sT))
 
 
-def init(nlp, z0, mu0=_MU0, push=_PUSH) -> IPState:
+def init(nlp, z0, mu0=_MU0, push=_PUSH, shift0=_SHIFT0) -> IPState:
     """The state at z0 moved at least ``push`` inside its boxes (relative to
     ``max(1, |bound|)``, at most 0.49 of the box), slacks at least ``push``, the
-    inequalities' multipliers ``mu0 / s`` and the bounds' 1 (IPOPT's constant rule)."""
+    inequalities' multipliers ``mu0 / s`` and the bounds' 1 (IPOPT's constant rule), the
+    reference shift ``shift0``."""
     lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
     rng = jnp.where(jnp.isfinite(hi - lo), hi - lo, jnp.inf)
     push_lo = jnp.minimum(push * jnp.maximum(1.0, jnp.abs(lo)), 0.49 * rng)
@@ -248,7 +253,7 @@ def init(nlp, z0, mu0=_MU0, push=_PUSH) -> IPState:
         zl=jnp.where(has_lo, 1.0, 0.0).astype(dt), zu=jnp.where(has_hi, 1.0, 0.0).astype(dt), mu=mu,
         filt=jnp.full((_FILTER, 2), jnp.inf, dt), fi=jnp.asarray(0),
         th_min=1e-4 * jnp.maximum(1.0, th0), th_max=1e4 * jnp.maximum(1.0, th0),
-        delta=jnp.asarray(1.0, dt), th_ref=jnp.asarray(jnp.inf, dt), it=jnp.asarray(0), done=jnp.asarray(False),
+        delta=jnp.asarray(shift0, dt), th_ref=jnp.asarray(jnp.inf, dt), it=jnp.asarray(0), done=jnp.asarray(False),
         failed=jnp.asarray(False), stalled=jnp.asarray(False), infeasible=jnp.asarray(False),
         projections=jnp.asarray(0), damping=jnp.asarray(0.0, dt), certified=jnp.asarray(jnp.inf, dt))
 
@@ -674,10 +679,10 @@ class InteriorPoint(NamedTuple):
     max_iter: Any = None
     tol: Any = None
 
-    def init(self, nlp, z0, mu0=_MU0, push=_PUSH) -> IPState:
+    def init(self, nlp, z0, mu0=_MU0, push=_PUSH, shift0=_SHIFT0) -> IPState:
         """:func:`init`: the state at z0 (pushed at least ``push`` inside its boxes), first
-        barrier parameter ``mu0``."""
-        return init(nlp, z0, mu0, push)
+        barrier parameter ``mu0``, first reference shift ``shift0``."""
+        return init(nlp, z0, mu0, push, shift0)
 
     def enter(self, nlp, st: IPState):
         return nlp

@@ -167,7 +167,7 @@ def _ip_init_batch_jit(nlps, states, opts):
     """The interior-point states of a batch (a state the AL loop would not run, a warm
     start already optimal, starts finished)."""
     def one(n, s):
-        st = ipm.InteriorPoint().init(n, s.z, opts.ip_mu_init, opts.ip_bound_push)
+        st = ipm.InteriorPoint().init(n, s.z, opts.ip_mu_init, opts.ip_bound_push, opts.ip_first_shift)
         return st._replace(done=s.done)
 
     return eqx.filter_vmap(one)(nlps, states)

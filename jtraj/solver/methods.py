@@ -149,6 +149,9 @@ def check_flat(values: dict) -> None:
     for name, value in each("ip_bound_push"):
         if not (_finite(value, 0.0, strict=True) and value < 0.5):
             raise ValueError(f"ip_bound_push must be a finite number in (0, 0.5), got {value!r}")
+    for name, value in each("ip_first_shift"):
+        if not (_finite(value, 0.0, strict=True) and 1e-6 <= value <= 1e8):
+            raise ValueError(f"ip_first_shift must be a finite number in [1e-6, 1e8], got {value!r}")
     for name, value in each("penalty_growth"):
         if not value > 1:
             raise ValueError(f"penalty_growth must be > 1, got {value!r}")
@@ -287,7 +290,7 @@ class AugmentedLagrangian(eqx.Module):
 #: IPM's fields and the flat option each is (``SolverOptions``' ``ip_`` names)
 IPM_NAMES = {"max_iter": "ip_max_iter", "tol": "ip_tol", "dual_tol": "ip_dual_tol", "compl_tol": "ip_compl_tol",
              "project_tol": "ip_project_tol", "damping": "ip_damping", "mu_init": "ip_mu_init",
-             "bound_push": "ip_bound_push", "curvature": "ip_curvature"}
+             "bound_push": "ip_bound_push", "first_shift": "ip_first_shift", "curvature": "ip_curvature"}
 
 #: the options every method shares: the targets, the start and the linear solver. The
 #: :class:`AugmentedLagrangian` holds them (an :class:`IPM`'s ``fallback``);
@@ -337,6 +340,10 @@ class IPM(eqx.Module):
             ``bound_push``. Smaller keeps a warm start where it is: with ``mu_init``
             near the optimum's barrier parameter, a start at or near an optimum needs far
             fewer iterations (see the solver guide's "Warm starts").
+        first_shift: the reference of the Hessian shifts a run starts with (1.0): where
+            the unshifted Newton model is not positive definite, the least of 0.25, 2
+            and 16 times the reference that makes it so is taken, and the reference then
+            follows the shift taken. Smaller suits a start near an optimum.
         curvature: a :class:`Curvature` (``"auto"``): the Newton model of the dynamics.
         fallback: the :class:`AugmentedLagrangian` that finishes what the method leaves.
 
@@ -354,6 +361,7 @@ class IPM(eqx.Module):
     damping: float = _traced(1e-2)
     mu_init: float = _traced(0.1)
     bound_push: float = _traced(1e-2)
+    first_shift: float = _traced(1.0)
     curvature: str = _static("auto", _choice(Curvature, "curvature"))
     fallback: AugmentedLagrangian = AugmentedLagrangian()
 

@@ -133,6 +133,9 @@ class SolverOptions(eqx.Module):
             1e-2): z at least ``ip_bound_push * max(1, |bound|)`` inside each finite bound
             (at most 0.49 of the box), every inequality's slack at least
             ``ip_bound_push``; smaller keeps a warm start where it is.
+        ip_first_shift: the reference of the Hessian shifts an interior-point run starts
+            with (default 1.0; see ``IPM.first_shift``); smaller suits a start near an
+            optimum.
         ip_curvature: the interior-point method's Newton model of the dynamics terms
             (:mod:`jtraj.solver.curvature`). "exact": the Lagrangian's Hessian;
             "gauss_newton": without the effort multipliers' second derivatives of the
@@ -185,6 +188,7 @@ class SolverOptions(eqx.Module):
     ip_damping: float = eqx.field(static=True, default=1e-2)
     ip_mu_init: float = eqx.field(static=True, default=0.1)
     ip_bound_push: float = eqx.field(static=True, default=1e-2)
+    ip_first_shift: float = eqx.field(static=True, default=1.0)
     ip_curvature: str = eqx.field(static=True, default="auto")
 
     @classmethod

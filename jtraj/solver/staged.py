@@ -48,7 +48,7 @@ def _solve_ip_jit(problem, opts, transcription, init, warm, guess):
     where ``decided`` (see :func:`jtraj.solver.ipm.decided`)."""
     nlp, state, valid = _start(problem, opts, transcription, init, warm, guess)
     method = ip_method(opts, jnp.where(state.done, 0, static_options(opts).ip_max_iter))
-    ip = loop.iterate(method, nlp, method.init(nlp, state.z, opts.ip_mu_init, opts.ip_bound_push))
+    ip = loop.iterate(method, nlp, method.init(nlp, state.z, opts.ip_mu_init, opts.ip_bound_push, opts.ip_first_shift))
     sol = finish(nlp, method.postprocess(nlp, ip, state), opts, valid, light=True)
     return sol, ipm.decided(state, ip), ip.it
 
