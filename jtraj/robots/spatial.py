@@ -28,11 +28,13 @@ Dynamics, two independent paths:
   - ``"bodies"``: in the body frames, joint by joint on the scalar components of the
     vectors and rotations (one forward and one backward ``lax.scan`` step per joint).
     Under ``vmap`` every quantity is one array over the batch, which XLA's CPU loops
-    run contiguously, where the world form's arrays have a minor axis of three: for
-    large batches (hundreds of samples and more, e.g. a batch of plans) the efforts
-    are about 20x and their Jacobians about 10x faster. In the solver's programs it
-    compiles slower (the panda's interior-point program of N = 40, about 1.5 to 2x)
-    and runs no faster.
+    run contiguously, where the world form's arrays have a minor axis of three: on
+    the panda, under ``vmap`` over 480 to 4096 samples, the efforts about 20x, their
+    reverse-mode Jacobian over 10x and their forward-over-reverse Hessian about 10x
+    faster. In the solver's programs it compiles slower and runs no faster (the panda's
+    interior-point program of N = 40: 2.7x the HLO instructions, up to 2x the compile
+    time; a dataset worker's chunk of 16 solves: compiled in 1.5x the time, run in the
+    same).
 
   The mass matrix comes from the body Jacobians,
   ``M = sum_i m_i Jv_i^T Jv_i + Jw_i^T R_i I_i R_i^T Jw_i``.
