@@ -258,7 +258,9 @@ def _forms_agree(robot, q, qd, qdd):
             assert rel_err(b[j], a[j]) < (1e-10 if k == 5 else 1e-12), (k, j)
 
 
-@pytest.mark.parametrize("name", ["panda", "ur5"])
+# (each robot compiles its derivatives twice, about 20 s: the default suite checks the panda;
+# the other arm and the prismatic one, which the Pinocchio tests also cover, run with -m slow)
+@pytest.mark.parametrize("name", ["panda", pytest.param("ur5", marks=pytest.mark.slow)])
 def test_newton_euler_forms_agree(name):
     pytest.importorskip("pinocchio")
     _data_dir()
@@ -266,6 +268,7 @@ def test_newton_euler_forms_agree(name):
     _forms_agree(robot, *_states(robot, np.random.default_rng(5), 30))
 
 
+@pytest.mark.slow
 def test_newton_euler_forms_agree_with_a_prismatic_joint(arm):
     rng = np.random.default_rng(6)
     q = np.c_[rng.uniform(-3, 3, 30), rng.uniform(-2, 2, 30), rng.uniform(0, 0.3, 30)]
