@@ -111,3 +111,24 @@ def test_bad_input(serial3):
         ik(serial3, [1.0, 0.5], max_iter=0)
     with pytest.raises(ValueError, match="robot"):
         ik("serial3", [1.0, 0.5])
+
+
+def test_bad_settings_raise_naming_the_argument(serial3):
+    """``ik`` and ``pose_ik`` reject a bad robot, iteration bound, gain or tolerance before
+    tracing, with a message naming the argument."""
+    from jtraj.robots.spatial_ik import pose_ik
+
+    p = np.array([1.0, 0.5])
+    cases = [(dict(robot="serial3"), "robot must be"), (dict(max_iter=0), "max_iter must be"),
+             (dict(max_iter=True), "max_iter must be"), (dict(tol=-1e-6), "tol must be"),
+             (dict(damping=float("nan")), "damping must be"), (dict(null_gain=-1.0), "null_gain must be"),
+             (dict(method="newton"), "method must be")]
+    for kw, message in cases:
+        robot = kw.pop("robot", serial3)
+        with pytest.raises(ValueError, match=message):
+            ik(robot, p, **kw)
+    panda = robots.get("panda")
+    with pytest.raises(ValueError, match="rot_tol must be"):
+        pose_ik(panda, np.array([0.4, 0.0, 0.5]), rot_tol=0.0)
+    with pytest.raises(ValueError, match="max_iter must be"):
+        pose_ik(panda, np.array([0.4, 0.0, 0.5]), max_iter=-3)

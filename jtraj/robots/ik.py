@@ -87,6 +87,21 @@ def check_array(x, name: str, shape: tuple[int, ...]):
     return x.astype(jnp.result_type(float))
 
 
+def check_settings(robot, max_iter, null_gain, **positive) -> None:
+    """``ValueError`` naming the argument: ``robot`` not a Robot, ``max_iter`` not a
+    positive integer, a concrete ``null_gain`` negative or not finite, or a concrete
+    value of ``positive`` not a finite number > 0 (traced values pass)."""
+    if not isinstance(robot, Robot):
+        raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
+    if not isinstance(max_iter, (int, np.integer)) or isinstance(max_iter, bool) or max_iter < 1:
+        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
+    for name, val in positive.items():
+        if is_concrete(val) and not (np.isfinite(val) and float(val) > 0):
+            raise ValueError(f"{name} must be a finite number > 0, got {val!r}")
+    if is_concrete(null_gain) and not (np.isfinite(null_gain) and float(null_gain) >= 0):
+        raise ValueError(f"null_gain must be a finite number >= 0, got {null_gain!r}")
+
+
 def default_q_init(robot: Robot) -> Array:
     """Middle of the joint box when the robot has one, else 0.5 on every coordinate
     (a bent, non-singular posture for planar serial arms)."""
@@ -122,18 +137,10 @@ def ik(robot: Robot, p, q_init=None, *, method: str = "weighted", max_iter: int 
     Returns:
         :class:`IKResult`.
     """
-    if not isinstance(robot, Robot):
-        raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    if not isinstance(max_iter, (int, np.integer)) or isinstance(max_iter, bool) or max_iter < 1:
-        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
-    for name, val in (("tol", tol), ("damping", damping), ("max_step", max_step),
-                      ("max_dq", max_dq), ("null_tol", null_tol)):
-        if is_concrete(val) and not (np.isfinite(val) and float(val) > 0):
-            raise ValueError(f"{name} must be a finite number > 0, got {val!r}")
-    if is_concrete(null_gain) and not (np.isfinite(null_gain) and float(null_gain) >= 0):
-        raise ValueError(f"null_gain must be a finite number >= 0, got {null_gain!r}")
+    check_settings(robot, max_iter, null_gain, tol=tol, damping=damping, max_step=max_step, max_dq=max_dq,
+                   null_tol=null_tol)
     n = robot.n
     q0 = default_q_init(robot) if q_init is None else check_array(q_init, "q_init", (n,))
     d = jax.eval_shape(robot.forward_kinematics, jax.ShapeDtypeStruct((n,), q0.dtype)).shape[0]

@@ -42,7 +42,7 @@ from jaxtyping import Array
 
 from .._checks import is_concrete
 from ._base import Robot
-from .ik import NONFINITE, NOT_CONVERGED, STATUS, SUCCESS, box_centring, check_array, default_q_init
+from .ik import NONFINITE, NOT_CONVERGED, STATUS, SUCCESS, box_centring, check_array, check_settings, default_q_init
 
 
 class PoseIKResult(NamedTuple):
@@ -111,16 +111,8 @@ def pose_ik(robot: Robot, p, rotation=None, q_init=None, *, max_iter: int = 300,
             task correction per iteration [m], [rad]; max_dq: the largest joint change
             per iteration (infinity norm).
     """
-    if not isinstance(robot, Robot):
-        raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
-    if not isinstance(max_iter, (int, np.integer)) or isinstance(max_iter, bool) or max_iter < 1:
-        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
-    for name, val in (("tol", tol), ("rot_tol", rot_tol), ("damping", damping), ("max_step", max_step),
-                      ("max_rot_step", max_rot_step), ("max_dq", max_dq)):
-        if is_concrete(val) and not (np.isfinite(val) and float(val) > 0):
-            raise ValueError(f"{name} must be a finite number > 0, got {val!r}")
-    if is_concrete(null_gain) and not (np.isfinite(null_gain) and float(null_gain) >= 0):
-        raise ValueError(f"null_gain must be a finite number >= 0, got {null_gain!r}")
+    check_settings(robot, max_iter, null_gain, tol=tol, rot_tol=rot_tol, damping=damping, max_step=max_step,
+                   max_rot_step=max_rot_step, max_dq=max_dq)
     n = robot.n
     q0 = default_q_init(robot) if q_init is None else check_array(q_init, "q_init", (n,))
     d = jax.eval_shape(robot.forward_kinematics, jax.ShapeDtypeStruct((n,), q0.dtype)).shape[0]
