@@ -164,15 +164,6 @@ def _load(model):
     return model if isinstance(model, (anfis.Model, anfis.Ensemble)) else anfis.load(model)
 
 
-def _excess(x, bound):
-    """Largest relative excess of |x| over bound (0 when within). The largest ratio first,
-    then the excess: the same number (both steps are monotone), and a batch's reductions
-    about twice as fast as over the elementwise excesses."""
-    if bound is None:
-        return jnp.zeros(())
-    return jnp.maximum(jnp.max(jnp.abs(x) / jnp.broadcast_to(bound, x.shape)) - 1.0, 0.0)
-
-
 def model_inputs(meta: dict, robot, q, qd, q_goal, k, N: int):
     """The inputs of a ``nefotc`` or ``nefumop`` model (as
     :func:`jtraj.mappings.view` builds them, from the model's ``goal_inputs`` and
@@ -345,9 +336,9 @@ class Planner:
         return predict
 
     def _core(self):
-        from .repair import q_excess, cost_of, make_repair, rollout, terminal_rows
+        from .repair import cost_of, make_repair, rollout, terminal_rows, violation_parts
 
-        predict, rb, lim = self._predict(), self.robot, self.robot.limits
+        predict, rb = self._predict(), self.robot
         repair = (make_repair(rb, self.weights, effort=self.effort, switch=self.switch,
                                   projection=self.projection, uniform_projection=False)
                   if self.correct else None)
@@ -369,11 +360,7 @@ class Planner:
                 z = jnp.zeros_like(qs)
                 r = repair(qs, z, qg, z, v, h)
                 q, qd, v, h, tau, cost, s = r.q, r.qd, r.v, r.h, r.tau, r.cost, r.scale
-            hv = jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0))
-            qv = jnp.zeros(())
-            if lim.q_min is not None:
-                qv = q_excess(q, lim)
-            parts = (_excess(tau, lim.tau_max), _excess(qd[1:], lim.qd_max), _excess(v, lim.qdd_max), qv, hv)
+            parts = violation_parts(rb, q, qd, v, tau, h)
             d, box = distance(jnp.concatenate([qs, qg]))
             return Plan(q, qd, v, tau, h, jnp.sum(h), cost, jnp.max(jnp.stack(parts)), *parts,
                         jnp.linalg.norm(q[-1] - qg), jnp.linalg.norm(qd[-1]), pred_err, s, d, box,
