@@ -55,8 +55,8 @@ from ._math import small_matmul
 from .lq import small_cho_solve
 
 
-#: longest axis summed without jnp.cumsum (:func:`_cumsum`)
-UNROLL = 64
+#: longest axis summed under a triangle of ones (:func:`_cumsum`)
+UNROLL = 32
 #: points of the time-scaling grid for robots whose efforts are not homogeneous
 GRID = 32
 #: width of the switch of :func:`switch_profile`, a fraction of the motion's time (the
@@ -81,14 +81,15 @@ class Repaired(NamedTuple):
 
 
 def _cumsum(x):
-    """Cumulative sums along axis 0: up to :data:`UNROLL` rows, the rows summed under the
-    lower triangle of ones, one fused loop (on a CPU XLA's cumulative sum, a
-    reduce-window, costs several times more for rows this few, and unrolled additions
-    cost one operation each: a single plan's time is mostly the per-operation cost of its
-    program; in a batch the three forms cost about the same), ``jnp.cumsum`` beyond."""
+    """Cumulative sums along axis 0. Up to :data:`UNROLL` rows, the rows summed under the
+    lower triangle of ones: one fused loop, which for a single serial3 plan (N = 20)
+    costs less than XLA's cumulative sum (a reduce-window) on a CPU. Beyond, a parallel
+    prefix sum (``jax.lax.associative_scan``): the triangle's work grows as the square of
+    the rows (for a batch of panda plans, N = 40, n = 7, it took most of the repair's
+    time), the prefix sum's as the rows times their logarithm."""
+    if x.shape[0] > UNROLL:
+        return jax.lax.associative_scan(jnp.add, x, axis=0)
     N = x.shape[0]
-    if N > UNROLL:
-        return jnp.cumsum(x, axis=0)
     L = jnp.asarray(np.tril(np.ones((N, N), bool)))
     return jnp.sum(jnp.where(L.reshape((N, N) + (1,) * (x.ndim - 1)), x[None], 0), axis=1)
 
@@ -369,15 +370,65 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
             return q, qd, vs, tau, hs
         return cheapest_on_grid(h, plan_at)
 
-    def scale_quadratic(q, qd, tau, v, h):
-        # the efforts at each grid point from their polynomial in u = 1 / s (the positions
-        # do not change with s)
-        a, b, c = _rate_polynomial(ID(q[:-1], qd[:-1] / 2, v / 4), tau, ID(q[:-1], 2 * qd[:-1], 4 * v))
+    def rate_polynomials(q, qd, v):
+        """``(a, b, c)``, each (C, N, m), of the C candidates' efforts under the time
+        scaling (:func:`_rate_polynomial`): one inverse-dynamics pass over all their
+        samples at ``u = 1/2, 1, 2`` (a CPU runs one pass over 3 C N samples in about the
+        time of one over N: the pass's cost is mostly per operation)."""
+        C, N, n = v.shape
+        qs, qds, vs = q[None, :, :-1], qd[None, :, :-1], v[None]  # (1, C, N, n)
+        rates = jnp.asarray([0.5, 1.0, 2.0], v.dtype).reshape(3, 1, 1, 1)
+        tau = ID(jnp.broadcast_to(qs, (3, C, N, n)).reshape(-1, n), (rates * qds).reshape(-1, n),
+                 (rates**2 * vs).reshape(-1, n))
+        return _rate_polynomial(*tau.reshape((3, C, N, -1)))
 
-        def plan_at(s):
-            u = 1 / s
-            return q, qd * u, v * (u * u), a + u * (b + u * c), h * s
-        return cheapest_on_grid(h, plan_at)
+    def at_rate(q, qd, v, h, a, b, c, s):
+        """The plan scaled by ``s`` from its efforts' polynomial in ``u = 1 / s`` (the
+        positions do not change with ``s``): ``(q, qd, v, tau, h)``."""
+        u = 1 / s
+        return q, qd * u, v * (u * u), a + u * (b + u * c), h * s
+
+    def candidate_quadratic(q_goal, qd_goal, v, h, q, qd, a, b, c):
+        """``(s, cost, violation)`` of the cheapest feasible scaling of the log-spaced grid
+        over the period box (else the least infeasible), the goal error included. At each
+        grid point the efforts are their polynomial in ``u``; every other term of
+        :func:`violation` and :func:`cost_of` is a power of ``u`` times one reduction of
+        the unscaled plan, so that only the efforts' ratio is evaluated point by point."""
+        s_lo, s_hi = s_range(h)
+        # (inside the period box by construction: its violation there is rounding, left out
+        # of the test below, where it would flip the feasibility of the grid's end points)
+        ss = jnp.clip(jnp.exp(jnp.linspace(jnp.log(s_lo), jnp.log(s_hi), grid)), s_lo, s_hi)
+        u = 1 / ss
+        U, Q = weights.matrices(robot)
+
+        def inner(x, y):  # sum_k h_k x_k^T U y_k
+            return jnp.sum(h * jnp.sum(x[:, :, None] * U[None] * y[:, None, :], axis=(1, 2)))
+
+        # sum_k h_k tau_k^T U tau_k = sum_i e_i u^i with tau = a + u b + u^2 c
+        e = (inner(a, a), inner(a, b) + inner(b, a), inner(b, b) + inner(a, c) + inner(c, a),
+             inner(b, c) + inner(c, b), inner(c, c))
+        energy = e[0] + u * (e[1] + u * (e[2] + u * (e[3] + u * e[4])))
+        rate = weights.time * jnp.sum(h)  # the terms of cost_of proportional to s
+        if weights.has_singularity:
+            rate = rate + weights.singularity * jnp.sum(h / jnp.maximum(jax.vmap(robot.manipulability)(q[:-1]), 1e-9))
+        cost = ss * (rate + energy)
+        if weights.has_kinetic:
+            cost = cost + u * jnp.sum(h * _quad(qd[:-1], Q))
+        if lim.tau_max is None:
+            r_tau = jnp.zeros_like(u)
+        else:  # (N, m, grid): the grid's axis minor, reduced over the leading ones
+            t_max = jnp.broadcast_to(lim.tau_max, a.shape)[..., None]
+            ug = u[None, None]
+            r_tau = jnp.max(jnp.abs(a[..., None] + ug * (b[..., None] + ug * c[..., None])) / t_max, axis=(0, 1))
+        ex = [r_tau - 1, _ratio(qd[1:], lim.qd_max) * u - 1, _ratio(v, lim.qdd_max) * u * u - 1]
+        viol = jnp.maximum(jnp.max(jnp.stack(ex), axis=0), 0.0)
+        if lim.q_min is not None:
+            viol = jnp.maximum(viol, q_excess(q, lim))
+        ok = viol <= 0
+        pick = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
+        s, u = ss[pick], u[pick]
+        err = jnp.maximum(jnp.linalg.norm(q[-1] - q_goal), jnp.linalg.norm(qd[-1] * u - qd_goal))
+        return s, cost[pick], jnp.maximum(viol[pick], err)
 
     rho = RHO if rho is None else rho
     U = weights.matrices(robot)[0]
@@ -386,9 +437,9 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
     u_scale = jnp.maximum(jnp.trace(U) / U.shape[0], 1e-12)
 
     def candidate(q0, qd0, q_goal, qd_goal, v, h, q, qd, tau):
-        # (q, qd, tau): the states and efforts of (v, h); the scaled plan (grid robots), its
-        # cost and its violation (the goal error included)
-        s = scale_quadratic(q, qd, tau, v, h) if quadratic else scale_grid(q0, qd0, v, h)
+        # (q, qd, tau): the states and efforts of (v, h); the scaled plan, its cost and its
+        # violation (the goal error included)
+        s = scale_grid(q0, qd0, v, h)
         q, qd, tau, vs, hs = scaled(q0, qd0, v, h, s)
         err = jnp.maximum(jnp.linalg.norm(q[-1] - q_goal), jnp.linalg.norm(qd[-1] - qd_goal))
         return (vs, hs, q, qd, tau, cost_of(robot, weights, q, qd, tau, hs), s,
@@ -438,29 +489,46 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
             w = jax.vmap(goal_projection, in_axes=(None, None, None, None, 0, 0))(
                 q0, qd0, q_goal, qd_goal, jax.vmap(switch_profile, in_axes=(None, None, None, 0))(q0, qd0, q_goal, h2), h2)
             vs, hs = jnp.concatenate([vs, w]), jnp.concatenate([hs, h2])
-        # the states and efforts of every candidate not yet known, in one batch
         done = 0 if known is None else known[0].shape[0]
-        if done == vs.shape[0]:
-            q, qd, tau = known
+        if quadratic:
+            # every candidate's states; their efforts at any scaling from one polynomial each
+            q, qd = jax.vmap(rollout, in_axes=(None, None, 0, 0))(q0, qd0, vs[done:], hs[done:])
+            if known is not None:
+                q, qd = jnp.concatenate([known[0], q]), jnp.concatenate([known[1], qd])
+            abc = rate_polynomials(q, qd, vs)
+            s, cost, viol = jax.vmap(candidate_quadratic, in_axes=(None, None, 0, 0, 0, 0, 0, 0, 0))(
+                q_goal, qd_goal, vs, hs, q, qd, *abc)
+            arrays = (vs, hs, q, qd) + abc
         else:
-            new = jax.vmap(states, in_axes=(None, None, 0, 0))(q0, qd0, vs[done:], hs[done:])
-            q, qd, tau = new if known is None else tuple(jnp.concatenate([x, y]) for x, y in zip(known, new))
-        if homogeneous:
-            s, cost, viol = jax.vmap(candidate_homogeneous, in_axes=(None, None, 0, 0, 0, 0, 0))(
-                q_goal, qd_goal, vs, hs, q, qd, tau)
-            arrays = (vs, hs, q, qd, tau)
-        else:
-            out = jax.vmap(candidate, in_axes=(None, None, None, None, 0, 0, 0, 0, 0))(
-                q0, qd0, q_goal, qd_goal, vs, hs, q, qd, tau)
-            arrays, cost, s, viol = out[:5], out[5], out[6], out[7]
+            # the states and efforts of every candidate not yet known, in one batch
+            if done == vs.shape[0]:
+                q, qd, tau = known
+            else:
+                new = jax.vmap(states, in_axes=(None, None, 0, 0))(q0, qd0, vs[done:], hs[done:])
+                q, qd, tau = new if known is None else tuple(jnp.concatenate([x, y]) for x, y in zip(known, new))
+            if homogeneous:
+                s, cost, viol = jax.vmap(candidate_homogeneous, in_axes=(None, None, 0, 0, 0, 0, 0))(
+                    q_goal, qd_goal, vs, hs, q, qd, tau)
+                arrays = (vs, hs, q, qd, tau)
+            else:
+                out = jax.vmap(candidate, in_axes=(None, None, None, None, 0, 0, 0, 0, 0))(
+                    q0, qd0, q_goal, qd_goal, vs, hs, q, qd, tau)
+                arrays, cost, s, viol = out[:5], out[5], out[6], out[7]
         viol = jnp.where(jnp.isnan(viol), jnp.inf, viol)
         ok = viol <= 1e-9
         i = jnp.where(jnp.any(ok), jnp.argmin(jnp.where(ok, cost, jnp.inf)), jnp.argmin(viol))
         # the chosen candidate by a mask and a sum (fused loops) rather than gathers
         pick = jnp.arange(len(names)) == i
         chosen = lambda a: jnp.sum(jnp.where(pick.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0), axis=0)  # noqa: E731
-        v, h, q, qd, tau = (chosen(a) for a in arrays)
         s, c = chosen(s), chosen(cost)
+        if quadratic:
+            # the chosen plan scaled, its efforts from their polynomial, its cost measured on
+            # the scaled arrays
+            v, h, q, qd, a, b, c3 = (chosen(a) for a in arrays)
+            q, qd, v, tau, h = at_rate(q, qd, v, h, a, b, c3, s)
+            c = cost_of(robot, weights, q, qd, tau, h)
+        else:
+            v, h, q, qd, tau = (chosen(a) for a in arrays)
         if homogeneous:
             # the chosen plan scaled: the same q, qd / s, tau / s^2 (exact, up to rounding; the
             # tests re-verify them), its cost measured on the scaled arrays
