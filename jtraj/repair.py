@@ -25,10 +25,12 @@ and the cost of the scaled plan is
 convex in ``s``, minimised in closed form (a quadratic in ``s^2``): :func:`make_repair`
 takes the smallest ``s`` of the feasible ones that is at least that minimiser, within the
 period box ``h_min <= s h_k <= h_max``. For other robots it takes the cheapest feasible
-``s`` of a fixed log-spaced grid over the period box, the efforts at every grid point
-from their polynomial in ``1 / s`` where they are one (gravity and viscous friction:
-:func:`is_quadratic_in_rate`; two inverse-dynamics passes besides the plan's own), else
-evaluated there.
+``s`` of a fixed log-spaced grid over the period box. Where the efforts are a polynomial
+in ``u = 1 / s`` (gravity and viscous friction: :func:`is_quadratic_in_rate`) the
+polynomials of all candidates come from one inverse-dynamics pass over their samples at
+three rates, the cost at every grid point from a polynomial of degree four in ``u`` and
+the velocity and acceleration ratios from one reduction each, and the chosen plan's
+efforts from its polynomial; otherwise the efforts are evaluated at every grid point.
 
 Up to six candidates are repaired side by side (:func:`make_repair` leaves out any of
 them; :class:`jtraj.online.Planner` repairs three by default): the predicted periods (clipped into the
@@ -38,8 +40,11 @@ widest period box), each with the projected accelerations, with one
 kept near the prediction) and with the projected :func:`switch_profile` (accelerations
 held at opposite constants before and after a linear switch, the shape of
 effort-bounded optima); the feasible one of lowest cost is returned, else the one of
-smallest violation. The returned plan is recomputed from its ``(v, h)`` by the recursion and
-the robot's inverse dynamics: its reported violations are measured, not assumed.
+smallest violation. The returned plan's states come from the recursion and its efforts
+from the robot's inverse dynamics, the time scaling applied by its exact relations
+(``q`` unchanged, ``qd / s``, the efforts' ``1 / s^2`` or their polynomial in ``1 / s``):
+its reported violations are computed on those arrays, and the tests re-verify them
+independently (NumPy recursion, Pinocchio).
 Joint, workspace and path constraints are measured, not repaired.
 """
 
@@ -292,12 +297,12 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
     """``repair(q0, qd0, q_goal, qd_goal, v, h) -> Repaired``: a jit-, vmap-able pure function
     (see the module doc). ``homogeneous`` defaults to :func:`is_homogeneous` (tested here,
     on the host). For a robot that is not, ``quadratic`` (default
-    :func:`is_quadratic_in_rate`, tested on the host) evaluates the efforts at the time
-    scaling's grid points from the polynomial in ``1 / s`` through three scalings
-    (``s = 2, 1, 1/2``: two inverse-dynamics passes besides the plan's own) instead of
-    one inverse-dynamics pass per grid point; the chosen scaling's efforts are computed
-    by the inverse dynamics either way. ``effort=False`` leaves out the two :func:`effort_step` candidates,
-    ``switch=False`` the two :func:`switch_profile` candidates, ``projection=False`` and
+    :func:`is_quadratic_in_rate`, tested on the host) takes the efforts at the time
+    scaling's grid points, and the chosen plan's, from their polynomial in ``1 / s``
+    through three scalings (``s = 2, 1, 1/2``: one inverse-dynamics pass over all the
+    candidates' samples) instead of one inverse-dynamics pass per grid point.
+    ``effort=False`` leaves out the two :func:`effort_step` candidates, ``switch=False``
+    the two :func:`switch_profile` candidates, ``projection=False`` and
     ``uniform_projection=False`` the projected prediction on its own and on uniform periods
     (``repair.candidates`` names the candidates, in the order of
     :attr:`Repaired.candidate`). Without the projected prediction, the prediction's
@@ -520,15 +525,16 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         # the chosen candidate by a mask and a sum (fused loops) rather than gathers
         pick = jnp.arange(len(names)) == i
         chosen = lambda a: jnp.sum(jnp.where(pick.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0), axis=0)  # noqa: E731
-        s, c = chosen(s), chosen(cost)
         if quadratic:
             # the chosen plan scaled, its efforts from their polynomial, its cost measured on
             # the scaled arrays
-            v, h, q, qd, a, b, c3 = (chosen(a) for a in arrays)
+            s = chosen(s)
+            v, h, q, qd, a, b, c3 = (chosen(x) for x in arrays)
             q, qd, v, tau, h = at_rate(q, qd, v, h, a, b, c3, s)
             c = cost_of(robot, weights, q, qd, tau, h)
         else:
             v, h, q, qd, tau = (chosen(a) for a in arrays)
+            s, c = chosen(s), chosen(cost)
         if homogeneous:
             # the chosen plan scaled: the same q, qd / s, tau / s^2 (exact, up to rounding; the
             # tests re-verify them), its cost measured on the scaled arrays
