@@ -378,8 +378,8 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
     def rate_polynomials(q, qd, v):
         """``(a, b, c)``, each (C, N, m), of the C candidates' efforts under the time
         scaling (:func:`_rate_polynomial`): one inverse-dynamics pass over all their
-        samples at ``u = 1/2, 1, 2`` (a CPU runs one pass over 3 C N samples in about the
-        time of one over N: the pass's cost is mostly per operation)."""
+        samples at ``u = 1/2, 1, 2`` (on a CPU one pass over 3 C N samples costs little
+        more than one over N: for so few samples its cost is mostly per operation)."""
         C, N, n = v.shape
         qs, qds, vs = q[None, :, :-1], qd[None, :, :-1], v[None]  # (1, C, N, n)
         rates = jnp.asarray([0.5, 1.0, 2.0], v.dtype).reshape(3, 1, 1, 1)
