@@ -212,8 +212,8 @@ class Planner:
     """
 
     def __init__(self, model, robot=None, *, periods=None, weights=None, correct: bool = True,
-                 effort: bool = False, switch: bool = True, projection: bool = True, tol: float = 1e-6,
-                 goal_tol: float = 1e-6):
+                 effort: bool = False, switch: bool = True, projection: bool = True, trapezoid: bool | None = None,
+                 tol: float = 1e-6, goal_tol: float = 1e-6):
         from jtraj import robots
 
         model = _load(model)
@@ -241,6 +241,8 @@ class Planner:
         for name, x in (("correct", correct), ("effort", effort), ("switch", switch), ("projection", projection)):
             if not isinstance(x, bool):
                 raise ValueError(f"{name} must be True or False, got {x!r}")
+        if trapezoid is not None and not isinstance(trapezoid, bool):
+            raise ValueError(f"trapezoid must be None, True or False, got {trapezoid!r}")
         for name, x in (("tol", tol), ("goal_tol", goal_tol)):
             if isinstance(x, bool) or not isinstance(x, (int, float)) or not np.isfinite(x) or x < 0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {x!r}")
@@ -271,9 +273,12 @@ class Planner:
             weights = jtraj.Weights.parse(meta["weights"]) if meta.get("weights") else jtraj.Weights()
         self.weights = weights
         self.tol, self.goal_tol, self.correct, self.effort = float(tol), float(goal_tol), correct, effort
-        self.switch, self.projection = switch, projection
-        if correct and not (projection or switch or effort):
-            raise ValueError("projection, switch and effort are all False: the repair has no candidate")
+        self.switch, self.projection, self.trapezoid = switch, projection, trapezoid
+        lim = self.robot.limits
+        if trapezoid and (lim.qd_max is None or lim.qdd_max is None):
+            raise ValueError("trapezoid=True needs the robot's velocity and acceleration bounds (qd_max, qdd_max)")
+        if correct and not (projection or switch or effort or trapezoid is not False):
+            raise ValueError("projection, switch, effort and trapezoid are all False: the repair has no candidate")
         self._coverage()
         core = self._core()
         # device arrays, for use inside other jitted code
@@ -345,7 +350,7 @@ class Planner:
         if getattr(rb, "newton_euler", None) == "world":
             rb = rb.replace(newton_euler="bodies")
         repair = (make_repair(rb, self.weights, effort=self.effort, switch=self.switch,
-                                  projection=self.projection, uniform_projection=False)
+                                  projection=self.projection, uniform_projection=False, trapezoid=self.trapezoid)
                   if self.correct else None)
         weights, distance, radius = self.weights, self._distance, self.coverage_radius
 

@@ -33,15 +33,17 @@ three rates, the cost at every grid point from a polynomial of degree four in ``
 the velocity and acceleration ratios from one reduction each, and the chosen plan's
 efforts from its polynomial; otherwise the efforts are evaluated at every grid point.
 
-Up to six candidates are repaired side by side (:func:`make_repair` leaves out any of
-them; :class:`jtraj.online.Planner` repairs three by default): the predicted periods (clipped into the
+Up to seven candidates are repaired side by side (:func:`make_repair` leaves out any of
+them; :class:`jtraj.online.Planner` repairs four by default): the predicted periods (clipped into the
 box) and uniform periods of the same total time (which leave the time scaling the
 widest period box), each with the projected accelerations, with one
 :func:`effort_step` from them (a Gauss-Newton step towards less effort on the goal,
 kept near the prediction) and with the projected :func:`switch_profile` (accelerations
 held at opposite constants before and after a linear switch, the shape of
-effort-bounded optima); the feasible one of lowest cost is returned, else the one of
-smallest violation. The returned plan's states come from the recursion and its efforts
+effort-bounded optima), and the projected :func:`trapezoid_profile` on its own uniform
+periods (the synchronised trapezoidal velocity profile, the shape of velocity- and
+acceleration-bounded optima, which needs no prediction); the feasible one of lowest
+cost is returned, else the one of smallest violation. The returned plan's states come from the recursion and its efforts
 from the robot's inverse dynamics, the time scaling applied by its exact relations
 (``q`` unchanged, ``qd / s``, the efforts' ``1 / s^2`` or their polynomial in ``1 / s``):
 its reported violations are computed on those arrays, and the tests re-verify them
@@ -69,6 +71,8 @@ GRID = 32
 #: lowest median and 90th-percentile cost gaps of 0.1 to 0.4 on the training pairs of a
 #: 300-pair serial3 dataset)
 SWITCH = 0.3
+#: the values of the acceleration phase's share of the time tried by :func:`trapezoid_profile`
+FRACTIONS = 32
 #: weight of the distance to the prediction in :func:`effort_step`, relative to the
 #: effort term's mean curvature
 RHO = 1.0
@@ -152,6 +156,37 @@ def switch_profile(q0, qd0, q_goal, h, width=None):
     den = jnp.sum(c * shape)  # > 0 but for periods far from uniform: then a zero profile
     safe = jnp.abs(den) > 1e-12 * jnp.sum(c)
     return shape[:, None] * jnp.where(safe, (q_goal - q0 - T * qd0) / jnp.where(safe, den, 1.0), 0.0)[None]
+
+
+def trapezoid_profile(q0, q_goal, N: int, qd_max, qdd_max, fractions: int = FRACTIONS):
+    """``(v, h)``: the synchronised trapezoidal velocity profile of a rest-to-rest motion
+    on ``N`` equal periods. Every joint accelerates at a constant for the same first
+    fraction ``f`` of the time ``T``, coasts, and decelerates for the last fraction ``f``;
+    joint ``j`` then peaks at the speed ``D_j / ((1 - f) T)`` and accelerates at ``D_j /
+    (f (1 - f) T^2)`` (``D = q_goal - q0``), and ``T`` is the least time that keeps both
+    within every joint's bounds: ``T(f) = max_j max(|D_j| / ((1 - f) qd_max_j), sqrt(|D_j|
+    / (f (1 - f) qdd_max_j)))``, minimised over ``fractions`` values of ``f`` in (0, 1/2]
+    (``f = 1/2``: a triangle). The time-optimal motion of the kinematic bounds alone when
+    all joints move together, the shape of velocity- and acceleration-bounded optima (a
+    Panda's); the accelerations are the profile's averages over the periods, so that
+    :func:`goal_projection` moves them onto the goal by little."""
+    D = q_goal - q0
+    dist = jnp.abs(D)
+    f = (jnp.arange(fractions, dtype=D.dtype) + 1) * (0.5 / fractions)
+    vmax, amax = jnp.broadcast_to(qd_max, D.shape)[None], jnp.broadcast_to(qdd_max, D.shape)[None]
+    T_f = jnp.max(jnp.maximum(dist[None] / ((1 - f)[:, None] * vmax), jnp.sqrt(dist[None] / ((f * (1 - f))[:, None] * amax))),
+                  axis=1)
+    k = jnp.argmin(T_f)
+    best = jnp.arange(fractions) == k  # (the minimiser by a mask: fused loops, no gather)
+    f, T = jnp.sum(jnp.where(best, f, 0.0)), jnp.sum(jnp.where(best, T_f, 0.0))
+    T = jnp.where(T > 0, T, 1.0)  # (no motion: any time; the profile is zero)
+    edges = jnp.arange(N + 1, dtype=D.dtype) * (T / N)
+
+    def share(a, b):  # of each period inside [a, b]
+        return jnp.clip(jnp.minimum(edges[1:], b) - jnp.maximum(edges[:-1], a), 0.0, None) * (N / T)
+
+    shape = share(0.0, f * T) - share((1 - f) * T, T)
+    return shape[:, None] * (D / (f * (1 - f) * T**2))[None], jnp.full((N,), T / N, D.dtype)
 
 
 def linearise(robot, q0, qd0, v, h):
@@ -294,7 +329,7 @@ def q_excess(q, lim):
 
 def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: bool | None = None,
                 grid: int = GRID, rho: float | None = None, effort: bool = True, switch: bool = True,
-                projection: bool = True, uniform_projection: bool = True):
+                projection: bool = True, uniform_projection: bool = True, trapezoid: bool | None = None):
     """``repair(q0, qd0, q_goal, qd_goal, v, h) -> Repaired``: a jit-, vmap-able pure function
     (see the module doc). ``homogeneous`` defaults to :func:`is_homogeneous` (tested here,
     on the host). For a robot that is not, ``quadratic`` (default
@@ -304,8 +339,11 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
     candidates' samples) instead of one inverse-dynamics pass per grid point.
     ``effort=False`` leaves out the two :func:`effort_step` candidates, ``switch=False``
     the two :func:`switch_profile` candidates, ``projection=False`` and
-    ``uniform_projection=False`` the projected prediction on its own and on uniform periods
-    (``repair.candidates`` names the candidates, in the order of
+    ``uniform_projection=False`` the projected prediction on its own and on uniform periods,
+    ``trapezoid=False`` the projected :func:`trapezoid_profile` (default: where the robot
+    has velocity and acceleration bounds; ``True`` without them raises). The
+    trapezoidal profile needs no prediction: it is the planner's answer where the model
+    is poor as well (``repair.candidates`` names the candidates, in the order of
     :attr:`Repaired.candidate`). Without the projected prediction, the prediction's
     accelerations serve only the effort steps (the switching profiles use its periods
     alone)."""
@@ -482,9 +520,17 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         names += ["effort", "effort_uniform"]
     if switch:
         names += ["switch", "switch_uniform"]
+    bounded = lim.qd_max is not None and lim.qdd_max is not None
+    if trapezoid is None:
+        trapezoid = bounded
+    elif trapezoid and not bounded:
+        raise ValueError("make_repair: trapezoid=True needs the robot's qd_max and qdd_max")
+    if trapezoid:
+        names += ["trapezoid"]
     if not names:
-        raise ValueError("make_repair: no candidates (projection, uniform_projection, effort and switch all off)")
-    uniform_flags = np.array([n.endswith("_uniform") for n in names])
+        raise ValueError("make_repair: no candidates (projection, uniform_projection, effort, switch and trapezoid "
+                         "all off)")
+    uniform_flags = np.array([n.endswith("_uniform") or n == "trapezoid" for n in names])
 
     def repair(q0, qd0, q_goal, qd_goal, v, h):
         h = jnp.clip(h, h_min, h_max)
@@ -506,6 +552,11 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
             w = jax.vmap(goal_projection, in_axes=(None, None, None, None, 0, 0))(
                 q0, qd0, q_goal, qd_goal, jax.vmap(switch_profile, in_axes=(None, None, None, 0))(q0, qd0, q_goal, h2), h2)
             vs, hs = jnp.concatenate([vs, w]), jnp.concatenate([hs, h2])
+        if trapezoid:  # the synchronised trapezoid on its own periods
+            w, ht = trapezoid_profile(q0, q_goal, h.shape[0], lim.qd_max, lim.qdd_max)
+            ht = jnp.clip(ht, h_min, h_max)
+            w = goal_projection(q0, qd0, q_goal, qd_goal, w, ht)
+            vs, hs = jnp.concatenate([vs, w[None]]), jnp.concatenate([hs, ht[None]])
         done = 0 if known is None else known[0].shape[0]
         if quadratic:
             # every candidate's states; their efforts at any scaling from one polynomial each

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jtraj import Weights, coverage, robots
-from jtraj.repair import (cost_of, goal_projection, is_homogeneous, is_quadratic_in_rate, make_repair,
+from jtraj.repair import (cost_of, goal_projection, is_homogeneous, is_quadratic_in_rate, make_repair, trapezoid_profile,
                           switch_profile)
 
 V = pytest.importorskip("jtraj_peers.verify")
@@ -190,7 +190,7 @@ def test_the_repair_returns_the_cheapest_feasible_scaled_candidate():
     lim = rb.limits
     tau_max, qd_max, qdd_max = (np.asarray(x, float) for x in (lim.tau_max, lim.qd_max, lim.qdd_max))
     h_min, h_max = float(lim.h_min), float(lim.h_max)
-    rep = make_repair(rb, W, effort=False, uniform_projection=False)
+    rep = make_repair(rb, W, effort=False, uniform_projection=False, trapezoid=False)  # (trapezoid: its own tests)
     assert rep.candidates == ("projected", "switch", "switch_uniform")
     batch = jax.jit(jax.vmap(rep, in_axes=(0, None, 0, None, 0, 0)))
     z = jnp.zeros(n)
@@ -310,7 +310,7 @@ def test_time_scaling_with_gravity_is_the_cheapest_feasible_one_to_the_second_gr
     rb = robots.get("serial3_vertical", h_max=0.3)
     lim = rb.limits
     G = 32
-    rep = jax.jit(make_repair(rb, W, grid=G, switch=False, effort=False, uniform_projection=False))
+    rep = jax.jit(make_repair(rb, W, grid=G, switch=False, effort=False, uniform_projection=False, trapezoid=False))
     ID = jax.jit(jax.vmap(jax.vmap(rb.inverse_dynamics)))
     cost = jax.jit(jax.vmap(lambda q, qd, tau, h: cost_of(rb, W, q, qd, tau, h)))
     rng = np.random.default_rng(7)
@@ -344,6 +344,67 @@ def test_time_scaling_with_gravity_is_the_cheapest_feasible_one_to_the_second_gr
         first = np.min(costs(np.exp(np.linspace(np.log(lo), np.log(hi), G))))
         first_grid_misses += first > best * (1 + 2 * (step2 - 1))
     assert first_grid_misses >= 3  # (measured: 6 of 6, by 3 % to 12 %, with the repair within 0.3 % to 0.7 %)
+
+
+def test_trapezoid_profile_is_the_least_time_synchronised_trapezoid_within_the_bounds():
+    # against a brute-force search over 20,000 shares f of the acceleration phase, the
+    # time of the synchronised trapezoid written out per joint, and the closed form of a
+    # single joint's time-optimal profile (D / V + V / A, or 2 sqrt(D / A) for a triangle)
+    N = 40
+    V, A = np.array([2.0, 1.5, 3.0]), np.array([10.0, 4.0, 20.0])
+    prof = jax.jit(lambda q0, q1: trapezoid_profile(q0, q1, N, jnp.asarray(V), jnp.asarray(A)))
+    rng = np.random.default_rng(3)
+    for D in [rng.uniform(-2, 2, 3) for _ in range(5)] + [np.array([1.5, 0.0, 0.0]), np.array([0.0, 0.1, 0.0])]:
+        q0 = rng.uniform(-1, 1, 3)
+        v, h = (np.asarray(x) for x in prof(jnp.asarray(q0), jnp.asarray(q0 + D)))
+        T = float(np.sum(h))
+        f = np.linspace(1e-4, 0.5, 20000)[:, None]
+        best = np.min(np.max(np.maximum(np.abs(D) / ((1 - f) * V), np.sqrt(np.abs(D) / (f * (1 - f) * A))), axis=1))
+        assert best * (1 - 1e-12) <= T <= best * (1 + 0.02)  # (the profile's 32 shares against the search's 20,000)
+        assert np.allclose(h, T / N, rtol=1e-14)
+        q, qd = _recursion(q0, np.zeros(3), v, h)
+        assert np.max(np.abs(v) / A) <= 1 + 1e-12 and np.max(np.abs(qd) / V) <= 1 + 1e-12
+        np.testing.assert_allclose(qd[-1], 0.0, atol=1e-12)  # rest to rest
+        np.testing.assert_allclose(q[-1], q0 + D, atol=0.05 * np.max(np.abs(D)))  # near the goal (projection: exact)
+        moving = np.abs(D) > 0
+        if moving.sum() == 1:  # one joint: its time-optimal profile
+            j = int(np.flatnonzero(moving)[0])
+            d = abs(D[j])
+            exact = d / V[j] + V[j] / A[j] if d >= V[j] ** 2 / A[j] else 2 * np.sqrt(d / A[j])
+            assert exact * (1 - 1e-12) <= T <= exact * 1.02
+    v, h = prof(jnp.zeros(3), jnp.zeros(3))  # no motion: a zero profile, finite periods
+    assert np.all(np.asarray(v) == 0) and np.all(np.isfinite(np.asarray(h)))
+
+
+def test_trapezoid_candidate_gives_velocity_bounded_plans_their_time():
+    # a robot whose efforts never bind (serial3 with 100x its effort bounds and a low
+    # velocity bound, no energy weight): the optimum is the motion of the velocity and acceleration bounds. With the
+    # trapezoid the repaired plan's time is within 3 % of the least synchronised
+    # trapezoid's (the time scaling then meets a bound); without it, the projected
+    # prediction and the switching profiles are slower on these pairs
+    rb = robots.get("serial3", tau_max=100 * np.asarray(robots.get("serial3").limits.tau_max), qd_max=0.8, h_max=0.2)
+    lim = rb.limits
+    w = Weights(time=1.0, energy=0.0)
+    on = jax.jit(make_repair(rb, w, effort=False, uniform_projection=False))
+    off = jax.jit(make_repair(rb, w, effort=False, uniform_projection=False, trapezoid=False))
+    assert on.candidates[-1] == "trapezoid" and "trapezoid" not in off.candidates
+    with pytest.raises(ValueError, match="qd_max and qdd_max"):
+        make_repair(robots.serial_planar((1.0, 1.0), (1.0, 1.0), (0.1, 0.1)), w, trapezoid=True)
+    rng = np.random.default_rng(9)
+    z = jnp.zeros(n)
+    slower = 0
+    for _ in range(6):
+        qs, _, v, h = (jnp.asarray(a) for a in _prediction(rng, 0.5))
+        qg = qs + jnp.asarray(rng.choice([-1, 1], n) * rng.uniform(1.0, 2.0, n))  # long: the velocity bound binds
+        a, b = on(qs, z, qg, z, v, h), off(qs, z, qg, z, v, h)
+        D = np.abs(np.asarray(qg - qs))
+        f = np.linspace(1e-4, 0.5, 20000)[:, None]
+        V, A = np.broadcast_to(np.asarray(lim.qd_max), (n,)), np.broadcast_to(np.asarray(lim.qdd_max), (n,))
+        best = np.min(np.max(np.maximum(D / ((1 - f) * V), np.sqrt(D / (f * (1 - f) * A))), axis=1))
+        assert float(a.cost) <= float(b.cost) * (1 + 1e-12)
+        assert best * (1 - 0.03) <= float(jnp.sum(a.h)) <= best * 1.03
+        slower += float(jnp.sum(b.h)) > best * 1.2
+    assert slower >= 3  # (measured: 6 of 6, 1.3x to 1.6x)
 
 
 def test_coverage_radius_and_distances_by_brute_force():
@@ -494,8 +555,10 @@ def test_planner_refuses_bad_input(planner_and_data):
         Planner(planner.model, effort=1)
     with pytest.raises(ValueError, match="projection must be"):
         Planner(planner.model, projection=None)
+    with pytest.raises(ValueError, match="trapezoid must be"):
+        Planner(planner.model, trapezoid="yes")
     with pytest.raises(ValueError, match="no candidate"):
-        Planner(planner.model, projection=False, switch=False)
+        Planner(planner.model, projection=False, switch=False, trapezoid=False)
 
 
 @pytest.mark.slow
@@ -547,15 +610,17 @@ def test_cumulative_sums_and_small_products_match_numpy():
 def test_repair_candidates_are_named_and_an_empty_set_refused():
     rb = robots.get("serial3")
     assert make_repair(rb, W).candidates == ("projected", "projected_uniform", "effort", "effort_uniform",
-                                             "switch", "switch_uniform")
+                                             "switch", "switch_uniform", "trapezoid")
     assert make_repair(rb, W, uniform_projection=False).candidates == ("projected", "effort", "effort_uniform",
-                                                                       "switch", "switch_uniform")
-    assert make_repair(rb, W, effort=False, projection=False).candidates == ("projected_uniform", "switch",
-                                                                           "switch_uniform")
+                                                                       "switch", "switch_uniform", "trapezoid")
+    assert make_repair(rb, W, effort=False, projection=False, trapezoid=False).candidates == (
+        "projected_uniform", "switch", "switch_uniform")
     assert make_repair(rb, W, effort=False, projection=False, uniform_projection=False).candidates == (
-        "switch", "switch_uniform")
+        "switch", "switch_uniform", "trapezoid")
+    assert make_repair(rb, W, effort=False, switch=False, projection=False, uniform_projection=False).candidates == (
+        "trapezoid",)
     with pytest.raises(ValueError, match="no candidates"):
-        make_repair(rb, W, effort=False, switch=False, projection=False, uniform_projection=False)
+        make_repair(rb, W, effort=False, switch=False, projection=False, uniform_projection=False, trapezoid=False)
 
 
 @pytest.mark.slow  # one more repair program
