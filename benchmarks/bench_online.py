@@ -114,7 +114,7 @@ def _verifier(robot, name, weights, tol):
     cost) of an independent re-verification of a plan, or ``(None, None)`` where the robot has
     none. serial3: :mod:`jtraj_peers.verify` (NumPy recursion, Pinocchio's RNEA of its own
     model); the panda: :mod:`jtraj_peers.verify_arm` (the same recursion, Pinocchio's RNEA of
-    example-robot-data's URDF), with jtraj's limits of the robot."""
+    example-robot-data's URDF), with jtraj's limits of the robot, its jerk bound included."""
     w = (float(weights.time), float(weights.energy), float(weights.kinetic))
     lim = robot.limits
     if name == "serial3":
@@ -128,7 +128,8 @@ def _verifier(robot, name, weights, tol):
 
         model = casadi_rnea.panda_model()
         kw = {k: np.asarray(getattr(lim, k), float) for k in ("tau_max", "qd_max", "qdd_max", "q_min", "q_max")}
-        kw.update(h_min=float(lim.h_min), h_max=float(lim.h_max), weights=w, tol=tol)
+        kw.update(h_min=float(lim.h_min), h_max=float(lim.h_max), weights=w, tol=tol,
+                  jerk_max=None if lim.qddd_max is None else np.asarray(lim.qddd_max, float))
 
         def run(qs, qg, v, h):
             return verify_arm.verify(model, qs, qg, np.asarray(v), np.asarray(h), **kw)

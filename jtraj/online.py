@@ -24,9 +24,10 @@ The efforts come from the robot's inverse dynamics, and :class:`Plan` reports:
 
 * ``cost``: the cost of the training dataset's weights (:func:`jtraj.repair.cost_of`);
 * ``violation``: largest relative excess over the robot's boxes (efforts, velocities,
-  accelerations, joint positions, periods; 0 when within, 0.1 means 10 % over), and
-  each of ``tau_violation``, ``qd_violation``, ``qdd_violation``, ``q_violation``,
-  ``h_violation``;
+  accelerations, joint positions, periods, and the acceleration jumps where the robot
+  has a jerk bound, as ``jtraj.Problem`` bounds them; 0 when within, 0.1 means 10 %
+  over), and each of ``tau_violation``, ``qd_violation``, ``qdd_violation``,
+  ``q_violation``, ``h_violation``, ``jerk_violation``;
 * ``goal_error``: ``||q_N - q_goal||`` [rad], ``goal_velocity``: ``||qd_N||``, and
   ``predicted_goal_error``, the goal error of the raw prediction;
 * ``scale``: the repair's time scaling (1 without it);
@@ -99,6 +100,7 @@ class Plan(NamedTuple):
     qdd_violation: jax.Array
     q_violation: jax.Array
     h_violation: jax.Array
+    jerk_violation: jax.Array
     goal_error: jax.Array
     goal_velocity: jax.Array
     predicted_goal_error: jax.Array
@@ -459,8 +461,8 @@ class Planner:
         """A single plan as a JSON-able dict (the trajectory included)."""
         out = dict(T=float(p.T), cost=float(p.cost), feasible=self.feasible(p), corrected=self.correct,
                    violation=float(p.violation))
-        for k in ("tau_violation", "qd_violation", "qdd_violation", "q_violation", "h_violation", "goal_error",
-                  "goal_velocity", "predicted_goal_error", "scale"):
+        for k in ("tau_violation", "qd_violation", "qdd_violation", "q_violation", "h_violation", "jerk_violation",
+                  "goal_error", "goal_velocity", "predicted_goal_error", "scale"):
             out[k] = float(getattr(p, k))
         out["coverage"] = dict(kind=self.coverage_kind, distance=float(p.coverage_distance),
                                radius=self.coverage_radius, outside_box=float(p.coverage_box),

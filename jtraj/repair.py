@@ -299,17 +299,30 @@ def cost_of(robot, weights, q, qd, tau, h):
     return jnp.sum(c)
 
 
+def jerk_ratio(v, h, qddd_max):
+    """Largest ratio of an acceleration jump to the problem's jerk bound on it,
+    ``|v_{k+1} - v_k| / (qddd_max (h_k + h_{k+1}) / 2)`` (``jtraj.Problem``'s jerk rows;
+    0 without a bound, ``qddd_max`` None). Under the time scaling ``h -> s h``, ``v -> v /
+    s^2`` it scales as ``1 / s^3``."""
+    if qddd_max is None or v.shape[0] < 2:
+        return jnp.zeros((), v.dtype)
+    bound = jnp.broadcast_to(qddd_max, v.shape[1:])[None] * (0.5 * (h[1:] + h[:-1]))[:, None]
+    return jnp.max(jnp.abs(v[1:] - v[:-1]) / bound)
+
+
 def violation_parts(robot, q, qd, v, tau, h):
     """The largest relative excesses over the robot's boxes (0 when within), in this
     order: efforts, joint velocities (samples 1..N), accelerations, joint positions
-    (relative to the box width; 0 without a joint box) and periods (relative to h_max).
-    Each is the largest ratio less one (the same number as the largest excess, with a
-    batch's reductions about twice as fast)."""
+    (relative to the box width; 0 without a joint box), periods (relative to h_max) and
+    acceleration jumps (relative to their jerk bounds, :func:`jerk_ratio`; 0 without
+    one). Each is the largest ratio less one (the same number as the largest excess,
+    with a batch's reductions about twice as fast)."""
     lim = robot.limits
     return (jnp.maximum(_ratio(tau, lim.tau_max) - 1, 0.0), jnp.maximum(_ratio(qd[1:], lim.qd_max) - 1, 0.0),
             jnp.maximum(_ratio(v, lim.qdd_max) - 1, 0.0),
             q_excess(q, lim) if lim.q_min is not None else jnp.zeros((), h.dtype),
-            jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0)))
+            jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0)),
+            jnp.maximum(jerk_ratio(v, h, lim.qddd_max) - 1, 0.0))
 
 
 def violation(robot, q, qd, v, tau, h):
@@ -354,6 +367,7 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         quadratic = not homogeneous and is_quadratic_in_rate(robot)
     ID = jax.vmap(robot.inverse_dynamics)
     h_min, h_max = lim.h_min, lim.h_max
+    jerk = lim.qddd_max is not None  # (the scaling then keeps the acceleration jumps within their bounds)
 
     def states(q0, qd0, v, h):
         q, qd = rollout(q0, qd0, v, h)
@@ -370,7 +384,11 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         """(s, cost, violation of the scaled plan) from the unscaled plan's reductions
         (the scaled plan has the same q, qd / s, tau / s^2, v / s^2, h s: module doc)."""
         r_qd, r_v, r_tau = _ratio(qd, lim.qd_max), _ratio(v, lim.qdd_max), _ratio(tau, lim.tau_max)
-        s_f = jnp.maximum(jnp.maximum(r_qd, jnp.sqrt(r_v)), jnp.sqrt(r_tau)) * (1 + 1e-12)
+        s_f = jnp.maximum(jnp.maximum(r_qd, jnp.sqrt(r_v)), jnp.sqrt(r_tau))
+        if jerk:
+            r_j = jerk_ratio(v, h, lim.qddd_max)
+            s_f = jnp.maximum(s_f, jnp.cbrt(r_j))
+        s_f = s_f * (1 + 1e-12)
         U, Q = weights.matrices(robot)
         B = jnp.sum(h * _quad(tau, U))
         C = jnp.sum(h * _quad(qd[:-1], Q)) if weights.has_kinetic else 0.0
@@ -390,6 +408,8 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
               jnp.max(jnp.maximum(jnp.maximum(lim.h_min - hs, hs - lim.h_max) / lim.h_max, 0.0))]
         if lim.q_min is not None:
             ex.append(q_excess(q, lim))
+        if jerk:
+            ex.append(jnp.maximum(r_j / s**3 - 1, 0.0))
         return s, A * s + C / s + B / s**3, jnp.max(jnp.stack(ex))
 
     def cheapest_scaling(h, evaluate):
@@ -425,7 +445,8 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         inverse dynamics."""
         def one(s):
             q, qd, tau, vs, hs = scaled(q0, qd0, v, h, s)
-            parts = violation_parts(robot, q, qd, vs, tau, hs)[:-1]  # (the periods' left out)
+            parts = violation_parts(robot, q, qd, vs, tau, hs)
+            parts = parts[:4] + parts[5:]  # (the periods' left out)
             return cost_of(robot, weights, q, qd, tau, hs), jnp.max(jnp.stack(parts))
         return cheapest_scaling(h, jax.vmap(one))[0]
 
@@ -465,6 +486,7 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
             rate = rate + weights.singularity * jnp.sum(h / jnp.maximum(jax.vmap(robot.manipulability)(q[:-1]), 1e-9))
         kinetic = jnp.sum(h * _quad(qd[:-1], Q)) if weights.has_kinetic else None
         r_qd, r_v = _ratio(qd[1:], lim.qd_max), _ratio(v, lim.qdd_max)
+        r_j = jerk_ratio(v, h, lim.qddd_max) if jerk else None
         q_ex = q_excess(q, lim) if lim.q_min is not None else None
 
         def evaluate(ss):
@@ -478,7 +500,8 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
                 t_max = jnp.broadcast_to(lim.tau_max, a.shape)[..., None]
                 ug = u[None, None]
                 r_tau = jnp.max(jnp.abs(a[..., None] + ug * (b[..., None] + ug * c[..., None])) / t_max, axis=(0, 1))
-            viol = jnp.maximum(jnp.max(jnp.stack([r_tau - 1, r_qd * u - 1, r_v * u * u - 1]), axis=0), 0.0)
+            ex = [r_tau - 1, r_qd * u - 1, r_v * u * u - 1] + ([r_j * u**3 - 1] if jerk else [])
+            viol = jnp.maximum(jnp.max(jnp.stack(ex), axis=0), 0.0)
             return cost, viol if q_ex is None else jnp.maximum(viol, q_ex)
 
         s, cost, viol = cheapest_scaling(h, evaluate)

@@ -4,8 +4,8 @@ Pinocchio's RNEA on a Pinocchio model (e.g. :func:`.casadi_rnea.panda_model`). S
 no code with :mod:`jtraj` nor with the CasADi peers' dynamics.
 
 ``verify(model, q_start, q_goal, v, h, *, tau_max, qd_max, qdd_max, q_min, q_max,
-h_min, h_max, weights, tol)`` -> dict(ok, goal_error, max_rel_violation {tau, v, qd,
-q, h}, cost, T, q, qd, tau).
+h_min, h_max, weights, tol, jerk_max=None)`` -> dict(ok, goal_error, max_rel_violation
+{tau, v, qd, q, h, and jerk with a jerk bound}, cost, T, q, qd, tau).
 """
 
 from __future__ import annotations
@@ -23,12 +23,14 @@ def _configuration(model, q):
 
 
 def verify(model, q_start, q_goal, v, h, *, tau_max, qd_max, qdd_max, q_min, q_max, h_min, h_max,
-           weights=(1.0, 0.1, 0.0), tol=1e-6) -> dict:
+           weights=(1.0, 0.1, 0.0), tol=1e-6, jerk_max=None) -> dict:
     """Re-simulate ``(v (N, n), h (N,))`` from ``q_start`` at rest and check it: efforts
     ``|tau_k| <= tau_max`` (k < N), ``|v_k| <= qdd_max``, ``|qd_k| <= qd_max`` and
     ``q_min <= q_k <= q_max`` (k = 1..N), relative to the bound (the position box
-    relative to its half-width), ``h_min <= h_k <= h_max`` relative to h_max; goal
-    ``|q_N - q_goal|`` and ``|qd_N|`` absolute; all within ``tol``. ``cost`` is
+    relative to its half-width), ``h_min <= h_k <= h_max`` relative to h_max, and with
+    ``jerk_max`` each acceleration jump ``|v_{k+1} - v_k| <= jerk_max (h_k + h_{k+1}) / 2``
+    relative to its bound; goal ``|q_N - q_goal|`` and ``|qd_N|`` absolute; all within
+    ``tol``. ``cost`` is
     ``sum_k h_k [w_time + w_energy sum (tau_k / tau_max)^2 + w_kin |qd_k|^2]``."""
     v = np.asarray(v, np.float64)
     h = np.asarray(h, np.float64).reshape(-1)
@@ -46,6 +48,9 @@ def verify(model, q_start, q_goal, v, h, *, tau_max, qd_max, qdd_max, q_min, q_m
     rel = dict(tau=_box(tau, tau_max), v=_box(v, qdd_max), qd=_box(qd[1:], qd_max),
                q=_box(q[1:] - mid, half),
                h=float(np.max(np.maximum(np.maximum(h_min - h, h - h_max), 0.0)) / h_max))
+    if jerk_max is not None:
+        bound = np.broadcast_to(np.asarray(jerk_max, float), (n,)) * (h[1:] + h[:-1])[:, None] / 2
+        rel["jerk"] = float(np.max(np.maximum(np.abs(np.diff(v, axis=0)) / bound - 1.0, 0.0)))
     w_time, w_energy, w_kin = weights
     stage = w_time + w_energy * np.sum((tau / tau_max) ** 2, axis=1) + w_kin * np.sum(qd[:-1] ** 2, axis=1)
     ok = bool(goal_error <= tol and all(r <= tol for r in rel.values()) and np.all(np.isfinite(v))

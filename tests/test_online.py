@@ -245,7 +245,7 @@ def test_planner_one_call_with_feasibility(tmp_path, data):
     assert float(p.T) == pytest.approx(np.sum(np.asarray(p.h)), rel=1e-12)
     out = planner.query(qs, qg)
     worst = max(out["tau_violation"], out["qd_violation"], out["qdd_violation"], out["q_violation"],
-                out["h_violation"])
+                out["h_violation"], out["jerk_violation"])
     assert out["violation"] == worst
     assert out["feasible"] == (worst <= planner.tol and max(out["goal_error"], out["goal_velocity"]) <= planner.goal_tol)
     assert out["goal_error"] == pytest.approx(float(p.goal_error), rel=1e-12)
