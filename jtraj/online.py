@@ -16,9 +16,11 @@ Two kinds of prediction:
 Either prediction ``(v, h)`` then goes through the feasibility repair of
 :mod:`jtraj.repair` (``correct=True``, the default): a projection of ``v`` onto the goal
 state (reached to rounding, at rest) and a time scaling that restores the velocity,
-acceleration and effort bounds at the lowest cost of the scaled plans, compared with
-switching profiles on the same periods (the shape of effort-bounded optima), all
-inside the same jitted call. ``correct=False`` returns the raw prediction.
+acceleration, effort and jerk bounds at the lowest cost of the scaled plans, compared
+with switching profiles on the same periods (the shape of effort-bounded optima) and a
+synchronised trapezoidal velocity profile (the shape of velocity- and
+acceleration-bounded optima), all inside the same jitted call. ``correct=False``
+returns the raw prediction.
 
 The efforts come from the robot's inverse dynamics, and :class:`Plan` reports:
 
