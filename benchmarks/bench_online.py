@@ -149,6 +149,12 @@ def _q(a, qs):
     return {f"p{q}": float(np.percentile(a, q)) for q in qs} | {"max": float(a.max()), "mean": float(a.mean())}
 
 
+def _chosen(planner, plans) -> dict:
+    """How many of a batch's plans took each of the repair's candidates."""
+    counts = np.bincount(np.asarray(plans.candidate).ravel(), minlength=len(planner.candidates))
+    return {name: int(c) for name, c in zip(planner.candidates, counts)}
+
+
 def _batch(args, planner, model, robot, weights, dist, seed, out):
     """Batch throughput: ``Planner.plan`` (NumPy in and out, chunked over threads) with the
     default repair, the one with the least-effort candidates too (``effort=True``) and the
@@ -182,15 +188,15 @@ def _batch(args, planner, model, robot, weights, dist, seed, out):
                                        plans_per_second=float(np.median(rates[label])),
                                        plans_per_second_rounds=rates[label],
                                        cpu_us_per_plan=float(np.median(cpus[label])), feasible=int(bf.sum()),
-                                       ood=int(np.asarray(pbb.ood).sum()))
+                                       ood=int(np.asarray(pbb.ood).sum()), candidates=_chosen(pl, pbb))
         loads.append(os.getloadavg()[0])
     for label, pl in planners:
         b = out["batch"][label]
         print(f"batch of {args.batch} ({label}, Planner.plan in calls of {pl.chunk} on {pl.threads} threads): "
               f"{b['plans_per_second']:,.0f} plans/s (median of {args.batch_rounds} rounds; "
               f"{min(rates[label]):,.0f} to {max(rates[label]):,.0f}), {b['cpu_us_per_plan']:.2f} CPU us per plan, "
-              f"feasible {b['feasible']}/{args.batch} (own report), flagged out of distribution {b['ood']}",
-              flush=True)
+              f"feasible {b['feasible']}/{args.batch} (own report), flagged out of distribution {b['ood']}; "
+              f"the repair's choices {b['candidates']}", flush=True)
     out["batch"]["load_average_1min"] = os.getloadavg()[0]
     out["batch"]["load_average_1min_rounds"] = loads
     return others
@@ -309,10 +315,11 @@ def main(argv=None):
     out["plans"] = dict(feasible=int(feas.sum()), of=P, verifier=verifier or "the planner's own report",
                         goal_error=_q([r["goal_error"] for r in rows], (50, 90)),
                         predicted_goal_error=_q([r["predicted_goal_error"] for r in rows], (50, 90)),
-                        ood=int(sum(r["ood"] for r in rows)))
+                        ood=int(sum(r["ood"] for r in rows)), candidates=_chosen(planner, pb))
     print(f"plans: feasible {feas.sum()}/{P} (re-verified: {out['plans']['verifier']}, tol {tol}); goal error "
           f"max {out['plans']['goal_error']['max']:.2e}; raw model's goal error median "
-          f"{out['plans']['predicted_goal_error']['p50']:.3g} rad; flagged out of distribution {out['plans']['ood']}/{P}")
+          f"{out['plans']['predicted_goal_error']['p50']:.3g} rad; flagged out of distribution {out['plans']['ood']}/{P}; "
+          f"the repair's choices {out['plans']['candidates']}")
 
     # coverage on pairs twice as far apart as the dataset's
     wide = sampling.Distribution(**(dist_kw | {"step_range": 2 * float(dist_kw["step_range"])}))

@@ -32,7 +32,8 @@ The efforts come from the robot's inverse dynamics, and :class:`Plan` reports:
   ``q_violation``, ``h_violation``, ``jerk_violation``;
 * ``goal_error``: ``||q_N - q_goal||`` [rad], ``goal_velocity``: ``||qd_N||``, and
   ``predicted_goal_error``, the goal error of the raw prediction;
-* ``scale``: the repair's time scaling (1 without it);
+* ``scale``: the repair's time scaling (1 without it), and ``candidate``, the candidate
+  it chose (an index into ``Planner.candidates``, -1 without it);
 * ``coverage_distance``, ``coverage_box`` and ``ood``: the query's distance to the
   nearest training pair and outside the training data's box (:mod:`jtraj.coverage`), and
   whether it lies out of distribution (farther than the training data's radius, or
@@ -107,6 +108,9 @@ class Plan(NamedTuple):
     goal_velocity: jax.Array
     predicted_goal_error: jax.Array
     scale: jax.Array
+    #: the repair's chosen candidate, an index into ``Planner.candidates`` (-1 without
+    #: the repair)
+    candidate: jax.Array
     coverage_distance: jax.Array
     coverage_box: jax.Array
     ood: jax.Array
@@ -374,16 +378,17 @@ class Planner:
                 pred_err = jnp.linalg.norm(q[-1] - qg)
             if repair is None:
                 tau = jax.vmap(rb.inverse_dynamics)(q[:-1], qd[:-1], v)
-                cost, s = cost_of(rb, weights, q, qd, tau, h), jnp.ones(())
+                cost, s, pick = cost_of(rb, weights, q, qd, tau, h), jnp.ones(()), jnp.asarray(-1)
             else:
                 z = jnp.zeros_like(qs)
                 r = repair(qs, z, qg, z, v, h)
-                q, qd, v, h, tau, cost, s = r.q, r.qd, r.v, r.h, r.tau, r.cost, r.scale
+                q, qd, v, h, tau, cost, s, pick = r.q, r.qd, r.v, r.h, r.tau, r.cost, r.scale, r.candidate
             parts = violation_parts(rb, q, qd, v, tau, h)
             d, box = distance(jnp.concatenate([qs, qg]))
             return Plan(q, qd, v, tau, h, jnp.sum(h), cost, jnp.max(jnp.stack(parts)), *parts,
-                        jnp.linalg.norm(q[-1] - qg), jnp.linalg.norm(qd[-1]), pred_err, s, d, box,
+                        jnp.linalg.norm(q[-1] - qg), jnp.linalg.norm(qd[-1]), pred_err, s, pick, d, box,
                         (d > radius) | (box > BOX_MARGIN))
+        self.candidates = () if repair is None else repair.candidates
         return core
 
     def _inputs(self, q_start, q_goal):
@@ -466,6 +471,7 @@ class Planner:
         for k in ("tau_violation", "qd_violation", "qdd_violation", "q_violation", "h_violation", "jerk_violation",
                   "goal_error", "goal_velocity", "predicted_goal_error", "scale"):
             out[k] = float(getattr(p, k))
+        out["candidate"] = self.candidates[int(p.candidate)] if int(p.candidate) >= 0 else None
         out["coverage"] = dict(kind=self.coverage_kind, distance=float(p.coverage_distance),
                                radius=self.coverage_radius, outside_box=float(p.coverage_box),
                                out_of_distribution=bool(p.ood))

@@ -517,6 +517,20 @@ def test_planner_batch_plans_re_verified(planner_and_data, tmp_path):
     fewer = Planner(planner.model, planner.robot, weights=W, switch=False).plan(qs, qg)
     assert planner.feasible(fewer).all()
     assert np.all(np.asarray(fewer.cost) >= np.asarray(pb.cost) * (1 - 1e-12))
+    # each plan names the repair's candidate it is: the one of the repair run alone on the
+    # model's prediction, whose plan it returns
+    from jtraj.repair import make_repair
+
+    rep = make_repair(planner.robot, W, effort=False, uniform_projection=False)
+    assert planner.candidates == rep.candidates
+    predict = planner._predict()
+    for i in range(8):
+        _, _, v, h = predict(jnp.asarray(qs[i]), jnp.asarray(qg[i]))
+        z = jnp.zeros(n)
+        r = rep(jnp.asarray(qs[i]), z, jnp.asarray(qg[i]), z, v, h)
+        assert int(pb.candidate[i]) == int(r.candidate)
+        np.testing.assert_allclose(np.asarray(pb.v[i]), np.asarray(r.v), rtol=1e-12, atol=1e-12)
+    assert planner.report(planner.plan(qs[0], qg[0]))["candidate"] == planner.candidates[int(pb.candidate[0])]
     # the raw prediction misses the goal: the repair is what lands on it
     assert float(np.median(np.asarray(pb.predicted_goal_error))) > 1e-3
     # coverage: training pairs lie at distance 0, far queries are flagged
