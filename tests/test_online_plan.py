@@ -570,6 +570,7 @@ def test_query_command_prints_and_writes_cost_violation_and_coverage(planner_and
             out = json.load(f)
         assert ("OUT OF DISTRIBUTION" in text) == flagged == out["out_of_distribution"]
         assert "cost" in text and "worst violation" in text
+        assert out["candidate"] in planner.candidates and f"the repair's {out['candidate']} candidate" in text
         # the model's robot (serial3, h_max 0.1): the plan lands on the goal whatever its bounds
         assert out["goal_error"] <= 1e-9 and len(out["v"]) == 10 and len(out["tau"]) == 10
         assert out["feasible"] == (out["violation"] <= 1e-6)
