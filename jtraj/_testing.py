@@ -21,7 +21,7 @@ from .solver.api import _problems_jit as problems_jit
 from .solver.certify import (al_kkt_error, estimate_multipliers, final_polish, init_multipliers,
                              kkt_error, ls_multipliers)
 from .solver.certify import _polish as polish
-from .solver.core import (finish, initial_guess, ip_method, ip_tolerances,
+from .solver.core import (finish, initial_guess, ip_method, ip_tolerances, run_ip,
                           placeholder_init, prepare, resolve_method, solve_jit, stagewise_directions)
 from .solver.lanes import _ip_init_batch_jit as ip_init_batch_jit
 from .solver.lanes import _prepare_batch_jit as prepare_batch_jit
@@ -91,7 +91,4 @@ __all__ = ["ALMethod", "ALState", "IPM_ALPHAS", "IPM_RHO_E", "IPM_SHIFT_LADDER",
 def ip_run(nlp, state, opts):
     """The interior-point method's run from the AL state ``state`` as a solve runs it
     (:func:`jtraj.solver.core.solve_core`): its final state."""
-    import jax.numpy as jnp
-
-    method = ip_method(opts, jnp.where(state.done, 0, static_options(opts).ip_max_iter))
-    return loop.iterate(method, nlp, method.init(nlp, state.z, opts.ip_mu_init, opts.ip_bound_push, opts.ip_first_shift))
+    return run_ip(nlp, state, opts)[1]

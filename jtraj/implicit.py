@@ -550,17 +550,14 @@ def refine(problem: Problem, tr: Transcription, at, need):
     Newton iterations of the AL loop and one restart."""
     from .solver import loop
     from .solver.al import ALMethod
-    from .solver.core import finish, ip_method, prepare
-    from .solver.options import static_options
+    from .solver.core import finish, prepare, run_ip
 
     ip_opts, opts = _refine_options(problem, tr.name)
     start = at
     if ip_opts is not None:
         nlp, state, _ = prepare(problem, ip_opts, tr, at, True)
         state = state._replace(done=state.done | ~need)
-        method = ip_method(ip_opts, jnp.where(state.done, 0, static_options(ip_opts).ip_max_iter))
-        ip = loop.iterate(method, nlp, method.init(nlp, state.z, ip_opts.ip_mu_init, ip_opts.ip_bound_push,
-                                                    ip_opts.ip_first_shift))
+        method, ip = run_ip(nlp, state, ip_opts)
         # its point where it is certified (active bounds snapped on), else its last iterate
         # (near the optimum: the small barrier parameter keeps it there), which the AL stage
         # finishes either way

@@ -287,9 +287,6 @@ class Planner:
         self.weights = weights
         self.tol, self.goal_tol, self.correct, self.effort = float(tol), float(goal_tol), correct, effort
         self.switch, self.projection, self.trapezoid = switch, projection, trapezoid
-        lim = self.robot.limits
-        if trapezoid and (lim.qd_max is None or lim.qdd_max is None):
-            raise ValueError("trapezoid=True needs the robot's velocity and acceleration bounds (qd_max, qdd_max)")
         if correct and not (projection or switch or effort or trapezoid is not False):
             raise ValueError("projection, switch, effort and trapezoid are all False: the repair has no candidate")
         self._coverage()

@@ -83,9 +83,7 @@ def solve_core(problem: Problem, opts: SolverOptions, tr: Transcription, init, w
     if static_options(opts).method == "ip":
         # one problem: a real branch (vmapped, both sides would run; solve_batch does not
         # come here with "ip")
-        method = ip_method(opts, jnp.where(state.done, 0, static_options(opts).ip_max_iter))
-        ip = loop.iterate(method, nlp, method.init(nlp, state.z, opts.ip_mu_init, opts.ip_bound_push,
-                                                    opts.ip_first_shift))
+        method, ip = run_ip(nlp, state, opts)
         solved = ipm.decided(state, ip)
         state = jax.lax.cond(solved, lambda: method.postprocess(nlp, ip, state),
                              lambda: loop.run(al, nlp, state))
@@ -100,6 +98,15 @@ def ip_method(opts, max_iter=None) -> ipm.InteriorPoint:
     already optimal), its tolerances :func:`ip_tolerances`."""
     max_iter = static_options(opts).ip_max_iter if max_iter is None else max_iter
     return ipm.InteriorPoint(max_iter=max_iter, tol=ip_tolerances(opts))
+
+
+def run_ip(nlp, state, opts):
+    """``(method, final state)`` of the interior-point method run from the AL start
+    ``state`` as a solve runs it: no iteration where ``state`` is done, the run started
+    with the options' ``ip_mu_init``, ``ip_bound_push`` and ``ip_first_shift``."""
+    method = ip_method(opts, jnp.where(state.done, 0, static_options(opts).ip_max_iter))
+    start = method.init(nlp, state.z, opts.ip_mu_init, opts.ip_bound_push, opts.ip_first_shift)
+    return method, loop.iterate(method, nlp, start)
 
 
 def ip_tolerances(opts) -> ipm.Tolerances:

@@ -26,12 +26,11 @@ from __future__ import annotations
 import dataclasses
 
 import jax
-import jax.numpy as jnp
 
 from ..transcription import Transcription
 from . import ipm, loop
 from .al import ALMethod
-from .core import finish, initial_guess, ip_method, prepare
+from .core import finish, initial_guess, prepare, run_ip
 from .options import options_jit, static_options
 from .results import Solution
 
@@ -47,8 +46,7 @@ def _solve_ip_jit(problem, opts, transcription, init, warm, guess):
     """(Solution, decided, interior-point iterations): the solution is the one to return
     where ``decided`` (see :func:`jtraj.solver.ipm.decided`)."""
     nlp, state, valid = _start(problem, opts, transcription, init, warm, guess)
-    method = ip_method(opts, jnp.where(state.done, 0, static_options(opts).ip_max_iter))
-    ip = loop.iterate(method, nlp, method.init(nlp, state.z, opts.ip_mu_init, opts.ip_bound_push, opts.ip_first_shift))
+    method, ip = run_ip(nlp, state, opts)
     sol = finish(nlp, method.postprocess(nlp, ip, state), opts, valid, light=True)
     return sol, ipm.decided(state, ip), ip.it
 
