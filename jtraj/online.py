@@ -497,7 +497,8 @@ class Planner:
         the comparison's ``jtraj.Auto()``. Returns
         :meth:`report`'s dict with ``seconds`` (the plan's wall time,
         Python included); with ``refine`` it adds the solver's status, iterations, time,
-        cost, the plan's ``gap`` to the refined optimum (``(cost - refined_cost) /
+        cost and trajectory (``refined_q``, ``refined_qd``, ``refined_v``, ``refined_tau``,
+        ``refined_h``), the plan's ``gap`` to the refined optimum (``(cost - refined_cost) /
         refined_cost``, where the refined solve converged with the plan's weights and N),
         and the same solve from the solver's default initial guess (the cycloid, slowed to
         meet the torque bounds) for comparison (``cycloidal_iterations``,
@@ -556,6 +557,8 @@ class Planner:
                 out[f"{label}_seconds"] = dt
                 out[f"{label}_T"] = float(np.asarray(sol.T))
                 out[f"{label}_converged"] = bool(np.asarray(sol.converged))
+            for k in ("q", "qd", "v", "tau", "h"):  # the refined trajectory
+                out[f"refined_{k}"] = np.asarray(getattr(sol, k)).tolist()
             if same_cost and N == self.N and out["refined_converged"]:
                 out["gap"] = (out["cost"] - out["refined_cost"]) / abs(out["refined_cost"])
         return out

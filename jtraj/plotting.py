@@ -118,10 +118,12 @@ def _kind_legend(ax, kinds, fontsize=7):
     ax.legend(handles, labels, fontsize=fontsize)
 
 
-def _signals_with_limits(ax, draw, sol, guess, key, bound, ylabel, title, units=None, kinds=()):
+def _signals_with_limits(ax, draw, sol, guess, key, bound, ylabel, title, units=None, kinds=(),
+                         names=("optimum", "cycloidal guess")):
     """One panel: every joint's ``sol[key]`` (and the guess's, dashed) drawn by
     ``draw(ax, t, y, **style)``, with +-bound as dash-dotted lines in the joint's colour;
-    ``units``: each line's unit, in its legend label; ``kinds``: extra legend entries."""
+    ``units``: each line's unit, in its legend label; ``kinds``: extra legend entries;
+    ``names``: the two trajectories' legend names."""
     for j in range(sol[key].shape[1]):
         label = f"{key}{j + 1}" + ("" if units is None else f" [{units[j]}]")
         draw(ax, sol["t"], sol[key][:, j], color=f"C{j}", label=label, **_OPT)
@@ -134,7 +136,7 @@ def _signals_with_limits(ax, draw, sol, guess, key, bound, ylabel, title, units=
     ax.set_xlabel("t [s]")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
-    legend = [(_OPT, "optimum")] + ([(_GUESS, "cycloidal guess")] if guess is not None else [])
+    legend = [(_OPT, names[0])] + ([(_GUESS, names[1])] if guess is not None else [])
     legend += list(kinds) + ([(_BOUND, "bound")] if bound is not None else [])
     _kind_legend(ax, legend)
 
@@ -160,8 +162,11 @@ def _energy(tau, h, tau_max):
     return np.concatenate([[0.0], np.cumsum(h * np.sum((tau / scale) ** 2, axis=1))])
 
 
-def plot_path(problem, solution, ax=None, *, guess: dict | None = None, instants: int = 5):
-    """Task-space path of the tip, with the mechanism drawn at ``instants`` samples."""
+def plot_path(problem, solution, ax=None, *, guess: dict | None = None, instants: int = 5,
+              label: str = "optimum", guess_label: str = "cycloidal guess"):
+    """Task-space path of the tip, with the mechanism drawn at ``instants`` samples;
+    ``guess`` (arrays as :func:`guess_trajectory` returns them) dashed beside it.
+    ``label``, ``guess_label``: the two trajectories' names in the legend."""
     from matplotlib.figure import Figure
 
     fig = None
@@ -172,18 +177,18 @@ def plot_path(problem, solution, ax=None, *, guess: dict | None = None, instants
         fig = Figure(figsize=(5, 5))
         ax = fig.add_subplot(projection="3d" if p.shape[1] == 3 else None)
     if p.shape[1] == 3 and getattr(ax, "name", "") == "3d":
-        return _plot_path_3d(problem, ax, sol, p, guess, instants, fig)
+        return _plot_path_3d(problem, ax, sol, p, guess, instants, fig, label, guess_label)
     N = p.shape[0] - 1
     for i, k in enumerate(np.unique(np.linspace(0, N, instants).round().astype(int))):
         pts = _links(robot, sol["q"][k])
         if pts is not None:
             shade = 0.75 - 0.6 * k / max(N, 1)
             ax.plot(pts[:, 0], pts[:, 1], "-o", color=(shade, shade, 1.0), lw=2.5, ms=4, zorder=1,
-                    label="arm (optimum)" if i == 0 else None)
+                    label=f"arm ({label})" if i == 0 else None)
     if guess is not None:
         pg = _tip_path(robot, guess["q"])
-        ax.plot(pg[:, 0], pg[:, 1], label="cycloidal guess", **_GUESS)
-    ax.plot(p[:, 0], p[:, 1], "-", color="C3", label="optimum", zorder=3, **_OPT)
+        ax.plot(pg[:, 0], pg[:, 1], label=guess_label, **_GUESS)
+    ax.plot(p[:, 0], p[:, 1], "-", color="C3", label=label, zorder=3, **_OPT)
     ax.plot(p[:, 0], p[:, 1], ".", color="C3", ms=4, zorder=3)
     ps, pg_ = _np(robot.forward_kinematics(problem.q_start)), _np(robot.forward_kinematics(problem.q_goal))
     ax.plot(ps[0], ps[1], "s", color="k", ms=6, zorder=4, label="start")
@@ -204,7 +209,7 @@ def plot_path(problem, solution, ax=None, *, guess: dict | None = None, instants
     return fig if fig is not None else ax.figure
 
 
-def _plot_path_3d(problem, ax, sol, p, guess, instants, fig):
+def _plot_path_3d(problem, ax, sol, p, guess, instants, fig, label, guess_label):
     """:func:`plot_path` for a spatial task point: the tip path in 3-D with the arm's
     polyline (base, joints, tip) at ``instants`` samples."""
     robot = problem.robot
@@ -214,11 +219,11 @@ def _plot_path_3d(problem, ax, sol, p, guess, instants, fig):
         if pts is not None and pts.shape[1] == 3:
             shade = 0.75 - 0.6 * k / max(N, 1)
             ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], "-o", color=(shade, shade, 1.0), lw=2.5, ms=3,
-                    label="arm (optimum)" if i == 0 else None)
+                    label=f"arm ({label})" if i == 0 else None)
     if guess is not None:
         pg = _tip_path(robot, guess["q"])
-        ax.plot(pg[:, 0], pg[:, 1], pg[:, 2], label="cycloidal guess", **_GUESS)
-    ax.plot(p[:, 0], p[:, 1], p[:, 2], ".-", color="C3", label="optimum", ms=3, **_OPT)
+        ax.plot(pg[:, 0], pg[:, 1], pg[:, 2], label=guess_label, **_GUESS)
+    ax.plot(p[:, 0], p[:, 1], p[:, 2], ".-", color="C3", label=label, ms=3, **_OPT)
     for q, marker, label in ((problem.q_start, "s", "start"), (problem.q_goal, "*", "goal")):
         pt = _np(robot.forward_kinematics(q))
         ax.plot([pt[0]], [pt[1]], [pt[2]], marker, color="k", ms=8, label=label)
@@ -233,22 +238,36 @@ def _plot_path_3d(problem, ax, sol, p, guess, instants, fig):
     return fig if fig is not None else ax.figure
 
 
-def plot_solution(problem, solution, *, guess: bool = True, title: str | None = None):
+def plot_solution(problem, solution, *, guess=True, title: str | None = None, label: str = "optimum",
+                  guess_label: str | None = None):
     """The full figure: tip path with the arm, q(t), qd(t) against limits, tau(t)
-    against limits (dashed), h_k, and cumulative energy; the cycloidal guess beside
-    the optimum when ``guess``."""
+    against limits (dashed), h_k, and cumulative energy.
+
+    ``solution``: anything with the arrays ``q``, ``qd`` (N+1, n), ``v`` (N, n), ``tau``
+    (N, m) and ``h`` (N,): a :class:`jtraj.Solution`, a :class:`jtraj.online.Plan`.
+    ``guess``: ``True`` draws the cycloidal initial guess dashed beside it, ``False``
+    nothing, and another such trajectory draws that one (``jtraj query --plot`` draws a
+    refined optimum with its plan so). ``label``, ``guess_label``: the two trajectories'
+    names in the legends (``guess_label`` defaults to "cycloidal guess" for
+    ``guess=True``, else "guess")."""
     from matplotlib.figure import Figure
 
     robot = problem.robot
     lim = robot.limits
     sol = solution_arrays(solution)
-    g = guess_trajectory(problem) if guess else None
+    if isinstance(guess, bool):
+        g = guess_trajectory(problem) if guess else None
+        guess_label = guess_label or "cycloidal guess"
+    else:
+        g = solution_arrays(guess)
+        guess_label = guess_label or "guess"
+    names = (label, guess_label)
     fig = Figure(figsize=(15, 8.5), layout="constrained")
     axs = fig.subplots(2, 3)
     if _tip_path(robot, sol["q"][:1]).shape[1] == 3:  # a spatial arm: the path in 3-D
         axs[0, 0].remove()
         axs[0, 0] = fig.add_subplot(2, 3, 1, projection="3d")
-    plot_path(problem, solution, axs[0, 0], guess=g)
+    plot_path(problem, solution, axs[0, 0], guess=g, label=label, guess_label=guess_label)
 
     # q(t), in each coordinate's unit (rad or m) and the efforts' (N m or N)
     cu, eu = coordinate_units(robot), effort_units(robot)
@@ -267,19 +286,19 @@ def plot_solution(problem, solution, *, guess: bool = True, title: str | None = 
     ax.set_xlabel("t [s]")
     ax.set_ylabel(f"q [{_axis_unit(cu)}]")
     ax.set_title("joint positions")
-    _kind_legend(ax, [(_OPT, "optimum")] + ([(_GUESS, "cycloidal guess")] if g is not None else [])
+    _kind_legend(ax, [(_OPT, label)] + ([(_GUESS, guess_label)] if g is not None else [])
                  + ([(_BOUND, "bound")] if bounded else []))
 
     # qd(t)
     _signals_with_limits(axs[0, 2], _line, sol, g, "qd", lim.qd_max, f"qd [{_axis_unit(cu, '/s')}]",
-                         "joint velocities and limits", [f"{u}/s" for u in cu])
+                         "joint velocities and limits", [f"{u}/s" for u in cu], names=names)
 
     # tau(t): steps at the samples (the transcription's values), thin lines between them
     dense = efforts_between_samples(robot, solution)
     _signals_with_limits(axs[1, 0], _stairs, sol, g, "tau", lim.tau_max, f"tau [{_axis_unit(eu)}]",
                          "actuator efforts and limits" if dense is None else
                          "efforts at the samples (steps), between them (thin)", eu,
-                         kinds=() if dense is None else [(_BETWEEN, "between samples")])
+                         kinds=() if dense is None else [(_BETWEEN, "between samples")], names=names)
     if dense is not None:
         for j in range(dense[1].shape[1]):
             axs[1, 0].plot(dense[0], dense[1][:, j], color=f"C{j}", **_BETWEEN)
@@ -287,9 +306,10 @@ def plot_solution(problem, solution, *, guess: bool = True, title: str | None = 
     # h_k
     ax = axs[1, 1]
     k = np.arange(sol["h"].shape[0])
-    ax.plot(k, sol["h"], "o-", color="C3", label=f"optimum (T = {sol['t'][-1]:.3f} s)", **_OPT)
+    ax.plot(k, sol["h"], "o-", color="C3", label=f"{label} (T = {sol['t'][-1]:.3f} s)", **_OPT)
     if g is not None:
-        ax.plot(k, g["h"], marker=".", label=f"guess (T = {g['t'][-1]:.3f} s)", **_GUESS)
+        ax.plot(np.arange(g["h"].shape[0]), g["h"], marker=".", label=f"{guess_label} (T = {g['t'][-1]:.3f} s)",
+                **_GUESS)
     ax.axhline(float(lim.h_min), color="0.3", **_BOUND)
     ax.axhline(float(lim.h_max), color="0.3", **_BOUND, label="h_min, h_max")
     ax.set_xlabel("interval k")
@@ -300,10 +320,10 @@ def plot_solution(problem, solution, *, guess: bool = True, title: str | None = 
     # cumulative energy
     ax = axs[1, 2]
     e = _energy(sol["tau"], sol["h"], lim.tau_max)
-    ax.plot(sol["t"], e, color="C3", label=f"optimum ({e[-1]:.3g})", **_OPT)
+    ax.plot(sol["t"], e, color="C3", label=f"{label} ({e[-1]:.3g})", **_OPT)
     if g is not None:
         eg = _energy(g["tau"], g["h"], lim.tau_max)
-        ax.plot(g["t"], eg, label=f"guess ({eg[-1]:.3g})", **_GUESS)
+        ax.plot(g["t"], eg, label=f"{guess_label} ({eg[-1]:.3g})", **_GUESS)
     ax.set_xlabel("t [s]")
     ax.set_ylabel("sum h tau^T diag(1/tau_max^2) tau [s]" if lim.tau_max is not None else "sum h tau^T tau")
     ax.set_title("cumulative energy")

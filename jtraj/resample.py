@@ -68,13 +68,13 @@ def _evaluate(robot, q, qd, v, h, t):
 
 def _arrays(solution, robot):
     """(q, qd, v, h) as float64/float NumPy arrays with a batch axis, checked."""
-    if isinstance(solution, Solution):
-        fields = (solution.q, solution.qd, solution.v, solution.h)
-    elif isinstance(solution, Mapping) and all(k in solution for k in ("q", "qd", "v", "h")):
+    if isinstance(solution, Mapping) and all(k in solution for k in ("q", "qd", "v", "h")):
         fields = tuple(solution[k] for k in ("q", "qd", "v", "h"))  # jtraj.dataset.load(path), say
+    elif isinstance(solution, Solution) or all(hasattr(solution, k) for k in ("q", "qd", "v", "h")):
+        fields = (solution.q, solution.qd, solution.v, solution.h)  # a Solution, a jtraj.online.Plan
     else:
-        raise ValueError(f"solution must be a jtraj.Solution or a mapping with q, qd, v, h (a loaded dataset), "
-                         f"got {type(solution).__name__}")
+        raise ValueError(f"solution must be a jtraj.Solution, a jtraj.online.Plan or a mapping with q, qd, v, h "
+                         f"(a loaded dataset), got {type(solution).__name__}")
     if not isinstance(robot, Robot):
         raise ValueError(f"robot must be a jtraj.robots.Robot, got {type(robot).__name__}")
     q, qd, v, h = (np.asarray(x, dtype=float) for x in fields)
@@ -110,7 +110,8 @@ def resample(solution, robot, *, dt: float | None = None, num: int | None = None
 
     Args:
         solution: a :class:`jtraj.Solution` of the decoupled or coupled transcription,
-            single or batched.
+            single or batched; or anything with its arrays ``q``, ``qd``, ``v``, ``h``
+            (a :class:`jtraj.online.Plan`, a mapping such as a loaded dataset).
         robot: the robot it was solved for.
         dt: grid step [s] (single solutions): t = 0, dt, 2 dt, ... below T, then T itself,
             so the last step may be shorter than dt.

@@ -283,13 +283,14 @@ def test_query_outside_the_joint_box_names_the_option(tmp_path):
 def test_query_writes_strict_json_and_reads_degrees(plan_model, tmp_path, capsys):
     path, data = plan_model
     qs, qg = data["q_start"][0], data["q_goal"][0]
-    out = tmp_path / "q.json"
+    out, png = tmp_path / "q.json", tmp_path / "q.png"
     rc = cli.main(["query", "--model", path, "--start", ",".join(map(str, np.rad2deg(qs))),
-                   "--goal", ",".join(map(str, np.rad2deg(qg))), "--deg", "--json", str(out)])
+                   "--goal", ",".join(map(str, np.rad2deg(qg))), "--deg", "--json", str(out), "--plot", str(png)])
     assert rc == 0, capsys.readouterr().err
     d = _strict_json(out)
     np.testing.assert_allclose(d["q"][0], qs, atol=1e-12)  # the plan starts at the start, in radians
     assert len(d["q"]) == 11 and isinstance(d["feasible"], bool)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"wrote {png}" in capsys.readouterr().out
 
 
 def test_query_json_has_null_where_the_plan_is_not_finite(plan_model, tmp_path, monkeypatch, capsys):
@@ -350,10 +351,18 @@ def test_query_refine_exit_code_and_json(plan_model, tmp_path, capsys):
 
     i = next(i for i in range(len(data["q_start"])) if fits(i))
     qs, qg = data["q_start"][i], data["q_goal"][i]
-    out = tmp_path / "r.json"
+    out, png = tmp_path / "r.json", tmp_path / "r.png"
     rc = cli.main(["query", "--model", path, "--start", ",".join(map(str, qs)), "--goal", ",".join(map(str, qg)),
-                   "--refine", "--N", "10", "--json", str(out)])
+                   "--refine", "--N", "10", "--json", str(out), "--plot", str(png)])
     text = capsys.readouterr().out
     d = _strict_json(out)
     assert d["refined_N"] == 10 and "refined (primal warm start, N = 10)" in text
     assert rc == (0 if d["refined_converged"] else 1)
+    # the refined trajectory: N periods summing to its T, from the start (to the goal where converged)
+    h, q = np.asarray(d["refined_h"]), np.asarray(d["refined_q"])
+    assert h.shape == (10,) and q.shape == (11, 3) and np.shape(d["refined_tau"]) == (10, 3)
+    np.testing.assert_allclose(h.sum(), d["refined_T"], rtol=1e-12)
+    np.testing.assert_allclose(q[0], qs, atol=1e-12)
+    if d["refined_converged"]:
+        np.testing.assert_allclose(q[-1], qg, atol=1e-6)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"wrote {png}" in text

@@ -136,7 +136,36 @@ def test_figure_units_and_one_legend_entry_per_kind():
             assert texts.count(kind) == 1, (title, texts)
     # the guess's duration is drawn beside the optimum's
     h_texts = [t.get_text() for t in axes["sampling periods"].get_legend().get_texts()]
-    assert any(t.startswith("guess (T = ") for t in h_texts) and any(t.startswith("optimum (T = 0.600") for t in h_texts)
+    assert any(t.startswith("cycloidal guess (T = ") for t in h_texts)
+    assert any(t.startswith("optimum (T = 0.600") for t in h_texts)
+
+
+def test_figure_of_two_trajectories_names_both():
+    """plot_solution(guess=<a trajectory>) draws that one dashed beside the first under the
+    given names (jtraj query --plot: a refined optimum and its plan); the efforts between
+    the samples are drawn for any object holding the arrays."""
+    from jtraj.plotting import plot_solution
+
+    robot = robots.get("serial3")
+    q0, q1 = jnp.asarray([0.0, 0.5, 0.5]), jnp.asarray([0.6, 0.2, 0.9])
+    problem = jtraj.Problem(robot, q0, q1, N=6, validate=False)  # (periods beyond h_max: drawn, not solved)
+    v = jnp.concatenate([jnp.tile(q1 - q0, (3, 1)), jnp.tile(q0 - q1, (3, 1))])
+    first = _recursion_solution(problem, v / 0.36, jnp.full(6, 0.2))  # T = 1.2 s
+    second = _recursion_solution(problem, v / 0.81, jnp.full(6, 0.3))  # T = 1.8 s
+    fig = plot_solution(problem, first, guess=second, label="refined optimum", guess_label="plan")
+    axes = {ax.get_title(): ax for ax in fig.axes}
+    texts = [t.get_text() for t in axes["joint positions"].get_legend().get_texts()]
+    assert texts.count("refined optimum") == 1 and texts.count("plan") == 1 and "cycloidal guess" not in texts
+    periods = axes["sampling periods"]
+    h_texts = [t.get_text() for t in periods.get_legend().get_texts()]
+    assert "refined optimum (T = 1.200 s)" in h_texts and "plan (T = 1.800 s)" in h_texts
+    drawn = [np.asarray(line.get_ydata(), float) for line in periods.get_lines()[:2]]
+    np.testing.assert_allclose(drawn[0], first.h)
+    np.testing.assert_allclose(drawn[1], second.h)
+    assert "efforts at the samples (steps), between them (thin)" in axes
+    fig = plot_solution(problem, first, guess=False, label="plan")
+    texts = [t.get_text() for t in fig.axes[1].get_legend().get_texts()]
+    assert "plan" in texts and "optimum" not in texts and "cycloidal guess" not in texts
 
 
 class _FakeSolution(typing.NamedTuple):

@@ -57,6 +57,9 @@ def configure(parser):
                              "a cold start) or with jtraj.solve's full warm start (estimated multipliers, high "
                              "penalty)")
     parser.add_argument("--json", help="write the result (trajectory included) as JSON")
+    parser.add_argument("--plot", metavar="PATH",
+                        help="write the figures (PNG, PDF, SVG by extension): the plan, or with --refine the "
+                             "refined optimum with the plan dashed beside it")
 
 
 def _vector(text, name, n, deg):
@@ -78,6 +81,7 @@ def run(args) -> int:
     check_input_file(args.model, "--model")
     check_input_file(getattr(args, "periods", None), "--periods")
     check_output_file(args.json, "--json")
+    check_output_file(getattr(args, "plot", None), "--plot")
     refine_opts = [f"--{k.replace('_', '-')}" for k, default in (("N", None), ("weights", None), ("method", "auto"),
                                                               ("inequalities", "phr"))
                    if getattr(args, k, default) != default]
@@ -130,4 +134,36 @@ def run(args) -> int:
     if args.json:
         with open(args.json, "w") as f:
             json.dump(finite_json(out), f, indent=2, allow_nan=False)
+    if getattr(args, "plot", None):
+        _plot(planner, q_start, q_goal, out, args.plot)
+        print(f"wrote {args.plot}")
     return 1 if args.refine and not out["refined_converged"] else 0
+
+
+def _plot(planner, q_start, q_goal, out, path):
+    """The plan's figures (:func:`jtraj.plotting.plot_solution`), or the refined optimum's
+    with the plan dashed beside it."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    import jtraj
+    from jtraj.plotting import plot_solution, save
+
+    def trajectory(prefix):
+        return SimpleNamespace(**{k: np.asarray(out[prefix + k], float) for k in ("q", "qd", "v", "tau", "h")})
+
+    plan = trajectory("")
+    title = (f"{planner.robot.name}: plan "
+             f"T = {out['T']:.3f} s, cost {out['cost']:.5g}, feasible = {out['feasible']}"
+             + (", OUT OF DISTRIBUTION" if out["out_of_distribution"] else ""))
+    if "refined_q" in out:
+        problem = jtraj.Problem(planner.robot, q_start, q_goal, N=len(out["refined_h"]), validate=False)
+        title += (f"; refined ({'converged' if out['refined_converged'] else 'NOT converged'}) T = {out['refined_T']:.3f} s, cost {out['refined_cost']:.5g}"
+                  + (f", the plan's gap {100 * out['gap']:.2f} %" if "gap" in out else ""))
+        fig = plot_solution(problem, trajectory("refined_"), guess=plan, label="refined optimum", guess_label="plan")
+    else:
+        problem = jtraj.Problem(planner.robot, q_start, q_goal, N=len(out["h"]), validate=False)
+        fig = plot_solution(problem, plan, guess=False, label="plan")
+    fig.suptitle(title)
+    save(fig, path)
