@@ -22,7 +22,8 @@ Printed and written (``--json``):
   again in a child process with JAX's asynchronous CPU dispatch off
   (``jax_cpu_enable_async_dispatch=False``, set before JAX's first computation): with it
   on, XLA's CPU client hands every program of more than about a thousand flops to a
-  worker thread and the caller waits for it, a thread switch per call
+  worker thread and the caller waits for it, and each of the program's kernels passes
+  through its thread pool (the anfis guide)
   (``--sync-dispatch`` runs the whole benchmark so; ``--latency-only`` stops after the
   latencies; ``--batch-only`` runs the batch measurement alone);
 * feasibility (each plan re-verified independently, NumPy recursion and Pinocchio's
