@@ -195,10 +195,13 @@ class Planner:
     ``model``: of mapping ``plan`` (open loop), or ``nefotc`` together with ``periods``,
     a ``nefumop`` model (or path) trained on the same dataset (closed loop; see the
     module doc). ``robot`` defaults to the one named in the model's metadata, with the
-    dataset's ``h_max`` where the metadata records it; a robot of another number of
-    joints than the model's is refused. ``weights`` (a :class:`jtraj.Weights`) default
+    dataset's ``h_max`` where the metadata records it; a robot of another name or number
+    of joints than the model's is refused (the same robot with other limits is taken: the
+    repair keeps the plans within them). ``weights`` (a :class:`jtraj.Weights`) default
     to the dataset's (the model's metadata ``"weights"``), else ``Weights()``: the cost
-    the plan reports and the repair's time scaling minimises. ``correct``: apply the
+    the plan reports and the repair's time scaling minimises; weights other than the ones
+    the model records are refused, since its predictions are optima of those
+    (:meth:`query`'s ``weights=`` refines a plan for other weights). ``correct``: apply the
     feasibility repair (default) or return the raw prediction; ``switch``, ``effort``:
     with the repair's switching-profile candidates (default) and its least-effort step
     candidates (off by default: on held-out serial3 pairs they lower no plan's cost once
@@ -280,10 +283,18 @@ class Planner:
                 if d != m.n_inputs:
                     raise ValueError(f"the {m.metadata['mapping']} model has {m.n_inputs} inputs, the robot's "
                                      f"state gives {d}")
-        if weights is None:
-            import jtraj
+        if meta.get("robot") and getattr(robot, "name", meta["robot"]) != meta["robot"]:
+            raise ValueError(f"robot: the model was trained on optima of robot {meta['robot']!r}, got robot "
+                             f"{robot.name!r}")
+        import jtraj
 
-            weights = jtraj.Weights.parse(meta["weights"]) if meta.get("weights") else jtraj.Weights()
+        trained = jtraj.Weights.parse(meta["weights"]) if meta.get("weights") else None
+        if weights is None:
+            weights = jtraj.Weights() if trained is None else trained
+        elif trained is not None and not _same_weights(weights, trained):
+            raise ValueError(f"weights: the model was trained on optima for weights {meta['weights']!r}, which "
+                             f"its plans predict; got other weights. Leave weights=None, or refine a plan for "
+                             f"other weights with Planner.query(..., refine=True, weights=...)")
         self.weights = weights
         self.tol, self.goal_tol, self.correct, self.effort = float(tol), float(goal_tol), correct, effort
         self.switch, self.projection, self.trapezoid = switch, projection, trapezoid
@@ -562,6 +573,17 @@ class Planner:
             if same_cost and N == self.N and out["refined_converged"]:
                 out["gap"] = (out["cost"] - out["refined_cost"]) / abs(out["refined_cost"])
         return out
+
+
+def _same_weights(a, b) -> bool:
+    """Whether two :class:`jtraj.Weights` give the same cost."""
+    def same(x, y):
+        if x is None or y is None:
+            return x is None and y is None
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        return x.shape == y.shape and bool(np.allclose(x, y, rtol=1e-12, atol=0.0))
+
+    return all(same(getattr(a, k), getattr(b, k)) for k in ("time", "energy", "kinetic", "singularity", "U", "Q"))
 
 
 def _resampled(v, h, N: int, limits):

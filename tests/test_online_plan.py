@@ -590,6 +590,14 @@ def test_planner_refuses_bad_input(planner_and_data):
         planner.plan(np.zeros((2, 2, 3)), np.zeros((2, 2, 3)))
     with pytest.raises(ValueError, match="do not match robot"):
         Planner(planner.model, robots.get("ibm7535"))
+    # a robot of the same shape but another name, weights other than the model's
+    with pytest.raises(ValueError, match="robot: the model was trained on optima of robot 'serial3'"):
+        Planner(planner.model, robots.get("serial3_vertical"))
+    recorded = planner.model.with_metadata(weights="time=1,energy=0.1")
+    with pytest.raises(ValueError, match="weights: the model was trained on optima for weights 'time=1,energy=0.1'"):
+        Planner(recorded, planner.robot, weights=Weights(time=1.0, energy=0.5))
+    assert float(Planner(recorded, planner.robot, weights=Weights(time=1.0, energy=0.1)).weights.energy) == 0.1
+    assert float(Planner(recorded, planner.robot).weights.energy) == 0.1
     with pytest.raises(ValueError, match="correct must be"):
         Planner(planner.model, correct="yes")
     with pytest.raises(ValueError, match="effort must be"):
