@@ -224,9 +224,9 @@ def _plot_path_3d(problem, ax, sol, p, guess, instants, fig, label, guess_label)
         pg = _tip_path(robot, guess["q"])
         ax.plot(pg[:, 0], pg[:, 1], pg[:, 2], label=guess_label, **_GUESS)
     ax.plot(p[:, 0], p[:, 1], p[:, 2], ".-", color="C3", label=label, ms=3, **_OPT)
-    for q, marker, label in ((problem.q_start, "s", "start"), (problem.q_goal, "*", "goal")):
+    for q, marker, name in ((problem.q_start, "s", "start"), (problem.q_goal, "*", "goal")):
         pt = _np(robot.forward_kinematics(q))
-        ax.plot([pt[0]], [pt[1]], [pt[2]], marker, color="k", ms=8, label=label)
+        ax.plot([pt[0]], [pt[1]], [pt[2]], marker, color="k", ms=8, label=name)
     for i, vp in enumerate(problem.via_points):
         pt = _np(vp.point)
         ax.plot([pt[0]], [pt[1]], [pt[2]], "x", color="C2", ms=9, mew=2, label="via point" if i == 0 else None)

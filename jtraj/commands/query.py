@@ -154,12 +154,12 @@ def _plot(planner, q_start, q_goal, out, path):
         return SimpleNamespace(**{k: np.asarray(out[prefix + k], float) for k in ("q", "qd", "v", "tau", "h")})
 
     plan = trajectory("")
-    title = (f"{planner.robot.name}: plan "
-             f"T = {out['T']:.3f} s, cost {out['cost']:.5g}, feasible = {out['feasible']}"
+    title = (f"{planner.robot.name}: plan T = {out['T']:.3f} s, cost {out['cost']:.5g}, feasible = {out['feasible']}"
              + (", OUT OF DISTRIBUTION" if out["out_of_distribution"] else ""))
     if "refined_q" in out:
         problem = jtraj.Problem(planner.robot, q_start, q_goal, N=len(out["refined_h"]), validate=False)
-        title += (f"; refined ({'converged' if out['refined_converged'] else 'NOT converged'}) T = {out['refined_T']:.3f} s, cost {out['refined_cost']:.5g}"
+        status = "converged" if out["refined_converged"] else "NOT converged"
+        title += (f"; refined ({status}) T = {out['refined_T']:.3f} s, cost {out['refined_cost']:.5g}"
                   + (f", the plan's gap {100 * out['gap']:.2f} %" if "gap" in out else ""))
         fig = plot_solution(problem, trajectory("refined_"), guess=plan, label="refined optimum", guess_label="plan")
     else:
