@@ -14,7 +14,9 @@ interior-point method (:mod:`jtraj.solver.ipm`, the solver's default) runs
 
 each to the solver's default stopping test, then each continued from its final state
 to a tight one (IPOPT's overall scaled error at most 1e-9, at most 400 more iterations).
-Printed per pair: the iterations of both runs and of both continuations; the relative
+Printed per pair: the iterations of both runs and of both continuations; for each run,
+the iteration from which its cost stays within 1e-3 (relative, the criterion of
+``bench_online.py``'s "same optimum") of the cost it ends at; the relative
 cost difference of the two tight optima and their distance in the scaled unknowns
 (accelerations and periods apart; the same optimum where every component agrees within
 1e-5); the distances of the cycloidal guess and of the plan to the cold start's tight
@@ -79,10 +81,20 @@ def main(argv=None):
     opts = core.resolve_method(solver_options(jtraj.Auto(), None), "decoupled", robot, False)
     default_tol, tight_tol = core.ip_tolerances(opts), ipm.Tolerances(1e-9)
 
-    @eqx.filter_jit
+    step = eqx.filter_jit(lambda nlp, st: ipm.step(nlp, st, default_tol))
+    start_state = eqx.filter_jit(ipm.init)
+
     def run(nlp, z, mu0, push, shift0):
-        m = ipm.InteriorPoint(max_iter=opts.ip_max_iter, tol=default_tol)
-        return loop.iterate(m, nlp, ipm.init(nlp, z, mu0, push, shift0))
+        """The run (the solver's iterations, one jitted step at a time) and the iteration
+        from which its cost stays within 1e-3 of its final cost."""
+        st = start_state(nlp, z, mu0, push, shift0)
+        costs = [float(cost(nlp, st.z))]
+        while not bool(ipm.finished(st, opts.ip_max_iter)):
+            st = step(nlp, st)
+            costs.append(float(cost(nlp, st.z)))
+        final = costs[-1]
+        settled = [abs(c - final) <= 1e-3 * abs(final) for c in costs]
+        return st, next(k for k in range(len(costs)) if all(settled[k:]))
 
     @eqx.filter_jit
     def tighten(nlp, st):
@@ -101,8 +113,8 @@ def main(argv=None):
         nlp, z_cyc = start.nlp, start.state.z
         p = planner.plan(QS[i], QG[i])
         z_plan = nlp.layout.pack(jnp.asarray(p.v), jnp.asarray(p.h))
-        cold = run(nlp, z_cyc, opts.ip_mu_init, opts.ip_bound_push, opts.ip_first_shift)
-        warm = run(nlp, z_plan, WARM_IPM["mu_init"], WARM_IPM["bound_push"], WARM_IPM["first_shift"])
+        cold, cold_settled = run(nlp, z_cyc, opts.ip_mu_init, opts.ip_bound_push, opts.ip_first_shift)
+        warm, warm_settled = run(nlp, z_plan, WARM_IPM["mu_init"], WARM_IPM["bound_push"], WARM_IPM["first_shift"])
         ct, wt = tighten(nlp, cold), tighten(nlp, warm)
 
         def dist(a, b):
@@ -112,6 +124,7 @@ def main(argv=None):
         lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
         fc, fw = float(cost(nlp, ct.z)), float(cost(nlp, wt.z))
         r = dict(pair=int(ids[i]), cold_iterations=int(cold.it), warm_iterations=int(warm.it),
+                 cost_settled=[cold_settled, warm_settled],
                  tight_iterations=[int(ct.it), int(wt.it)], tight_solved=[bool(ct.done), bool(wt.done)],
                  same_optimum=bool(np.max(np.abs(np.asarray(ct.z - wt.z))) <= SAME),
                  cost_difference=(fw - fc) / abs(fc), optima_distance=dist(wt.z, ct.z),
@@ -121,7 +134,8 @@ def main(argv=None):
                  active_bounds=int(jnp.sum((ct.zu > hi - ct.z) & jnp.isfinite(hi))
                                    + jnp.sum((ct.zl > ct.z - lo) & jnp.isfinite(lo))))
         rows.append(r)
-        print(f"pair {r['pair']:4d}: iterations cold {r['cold_iterations']:3d}, plan {r['warm_iterations']:3d}; "
+        print(f"pair {r['pair']:4d}: iterations cold {r['cold_iterations']:3d}, plan {r['warm_iterations']:3d} "
+              f"(costs settled from {cold_settled} and {warm_settled}); "
               f"tight +{r['tight_iterations'][0]}/+{r['tight_iterations'][1]}; "
               + ("one optimum" if r["same_optimum"] else
                  f"two optima, cost {r['cost_difference']:+.1e}, apart {r['optima_distance'][0]:.2f} (acc.) / "
@@ -141,6 +155,13 @@ def main(argv=None):
                                     float(max(r["optima_distance"][1] for r in two))] if two else None,
         plan_over_cycloid_distance_median=float(np.median(ratio)),
         warm_over_cold_iterations_median=float(np.median([r["warm_iterations"] / r["cold_iterations"] for r in rows])),
+        # where the runs' costs settle (within 1e-3 of their final costs), over the cold run's iterations
+        cold_settled_over_cold_iterations_median=float(np.median([r["cost_settled"][0] / r["cold_iterations"]
+                                                                  for r in rows])),
+        warm_settled_over_cold_iterations_median=float(np.median([r["cost_settled"][1] / r["cold_iterations"]
+                                                                  for r in rows])),
+        warm_settled_over_cold_settled_median=float(np.median([r["cost_settled"][1] / max(r["cost_settled"][0], 1)
+                                                               for r in rows])),
         active_inequalities=[int(min(r["active_inequalities"] for r in rows)),
                              int(max(r["active_inequalities"] for r in rows))],
         active_bounds=[int(min(r["active_bounds"] for r in rows)), int(max(r["active_bounds"] for r in rows))],
@@ -153,7 +174,10 @@ def main(argv=None):
              if two else "")
           + f"; the plan's distance to the cold optimum / the cycloid's: median "
           f"{summary['plan_over_cycloid_distance_median']:.2f}; iterations from the plan / cold: median "
-          f"{summary['warm_over_cold_iterations_median']:.2f}; active at the optimum: "
+          f"{summary['warm_over_cold_iterations_median']:.2f}; costs settled within 1e-3 (over the cold run's "
+          f"iterations, medians): cold {summary['cold_settled_over_cold_iterations_median']:.2f}, from the plan "
+          f"{summary['warm_settled_over_cold_iterations_median']:.2f} (over the cold run's settling: "
+          f"{summary['warm_settled_over_cold_settled_median']:.2f}); active at the optimum: "
           f"{summary['active_inequalities'][0]}-{summary['active_inequalities'][1]} inequalities, "
           f"{summary['active_bounds'][0]}-{summary['active_bounds'][1]} bounds")
     if args.json:
