@@ -239,6 +239,7 @@ def _strict_json(path):
     (["--start", "0,30,30", "--goal", "10,25,30"], "add --deg"),  # degrees without --deg
     (["--start", "0,0.5", "--goal", "0.2,0.4,0.5"], "--start must have 3 values"),
     (["--start", "0,0.5,0.5", "--goal", "0.2,0.4,0.5", "--N", "12"], "give --refine"),
+    (["--start", "0,0.5,0.5", "--goal", "0.2,0.4,0.5", "--no-compare"], "--no-compare set"),
     (["--start", "0,0.5,0.5", "--goal", "0.2,0.4,0.5", "--refine", "--N", "1"], "--N must be"),
     (["--start", "0,0.5,0.5", "--goal", "0.2,0.4,0.5", "--refine", "--weights", "speed=1"], "--weights"),
 ])
@@ -366,3 +367,10 @@ def test_query_refine_exit_code_and_json(plan_model, tmp_path, capsys):
     if d["refined_converged"]:
         np.testing.assert_allclose(q[-1], qg, atol=1e-6)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"wrote {png}" in text
+    # without the comparison solve: the same refined solve, no cycloidal entries
+    rc2 = cli.main(["query", "--model", path, "--start", ",".join(map(str, qs)), "--goal", ",".join(map(str, qg)),
+                    "--refine", "--N", "10", "--no-compare", "--json", str(out)])
+    alone = _strict_json(out)
+    assert rc2 == rc and "cycloidal start" not in capsys.readouterr().out
+    assert not any(k.startswith("cycloidal_") for k in alone)
+    assert alone["refined_iterations"] == d["refined_iterations"] and alone["refined_h"] == d["refined_h"]

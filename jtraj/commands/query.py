@@ -56,6 +56,9 @@ def configure(parser):
                         help="refine from the plan's primal point only (default; multipliers and penalty as in "
                              "a cold start) or with jtraj.solve's full warm start (estimated multipliers, high "
                              "penalty)")
+    parser.add_argument("--no-compare", action="store_true",
+                        help="with --refine: skip the comparison solve from the cycloidal guess (the refined "
+                             "solve then pays the compilation in a fresh process)")
     parser.add_argument("--json", help="write the result (trajectory included) as JSON")
     parser.add_argument("--plot", metavar="PATH",
                         help="write the figures (PNG, PDF, SVG by extension): the plan, or with --refine the "
@@ -83,7 +86,7 @@ def run(args) -> int:
     check_output_file(args.json, "--json")
     check_output_file(getattr(args, "plot", None), "--plot")
     refine_opts = [f"--{k.replace('_', '-')}" for k, default in (("N", None), ("weights", None), ("method", "auto"),
-                                                              ("inequalities", "phr"))
+                                                              ("inequalities", "phr"), ("no_compare", False))
                    if getattr(args, k, default) != default]
     if refine_opts and not args.refine:
         raise ValueError(f"{', '.join(refine_opts)} set(s) the refinement: give --refine too")
@@ -110,7 +113,8 @@ def run(args) -> int:
         if solver_overrides(args) != {"method": "auto"}:
             solver = solver_from_args(args)
     out = planner.query(q_start, q_goal, refine=args.refine, warm=getattr(args, "warm", "primal"),
-                        weights=weights, solver=solver, N=getattr(args, "N", None))
+                        weights=weights, solver=solver, N=getattr(args, "N", None),
+                        compare=not getattr(args, "no_compare", False))
     cov = out["coverage"]
     print(f"plan: T = {out['T']:.4f} s, cost {out['cost']:.6g}, feasible = {out['feasible']} (worst violation "
           f"{out['violation']:.3g}, goal error {out['goal_error']:.3g} rad"
@@ -127,9 +131,10 @@ def run(args) -> int:
                  else "in distribution"))
     if args.refine:
         print(f"refined ({out['refined_warm']} warm start, N = {out['refined_N']}): {out['refined_status']} in "
-              f"{out['refined_iterations']} iterations, {out['refined_seconds']:.2f} s "
-              f"(cycloidal start: {out['cycloidal_iterations']} iterations, "
-              f"{out['cycloidal_seconds']:.2f} s, compilation included when not cached)"
+              f"{out['refined_iterations']} iterations, {out['refined_seconds']:.2f} s"
+              + (f" (cycloidal start: {out['cycloidal_iterations']} iterations, {out['cycloidal_seconds']:.2f} s, "
+                 f"compilation included when not cached)" if "cycloidal_iterations" in out else
+                 " (compilation included when not cached)")
               + (f"; plan's cost gap {100 * out['gap']:.2f} %" if "gap" in out else ""))
     if args.json:
         with open(args.json, "w") as f:
