@@ -285,7 +285,7 @@ class Planner:
                                      f"state gives {d}")
         if meta.get("robot") and getattr(robot, "name", meta["robot"]) != meta["robot"]:
             raise ValueError(f"robot: the model was trained on optima of robot {meta['robot']!r}, got robot "
-                             f"{robot.name!r}")
+                             f"{robot.name!r} (a URDF arm is named by jtraj.robots.from_urdf(..., name=...))")
         import jtraj
 
         trained = jtraj.Weights.parse(meta["weights"]) if meta.get("weights") else None
