@@ -16,7 +16,11 @@ each to the solver's default stopping test, then each continued from its final s
 to a tight one (IPOPT's overall scaled error at most 1e-9, at most 400 more iterations).
 Printed per pair: the iterations of both runs and of both continuations; for each run,
 the iteration from which its cost stays within 1e-3 (relative, the criterion of
-``bench_online.py``'s "same optimum") of the cost it ends at; the relative
+``bench_online.py``'s "same optimum") of the cost it ends at; the iterations of a third
+run with ``WARM_IPM``, from an oracle plan: the cold start's tight optimum's own motion
+sampled on N equal periods of its duration (its accelerations from the motion's
+velocities at the new samples), which tells what a model that predicted the optimal
+motion exactly, but not its periods, would save; the relative
 cost difference of the two tight optima and their distance in the scaled unknowns
 (accelerations and periods apart; the same optimum where every component agrees within
 1e-5); the distances of the cycloidal guess and of the plan to the cold start's tight
@@ -105,6 +109,18 @@ def main(argv=None):
     def cost(nlp, z):
         return ipm._parts(nlp, z).f
 
+    def on_equal_periods(v, h, qd0):
+        """The motion of (v, h) from the velocity qd0, sampled on N equal periods of its
+        duration: (v, h) of the constant accelerations between its velocities there."""
+        v, h = np.asarray(v), np.asarray(h)
+        t = np.concatenate([[0.0], np.cumsum(h)])
+        qd = np.asarray(qd0)[None] + np.concatenate([np.zeros((1, n)), np.cumsum(h[:, None] * v, axis=0)])
+        tn = np.linspace(0.0, t[-1], N + 1)
+        k = np.clip(np.searchsorted(t, tn, side="right") - 1, 0, N - 1)
+        qd_new = qd[k] + v[k] * (tn - t[k])[:, None]
+        h_new = np.full(N, t[-1] / N)
+        return jnp.asarray((qd_new[1:] - qd_new[:-1]) / h_new[:, None]), jnp.asarray(h_new)
+
     rows, t0 = [], time.perf_counter()
     nv = N * n
     for i in range(len(ids)):
@@ -116,6 +132,8 @@ def main(argv=None):
         cold, cold_settled = run(nlp, z_cyc, opts.ip_mu_init, opts.ip_bound_push, opts.ip_first_shift)
         warm, warm_settled = run(nlp, z_plan, WARM_IPM["mu_init"], WARM_IPM["bound_push"], WARM_IPM["first_shift"])
         ct, wt = tighten(nlp, cold), tighten(nlp, warm)
+        oracle, _ = run(nlp, nlp.layout.pack(*on_equal_periods(*nlp.layout.unpack(ct.z), prob.qd_start)),
+                        WARM_IPM["mu_init"], WARM_IPM["bound_push"], WARM_IPM["first_shift"])
 
         def dist(a, b):
             d = np.asarray(a - b)
@@ -124,7 +142,9 @@ def main(argv=None):
         lo, hi = nlp.layout.z_lo, nlp.layout.z_hi
         fc, fw = float(cost(nlp, ct.z)), float(cost(nlp, wt.z))
         r = dict(pair=int(ids[i]), cold_iterations=int(cold.it), warm_iterations=int(warm.it),
-                 cost_settled=[cold_settled, warm_settled],
+                 cost_settled=[cold_settled, warm_settled], oracle_iterations=int(oracle.it),
+                 oracle_solved=bool(oracle.done & ~oracle.failed),
+                 oracle_cost_difference=(float(cost(nlp, oracle.z)) - fc) / abs(fc),
                  tight_iterations=[int(ct.it), int(wt.it)], tight_solved=[bool(ct.done), bool(wt.done)],
                  same_optimum=bool(np.max(np.abs(np.asarray(ct.z - wt.z))) <= SAME),
                  cost_difference=(fw - fc) / abs(fc), optima_distance=dist(wt.z, ct.z),
@@ -135,7 +155,7 @@ def main(argv=None):
                                    + jnp.sum((ct.zl > ct.z - lo) & jnp.isfinite(lo))))
         rows.append(r)
         print(f"pair {r['pair']:4d}: iterations cold {r['cold_iterations']:3d}, plan {r['warm_iterations']:3d} "
-              f"(costs settled from {cold_settled} and {warm_settled}); "
+              f"(costs settled from {cold_settled} and {warm_settled}), oracle plan {r['oracle_iterations']}; "
               f"tight +{r['tight_iterations'][0]}/+{r['tight_iterations'][1]}; "
               + ("one optimum" if r["same_optimum"] else
                  f"two optima, cost {r['cost_difference']:+.1e}, apart {r['optima_distance'][0]:.2f} (acc.) / "
@@ -160,6 +180,9 @@ def main(argv=None):
                                                                   for r in rows])),
         warm_settled_over_cold_iterations_median=float(np.median([r["cost_settled"][1] / r["cold_iterations"]
                                                                   for r in rows])),
+        oracle_over_cold_iterations_median=float(np.median([r["oracle_iterations"] / r["cold_iterations"]
+                                                            for r in rows])),
+        oracle_same_cost=int(sum(r["oracle_solved"] and abs(r["oracle_cost_difference"]) <= 1e-3 for r in rows)),
         warm_settled_over_cold_settled_median=float(np.median([r["cost_settled"][1] / max(r["cost_settled"][0], 1)
                                                                for r in rows])),
         active_inequalities=[int(min(r["active_inequalities"] for r in rows)),
@@ -177,7 +200,9 @@ def main(argv=None):
           f"{summary['warm_over_cold_iterations_median']:.2f}; costs settled within 1e-3 (over the cold run's "
           f"iterations, medians): cold {summary['cold_settled_over_cold_iterations_median']:.2f}, from the plan "
           f"{summary['warm_settled_over_cold_iterations_median']:.2f} (over the cold run's settling: "
-          f"{summary['warm_settled_over_cold_settled_median']:.2f}); active at the optimum: "
+          f"{summary['warm_settled_over_cold_settled_median']:.2f}); from the oracle plan / cold: median "
+          f"{summary['oracle_over_cold_iterations_median']:.2f} ({summary['oracle_same_cost']} at the cold "
+          f"optimum's cost within 1e-3); active at the optimum: "
           f"{summary['active_inequalities'][0]}-{summary['active_inequalities'][1]} inequalities, "
           f"{summary['active_bounds'][0]}-{summary['active_bounds'][1]} bounds")
     if args.json:
