@@ -261,6 +261,9 @@ def plot_solution(problem, solution, *, guess=True, title: str | None = None, la
     else:
         g = solution_arrays(guess)
         guess_label = guess_label or "guess"
+    for name, arrays in (("solution", sol), ("guess", g)):
+        if arrays is not None and not all(np.all(np.isfinite(x)) for x in arrays.values()):
+            raise ValueError(f"{name} holds non-finite values: there is no trajectory to draw")
     names = (label, guess_label)
     fig = Figure(figsize=(15, 8.5), layout="constrained")
     axs = fig.subplots(2, 3)

@@ -306,12 +306,15 @@ def test_query_json_has_null_where_the_plan_is_not_finite(plan_model, tmp_path, 
         return out
 
     monkeypatch.setattr(online.Planner, "query", nan_query)
-    out = tmp_path / "q.json"
+    out, png = tmp_path / "q.json", tmp_path / "q.png"
     rc = cli.main(["query", "--model", plan_model[0], "--start", "0,0.5,0.5", "--goal", "0.2,0.4,0.5",
-                   "--json", str(out)])
-    assert rc == 0 and "goal error nan" in capsys.readouterr().out
+                   "--json", str(out), "--plot", str(png)])
+    printed = capsys.readouterr()
+    assert rc == 0 and "goal error nan" in printed.out
     d = _strict_json(out)
     assert d["goal_error"] is None and d["T"] is None and d["q"][0] == [None] * 3
+    # no figure of a trajectory that is not one, and the report says so (the JSON is kept)
+    assert not png.exists() and f"no figure written to {png}" in printed.err
 
 
 def test_planner_checks_the_start_and_goal_and_resamples_for_another_N(plan_model):

@@ -166,6 +166,11 @@ def test_figure_of_two_trajectories_names_both():
     fig = plot_solution(problem, first, guess=False, label="plan")
     texts = [t.get_text() for t in fig.axes[1].get_legend().get_texts()]
     assert "plan" in texts and "optimum" not in texts and "cycloidal guess" not in texts
+    broken = _Trajectory({**first, "q": first["q"].at[3, 0].set(jnp.nan)})
+    with pytest.raises(ValueError, match="guess holds non-finite values"):
+        plot_solution(problem, first, guess=broken)
+    with pytest.raises(ValueError, match="solution holds non-finite values"):
+        plot_solution(problem, broken, guess=False)
 
 
 class _FakeSolution(typing.NamedTuple):

@@ -76,6 +76,7 @@ def _vector(text, name, n, deg):
 
 def run(args) -> int:
     import json
+    import sys
 
     from jtraj.commands import check_input_file, check_output_file
     from jtraj.commands.solve import finite_json, check_joint_values
@@ -140,14 +141,18 @@ def run(args) -> int:
         with open(args.json, "w") as f:
             json.dump(finite_json(out), f, indent=2, allow_nan=False)
     if getattr(args, "plot", None):
-        _plot(planner, q_start, q_goal, out, args.plot)
-        print(f"wrote {args.plot}")
+        if _plot(planner, q_start, q_goal, out, args.plot):
+            print(f"wrote {args.plot}")
+        else:
+            print(f"no figure written to {args.plot}: neither the plan nor the refined solution holds a finite "
+                  f"trajectory", file=sys.stderr)
     return 1 if args.refine and not out["refined_converged"] else 0
 
 
-def _plot(planner, q_start, q_goal, out, path):
+def _plot(planner, q_start, q_goal, out, path) -> bool:
     """The plan's figures (:func:`jtraj.plotting.plot_solution`), or the refined optimum's
-    with the plan dashed beside it."""
+    with the plan dashed beside it; a trajectory with non-finite values is left out.
+    Whether a figure was written."""
     from types import SimpleNamespace
 
     import numpy as np
@@ -158,17 +163,28 @@ def _plot(planner, q_start, q_goal, out, path):
     def trajectory(prefix):
         return SimpleNamespace(**{k: np.asarray(out[prefix + k], float) for k in ("q", "qd", "v", "tau", "h")})
 
+    def finite(t):
+        return all(np.all(np.isfinite(getattr(t, k))) for k in ("q", "qd", "v", "tau", "h"))
+
     plan = trajectory("")
+    refined = trajectory("refined_") if "refined_q" in out else None
+    plan = plan if finite(plan) else None
+    refined = refined if refined is not None and finite(refined) else None
+    if plan is None and refined is None:
+        return False
     title = (f"{planner.robot.name}: plan T = {out['T']:.3f} s, cost {out['cost']:.5g}, feasible = {out['feasible']}"
              + (", OUT OF DISTRIBUTION" if out["out_of_distribution"] else ""))
     if "refined_q" in out:
-        problem = jtraj.Problem(planner.robot, q_start, q_goal, N=len(out["refined_h"]), validate=False)
         status = "converged" if out["refined_converged"] else "NOT converged"
         title += (f"; refined ({status}) T = {out['refined_T']:.3f} s, cost {out['refined_cost']:.5g}"
                   + (f", the plan's gap {100 * out['gap']:.2f} %" if "gap" in out else ""))
-        fig = plot_solution(problem, trajectory("refined_"), guess=plan, label="refined optimum", guess_label="plan")
+    first = refined if refined is not None else plan
+    problem = jtraj.Problem(planner.robot, q_start, q_goal, N=len(first.h), validate=False)
+    if refined is not None:
+        fig = plot_solution(problem, refined, guess=False if plan is None else plan, label="refined optimum",
+                            guess_label="plan")
     else:
-        problem = jtraj.Problem(planner.robot, q_start, q_goal, N=len(out["h"]), validate=False)
         fig = plot_solution(problem, plan, guess=False, label="plan")
     fig.suptitle(title)
     save(fig, path)
+    return True
