@@ -8,6 +8,7 @@ written and the bad-input paths.
 import json
 import math
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -30,6 +31,29 @@ def test_help_lists_commands(capsys):
     out = capsys.readouterr().out
     for opt in ("--start-q", "--goal-xy", "--deg", "--json", "--plot", "--transcription", "--via"):
         assert opt in out
+
+
+def test_solve_draws_no_figure_of_a_non_finite_solution(tmp_path, capsys, monkeypatch):
+    """A solution holding NaN (a failed solve's): the JSON is written, no figure, a line
+    on stderr says why, and the exit code is the status's."""
+    import equinox as eqx
+
+    import jtraj
+
+    real = jtraj.solve
+
+    def nan_solve(*a, **k):
+        sol = real(*a, **k)
+        return eqx.tree_at(lambda s: s.q, sol, sol.q * jnp.nan)
+
+    monkeypatch.setattr(jtraj, "solve", nan_solve)
+    out_json, out_png = tmp_path / "sol.json", tmp_path / "sol.png"
+    rc = cli.main(["solve", "--robot", "serial3", "--start-q", START, "--goal-q", GOAL, "--deg", "--N", "10",
+                   "--json", str(out_json), "--plot", str(out_png)])
+    captured = capsys.readouterr()
+    d = _strict_json(out_json)
+    assert rc in (0, 1) and rc == (0 if d["converged"] else 1) and d["q"][0] == [None] * 3
+    assert not out_png.exists() and f"no figure written to {out_png}" in captured.err
 
 
 @pytest.mark.slow

@@ -339,8 +339,13 @@ def run(args) -> int:
     if args.plot:
         from jtraj.plotting import plot_solution, save
 
-        title = (f"{args.robot}: {d['status_name']}, T = {d['T']:.3f} s, cost = {d['cost']:.4g} "
-                 f"(weights {args.weights})")
-        save(plot_solution(problem, sol, title=title), args.plot)
-        print(f"wrote {args.plot}")
+        if all(bool(jnp.all(jnp.isfinite(getattr(sol, k)))) for k in ("q", "qd", "v", "tau", "h")):
+            title = (f"{args.robot}: {d['status_name']}, T = {d['T']:.3f} s, cost = {d['cost']:.4g} "
+                     f"(weights {args.weights})")
+            save(plot_solution(problem, sol, title=title), args.plot)
+            print(f"wrote {args.plot}")
+        else:
+            import sys
+
+            print(f"no figure written to {args.plot}: the solution holds non-finite values", file=sys.stderr)
     return 0 if d["converged"] else 1
