@@ -31,7 +31,6 @@ import numpy as np
 from jaxtyping import Array
 
 from .robots import Robot
-from .solver import Solution
 from .transcription import integrate, recursion_step
 
 __all__ = ["Samples", "intersample_effort", "interval_times", "resample"]
@@ -70,7 +69,7 @@ def _arrays(solution, robot):
     """(q, qd, v, h) as float64/float NumPy arrays with a batch axis, checked."""
     if isinstance(solution, Mapping) and all(k in solution for k in ("q", "qd", "v", "h")):
         fields = tuple(solution[k] for k in ("q", "qd", "v", "h"))  # jtraj.dataset.load(path), say
-    elif isinstance(solution, Solution) or all(hasattr(solution, k) for k in ("q", "qd", "v", "h")):
+    elif all(hasattr(solution, k) for k in ("q", "qd", "v", "h")):
         fields = (solution.q, solution.qd, solution.v, solution.h)  # a Solution, a jtraj.online.Plan
     else:
         raise ValueError(f"solution must be a jtraj.Solution, a jtraj.online.Plan or a mapping with q, qd, v, h "
