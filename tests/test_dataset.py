@@ -575,12 +575,37 @@ def test_ray_real_solver_equals_single_process(tmp_path):
 def test_progress_bar_counts_pairs_inside_a_chunk(tmp_path, capsys, monkeypatch):
     """The bar moves while a chunk is solved (the solver's progress), not only when a
     chunk ends."""
+    monkeypatch.setattr("jtraj._progress.live", lambda: True)  # as in a terminal
     monkeypatch.setenv("JTRAJ_FAKE_SOLVER_PAIR_DELAY", "0.25")
     dataset.build(fake_spec(pairs=16, batch=8), str(tmp_path / "d"), progress=True, workers=1)
     err = capsys.readouterr().err.replace("\r", "\n")
     counts = [int(m) for m in re.findall(r"\| *(\d+)/16 ", err)]
     assert set(counts) - {0, 8, 16}, err  # a count inside a chunk
     assert counts[-1] == 16 and counts == sorted(counts), err  # never backwards
+
+
+def test_progress_bar_in_a_log_redraws_once_a_minute(tmp_path, capsys, monkeypatch):
+    """Where stderr is a file or a pipe (not watched live) the bar is drawn at its start
+    and its end, and in between once every jtraj._progress.LOG_INTERVAL seconds: here,
+    a build of a few seconds, never in between (a terminal redraws every second and at
+    every chunk: the tests above)."""
+    monkeypatch.setattr("jtraj._progress.live", lambda: False)
+    monkeypatch.setenv("JTRAJ_FAKE_SOLVER_PAIR_DELAY", "0.15")
+    dataset.build(fake_spec(pairs=16, batch=4), str(tmp_path / "d"), progress=True, workers=1)
+    err = capsys.readouterr().err.replace("\r", "\n")
+    counts = [int(m) for m in re.findall(r"\| *(\d+)/16 ", err)]
+    assert counts[0] == 0 and counts[-1] == 16 and len(counts) <= 3, err
+
+
+def test_training_progress_in_a_log_redraws_once_a_minute(capsys, monkeypatch):
+    """The ANFIS training bar likewise: in a log, not once per epoch."""
+    from jtraj import mappings
+
+    data = mappings.synthetic_dataset(P=24, N=10, seed=0)
+    monkeypatch.setattr("jtraj._progress.live", lambda: False)
+    hist = mappings.train_mapping(data, "nefotc", n_rules=4, epochs=60, progress=True)[2]
+    drawn = capsys.readouterr().err.replace("\r", "\n").count("/60 [")
+    assert hist.epochs >= 10 and 1 <= drawn <= 2, (hist.epochs, drawn)  # (a redraw per epoch: one each)
 
 
 def test_worker_progress_files(tmp_path, monkeypatch):
@@ -607,6 +632,7 @@ def test_progress_bar_says_compiling_until_the_first_chunk(tmp_path, capsys, mon
     import importlib
 
     build_mod = importlib.import_module("jtraj.dataset.build")  # (jtraj.dataset.build is the function)
+    monkeypatch.setattr("jtraj._progress.live", lambda: True)  # as in a terminal
     monkeypatch.setenv("JTRAJ_FAKE_SOLVER_DELAY", "1.5")
     dataset.build(fake_spec(pairs=16, batch=8), str(tmp_path / "d"), progress=True, workers=1)
     err = capsys.readouterr().err.replace("\r", "\n")

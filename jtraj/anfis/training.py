@@ -317,7 +317,9 @@ def train(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25,
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=int(epochs), desc="anfis", unit="epoch", leave=False)
+        from .. import _progress
+
+        bar = tqdm(total=int(epochs), desc="anfis", unit="epoch", leave=False, mininterval=_progress.interval(0.1))
     mu = 1e-3
     ss = float(step_size)
     moves: list[int] = []  # +1 error went down, -1 up (gradient step-size rule)
@@ -357,8 +359,8 @@ def train(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25,
         hist.train_rmse.append(tr)
         hist.val_rmse.append(va)
         if bar is not None:
-            bar.update(1)
-            bar.set_postfix(train=f"{tr:.3g}", val=f"{va:.3g}")
+            bar.set_postfix(train=f"{tr:.3g}", val=f"{va:.3g}", refresh=False)
+            bar.update(1)  # (redraws at most every mininterval)
         if va < best[0]:
             best = (va, ep, (c, s), th)
         if ep - best[1] >= patience:

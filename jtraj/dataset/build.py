@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import _progress
 from . import _local, sampling, store
 
 DEFAULT_SOLVER = "jtraj:solve_batch"
@@ -546,14 +547,14 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
                 log("jtraj dataset: warning: resuming with different software/hardware (" + ", ".join(changed)
                     + "); new chunks may differ in the last bits from an uninterrupted run")
         stats = {"pairs_done": pairs_done, "converged": conv_done, "new_pairs": 0, "new_chunks": 0}
-        bar = None
+        bar, live = None, _progress.live()
         if progress:
             from tqdm import tqdm
 
             # until the first chunk arrives the workers compile the solver (or load it from
             # the compilation cache): the bar says so and its clock runs (ticker)
             bar = tqdm(total=spec.pairs, initial=pairs_done, unit="pair", desc=COMPILING if todo else "dataset",
-                       dynamic_ncols=True, smoothing=0.1, file=sys.stderr)
+                       dynamic_ncols=True, smoothing=0.1, file=sys.stderr, mininterval=_progress.interval(0.1))
             bar.set_postfix_str(_postfix(stats))
         t0 = time.perf_counter()
         local = bool(todo) and backend is None
@@ -572,7 +573,7 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
         if bar is not None and todo:
             # until the first pairs are solved the workers compile the solver (or load it
             # from the compilation cache): the bar says so and its clock runs (ticker)
-            ticker = _Ticker(bar, lambda: _redraw(bar, stats, partial, counting))
+            ticker = _Ticker(bar, lambda: _redraw(bar, stats, partial, counting), every=_progress.interval(1.0))
 
         def finish(c, arrays):
             start, stop = spec.chunk_range(c)
@@ -586,8 +587,8 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
                 if partial is not None:
                     partial.done(c)
             if bar is not None:
-                _redraw(bar, stats, partial, counting)
-                bar.set_postfix_str(_postfix(stats))
+                bar.set_postfix_str(_postfix(stats), refresh=False)
+                _redraw(bar, stats, partial, counting, refresh=live)  # (in a log: the ticker's, once a minute)
 
         if todo:
             if backend is None:
@@ -619,23 +620,26 @@ def build(spec: Spec, out: str, *, ray: str | None = None, workers: int | None =
 COMPILING = "dataset: compiling the solver (first chunk; cached afterwards)"
 
 
-def _redraw(bar, stats, partial, counting) -> None:
+def _redraw(bar, stats, partial, counting, refresh: bool = True) -> None:
     """The bar at the pairs of the finished chunks plus those solved so far inside the
     chunks in flight (read together under ``counting``, never counting a chunk twice or
-    going backwards); labelled "compiling" until the first pairs are solved."""
+    going backwards); labelled "compiling" until the first pairs are solved. Drawn where
+    ``refresh``, else only set for the next drawing."""
     with counting:
         inside = 0 if partial is None else partial.partial()
         done = stats["pairs_done"]
         if bar.desc != "dataset" and (inside or stats["new_chunks"]):
             bar.set_description_str("dataset", refresh=False)
         bar.n = max(bar.n, min(done + inside, bar.total))
-        bar.refresh()
+        if refresh:
+            bar.refresh()
 
 
 class _Ticker:
-    """Calls ``redraw`` every second: the bar's clock runs while the first chunk waits for
-    the solver's compilation (a minute or more), and the pairs solved inside the chunks
-    in flight show (:class:`_Progress`)."""
+    """Calls ``redraw`` every ``every`` seconds (a second where stderr is watched live, a
+    minute in a log: :mod:`jtraj._progress`): the bar's clock runs while the first chunk
+    waits for the solver's compilation (a minute or more), and the pairs solved inside
+    the chunks in flight show (:class:`_Progress`)."""
 
     def __init__(self, bar, redraw, every: float = 1.0):
         import threading
