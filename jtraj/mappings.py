@@ -34,6 +34,8 @@ import time
 
 import numpy as np
 
+from . import _progress
+
 MAPPINGS = ("nefotc", "nefumop", "nefik", "plan")
 PLAN_RULES = 8  # default rules of the plan mapping (see train_mapping)
 REQUIRED = ("q_start", "q_goal", "converged", "q", "qd", "tau", "h", "metadata")
@@ -428,6 +430,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     md["train_pairs"] = pairs.tolist()
     md["coverage_radius"] = coverage.radius(pairs)
     t0 = time.perf_counter()
+    redraw = _progress.interval(0.1) if progress else False  # the bar's least seconds between redraws
     options.setdefault("clip_outputs", True)  # targets bounded by the robot's limits (see Model)
     options.setdefault("ridge", 1e-6)  # as jtraj train: 1e-10 overfits sparse trajectory data
     selection = {}
@@ -443,7 +446,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
             trained = []
             for r in _auto_radii(Xfit, Yfit, fit_traj, options, selection):
                 m_r, h_r = train(Xfit, Yfit, radius=r, epochs=epochs, kind=kind, validation=validation,
-                                 metadata=md, progress=progress, **options)
+                                 metadata=md, progress=redraw, **options)
                 va = float(min(h_r.val_rmse))
                 selection[str(r)] = {"n_rules": int(m_r.n_rules), "validation_rmse": va}
                 trained.append((va, r, m_r, h_r))
@@ -461,7 +464,7 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
                 model = Ensemble.from_models([t[2] for t in trained], w, md)
     if not selection:
         model, hist = train(Xfit, Yfit, n_rules=n_rules, radius=radius, epochs=epochs, kind=kind,
-                            validation=validation, metadata=md, progress=progress, **options)
+                            validation=validation, metadata=md, progress=redraw, **options)
     seconds = time.perf_counter() - t0
     Ptr = np.asarray(model.predict(Xtr)).reshape(Ytr.shape)
     Pte = np.asarray(model.predict(X[te])).reshape(Y[te].shape)

@@ -317,9 +317,8 @@ def train(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25,
     if progress:
         from tqdm.auto import tqdm
 
-        from .. import _progress
-
-        bar = tqdm(total=int(epochs), desc="anfis", unit="epoch", leave=False, mininterval=_progress.interval(0.1))
+        every = 0.1 if progress is True else float(progress)
+        bar = tqdm(total=int(epochs), desc="anfis", unit="epoch", leave=False, mininterval=every)
     mu = 1e-3
     ss = float(step_size)
     moves: list[int] = []  # +1 error went down, -1 up (gradient step-size rule)
@@ -396,8 +395,8 @@ def fit(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25, a
     pass an ``(X_val, Y_val)`` pair to choose it yourself, 0 to disable). Other
     options: ``order``, ``method``, ``ridge`` (relative ridge of the least squares,
     1e-10), ``sigma_floor`` (0.4, relative to the initial width), ``patience`` (20), ``step_size`` (0.01, gradient
-    method), ``metadata`` (dict stored in the model), ``progress`` (tqdm bar),
-    ``clip_outputs`` (False; predictions clipped into the training targets' range, see
+    method), ``metadata`` (dict stored in the model), ``progress`` (a tqdm bar: ``True``,
+    or the least seconds between its redraws), ``clip_outputs`` (False; predictions clipped into the training targets' range, see
     :class:`Model`; training itself is unaffected), ``premises`` (None; a pair
     ``(centers (R, d), sigmas (R, d) or (d,))`` in input units replaces the clustering:
     a grid partition as in Jang's ANFIS, or a model's premises to train further; the
