@@ -177,8 +177,9 @@ def trapezoid_profile(q0, q_goal, N: int, qd_max, qdd_max, fractions: int = FRAC
     dist = jnp.abs(D)
     f = (jnp.arange(fractions, dtype=D.dtype) + 1) * (0.5 / fractions)
     vmax, amax = jnp.broadcast_to(qd_max, D.shape)[None], jnp.broadcast_to(qdd_max, D.shape)[None]
-    T_f = jnp.max(jnp.maximum(dist[None] / ((1 - f)[:, None] * vmax), jnp.sqrt(dist[None] / ((f * (1 - f))[:, None] * amax))),
-                  axis=1)
+    t_speed = dist[None] / ((1 - f)[:, None] * vmax)  # (fractions, n): the time each bound needs
+    t_accel = jnp.sqrt(dist[None] / ((f * (1 - f))[:, None] * amax))
+    T_f = jnp.max(jnp.maximum(t_speed, t_accel), axis=1)
     k = jnp.argmin(T_f)
     best = jnp.arange(fractions) == k  # (the minimiser by a mask: fused loops, no gather)
     f, T = jnp.sum(jnp.where(best, f, 0.0)), jnp.sum(jnp.where(best, T_f, 0.0))
@@ -424,9 +425,10 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         s_lo)^(1 / (grid - 1)), about 19 % in ``s`` for a period box of 200: a scaling
         chosen on it alone can stop that far short of the bound that sets the motion's
         time (on 400 panda plans of N = 40 without the trapezoid, the second grid's choice
-        costs 2.4 % less than the first's at the median, 7 % at most). The scalings lie inside the period box by
-        construction, so that ``evaluate`` leaves out the periods' violation (rounding,
-        which would flip the feasibility of the box's ends)."""
+        costs 2.4 % less than the first's at the median, 7 % at most). The scalings lie
+        inside the period box by construction, so that ``evaluate`` leaves out the
+        periods' violation (rounding, which would flip the feasibility of the box's
+        ends)."""
 
         def choose(cost, viol):
             ok = viol <= 0

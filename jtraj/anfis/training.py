@@ -396,8 +396,9 @@ def fit(X, Y, *, n_rules: int | None = None, radius=0.5, squash: float = 1.25, a
     options: ``order``, ``method``, ``ridge`` (relative ridge of the least squares,
     1e-10), ``sigma_floor`` (0.4, relative to the initial width), ``patience`` (20), ``step_size`` (0.01, gradient
     method), ``metadata`` (dict stored in the model), ``progress`` (a tqdm bar: ``True``,
-    or the least seconds between its redraws), ``clip_outputs`` (False; predictions clipped into the training targets' range, see
-    :class:`Model`; training itself is unaffected), ``premises`` (None; a pair
+    or the least seconds between its redraws), ``clip_outputs`` (False; predictions
+    clipped into the training targets' range, see :class:`Model`; training itself is
+    unaffected), ``premises`` (None; a pair
     ``(centers (R, d), sigmas (R, d) or (d,))`` in input units replaces the clustering:
     a grid partition as in Jang's ANFIS, or a model's premises to train further; the
     radius options are then ignored).
