@@ -25,11 +25,13 @@ returns the raw prediction.
 The efforts come from the robot's inverse dynamics, and :class:`Plan` reports:
 
 * ``cost``: the cost of the training dataset's weights (:func:`jtraj.repair.cost_of`);
-* ``violation``: largest relative excess over the robot's boxes (efforts, velocities,
-  accelerations, joint positions, periods, and the acceleration jumps where the robot
-  has a jerk bound, as ``jtraj.Problem`` bounds them; 0 when within, 0.1 means 10 %
-  over), and each of ``tau_violation``, ``qd_violation``, ``qdd_violation``,
-  ``q_violation``, ``h_violation``, ``jerk_violation``;
+* ``violation``: largest relative excess over the robot's constraints (efforts,
+  velocities, accelerations, positions, periods, and the acceleration jumps where the
+  robot has a jerk bound, as ``jtraj.Problem`` bounds them; 0 when within, 0.1 means
+  10 % over), and each of ``tau_violation``, ``qd_violation`` (the joint velocity box and
+  a parallel robot's velocity constraints), ``qdd_violation``, ``q_violation`` (the joint
+  and workspace boxes and a parallel robot's path constraints:
+  :func:`jtraj.repair.position_excess`), ``h_violation``, ``jerk_violation``;
 * ``goal_error``: ``||q_N - q_goal||`` [rad], ``goal_velocity``: ``||qd_N||``, and
   ``predicted_goal_error``, the goal error of the raw prediction;
 * ``scale``: the repair's time scaling (1 without it), and ``candidate``, the candidate
@@ -53,6 +55,7 @@ reports the plan's cost gap to the refined optimum.
 from __future__ import annotations
 
 import os
+import re
 import time
 from typing import NamedTuple
 
@@ -72,6 +75,12 @@ BOX_MARGIN = 0.05
 CHUNK = 256
 #: threads :meth:`Planner.plan` runs a chunked batch's calls on (XLA releases the GIL)
 THREADS = min(os.cpu_count() or 1, 8)
+#: custom calls that one program must not run on two threads at once: jaxlib's CPU LAPACK
+#: kernels (``jnp.linalg.solve``, ``det``, ``cholesky``, ... in a robot's dynamics) then
+#: hang over large batches (reproduced with jaxlib 0.10.2 by a jitted, vmapped 2 x 2 solve
+#: of 65,536 systems called from two threads). :meth:`Planner.plan` runs the chunks of a
+#: program that holds one on a single thread.
+SERIAL_CUSTOM_CALLS = ("lapack_",)
 #: the interior-point settings of :meth:`Planner.query`'s refinement from the plan where no
 #: solver is given: a shorter barrier schedule (``mu_init``), a start kept near the plan
 #: (``bound_push``, 1e-2 in a cold start) and a small first Hessian shift
@@ -114,6 +123,13 @@ class Plan(NamedTuple):
     coverage_distance: jax.Array
     coverage_box: jax.Array
     ood: jax.Array
+
+
+def _holds_custom_call(fn, x, prefixes) -> bool:
+    """Whether the jitted ``fn``'s program on ``x`` calls a custom call whose target
+    starts with one of ``prefixes`` (read from its lowered text: no compilation)."""
+    text = fn.lower(x).as_text()
+    return any(re.search("custom_call @" + re.escape(p), text) for p in prefixes)
 
 
 def _options_jit(fn):
@@ -286,6 +302,10 @@ class Planner:
         if meta.get("robot") and getattr(robot, "name", meta["robot"]) != meta["robot"]:
             raise ValueError(f"robot: the model was trained on optima of robot {meta['robot']!r}, got robot "
                              f"{robot.name!r} (a URDF arm is named by jtraj.robots.from_urdf(..., name=...))")
+        if correct and getattr(robot, "path_equalities", None) is not None:
+            raise ValueError(f"robot: {robot.name!r} has path equalities (a nonholonomic constraint on its "
+                             f"velocities), which the repair's time scaling and goal projection do not keep; "
+                             f"plan it with jtraj.solve, or with correct=False for the raw prediction")
         import jtraj
 
         trained = jtraj.Weights.parse(meta["weights"]) if meta.get("weights") else None
@@ -308,6 +328,7 @@ class Planner:
         # what plan() runs: one output buffer, NumPy arrays on the host
         self._flat, self._flat_batch, self._unpack = _packed(core, self.n)
         self.chunk, self.threads, self._pool = CHUNK, THREADS, None
+        self._serial = None  # whether the batched program holds a SERIAL_CUSTOM_CALLS call
 
     def _coverage(self):
         from . import coverage
@@ -424,7 +445,11 @@ class Planner:
     def plan(self, q_start, q_goal) -> Plan:
         """The plan and its report, as NumPy arrays. ``q_start``, ``q_goal``: ``(n,)``, or
         ``(B, n)`` for a batch (every field of the Plan then has a leading B axis).
-        ``ValueError`` where they are not finite numbers of those shapes.
+        ``ValueError`` where they are not finite numbers of those shapes. Joint, workspace
+        and path limits are not checked here (the fast path, where a batch keeps a result
+        per pair): a start or goal outside them gives a plan whose violations show it
+        (``q_violation`` > 0, :meth:`feasible` False), usually flagged out of distribution
+        too. :meth:`check` and :meth:`query` refuse such a pair.
 
         One jitted call for one pair or a batch of up to ``self.chunk`` pairs (default
         :data:`CHUNK`); a larger batch runs as calls of ``self.chunk`` pairs on
@@ -443,7 +468,9 @@ class Planner:
             x = np.concatenate([x, np.repeat(x[:1], pad, axis=0)])
         parts = [x[i:i + C] for i in range(0, B + pad, C)]
         run = lambda p: np.asarray(self._flat_batch(p))  # noqa: E731  (waits for the result)
-        if self.threads > 1:
+        if self.threads > 1 and self._serial is None:
+            self._serial = _holds_custom_call(self._flat_batch, parts[0], SERIAL_CUSTOM_CALLS)
+        if self.threads > 1 and not self._serial:
             if self._pool is None:
                 from concurrent.futures import ThreadPoolExecutor
 

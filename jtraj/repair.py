@@ -51,7 +51,9 @@ dynamics, the time scaling applied by its exact relations (``q`` unchanged, ``qd
 the efforts' ``1 / s^2`` or their polynomial in ``1 / s``): its reported violations are
 computed on those arrays, and the tests re-verify them independently (NumPy recursion,
 Pinocchio).
-Joint, workspace and path constraints are measured, not repaired.
+Constraints on positions alone (the joint and workspace boxes, a parallel robot's path
+constraints: :func:`position_excess`) are measured, in the choice among the candidates
+too, not repaired.
 """
 
 from __future__ import annotations
@@ -316,15 +318,15 @@ def jerk_ratio(v, h, qddd_max):
 
 def violation_parts(robot, q, qd, v, tau, h):
     """The largest relative excesses over the robot's boxes (0 when within), in this
-    order: efforts, joint velocities (samples 1..N), accelerations, joint positions
-    (relative to the box width; 0 without a joint box), periods (relative to h_max) and
+    order: efforts, velocities (samples 1..N, :func:`velocity_excess`), accelerations, positions
+    (:func:`position_excess`; 0 without position constraints), periods (relative to h_max) and
     acceleration jumps (relative to their jerk bounds, :func:`jerk_ratio`; 0 without
     one). Each is the largest ratio less one (the same number as the largest excess,
     with a batch's reductions about twice as fast)."""
     lim = robot.limits
-    return (jnp.maximum(_ratio(tau, lim.tau_max) - 1, 0.0), jnp.maximum(_ratio(qd[1:], lim.qd_max) - 1, 0.0),
+    return (jnp.maximum(_ratio(tau, lim.tau_max) - 1, 0.0), velocity_excess(robot, q, qd),
             jnp.maximum(_ratio(v, lim.qdd_max) - 1, 0.0),
-            q_excess(q, lim) if lim.q_min is not None else jnp.zeros((), h.dtype),
+            _or_zero(position_excess(robot, q), h.dtype),
             jnp.max(jnp.maximum(jnp.maximum(lim.h_min - h, h - lim.h_max) / lim.h_max, 0.0)),
             jnp.maximum(jerk_ratio(v, h, lim.qddd_max) - 1, 0.0))
 
@@ -335,13 +337,55 @@ def violation(robot, q, qd, v, tau, h):
     return jnp.max(jnp.stack(violation_parts(robot, q, qd, v, tau, h)))
 
 
+def position_excess(robot, q):
+    """Largest excess of the positions q (N+1, n) over the constraints on positions alone,
+    or None where the robot has none: the joint box and the workspace box (each relative
+    to its width, :func:`q_excess`), and the robot's path constraints ``g(q) <= 0``
+    (normalised, as ``jtraj.Problem`` takes them). None of them changes under a time
+    scaling; the repair measures them but does not move the positions to meet them."""
+    lim, parts = robot.limits, []
+    if lim.q_min is not None:
+        parts.append(q_excess(q, lim))
+    if lim.workspace is not None:
+        p = jax.vmap(robot.forward_kinematics)(q)
+        parts.append(_box_excess(p, lim.workspace[0], lim.workspace[1]))
+    path = getattr(robot, "path_constraints", None)
+    if path is not None:
+        parts.append(jnp.maximum(jnp.max(jax.vmap(path)(q)), 0.0))
+    if not parts:
+        return None
+    return parts[0] if len(parts) == 1 else jnp.max(jnp.stack(parts))
+
+
+def velocity_excess(robot, q, qd):
+    """Largest excess of the velocities of samples 1..N over the joint velocity box
+    (relative) and the robot's state-dependent velocity constraints ``g(q, qd) <= 0`` (a
+    parallel robot's leg speeds, normalised). The repair's time scaling accounts for the
+    box only; the constraints are measured on the plan it returns."""
+    ex = jnp.maximum(_ratio(qd[1:], robot.limits.qd_max) - 1, 0.0)
+    vel = getattr(robot, "velocity_constraints", None)
+    if vel is not None:
+        ex = jnp.maximum(ex, jnp.max(jax.vmap(vel)(q[1:], qd[1:])))
+    return ex
+
+
+def _or_zero(x, dtype):
+    return jnp.zeros((), dtype) if x is None else x
+
+
 def q_excess(q, lim):
     """Largest excess of the positions q (N+1, n) over the joint box, relative to its width
     (1 where the box is infinite); the (n,) box broadcast to q's shape explicitly (under
     rank promotion 'raise' too)."""
-    lo, hi = jnp.broadcast_to(lim.q_min, q.shape), jnp.broadcast_to(lim.q_max, q.shape)
+    return _box_excess(q, lim.q_min, lim.q_max)
+
+
+def _box_excess(x, lo, hi):
+    """Largest excess of the rows of x over the box [lo, hi], relative to its width (1
+    where the box is infinite)."""
+    lo, hi = jnp.broadcast_to(lo, x.shape), jnp.broadcast_to(hi, x.shape)
     width = jnp.where(jnp.isfinite(hi - lo), hi - lo, 1.0)
-    return jnp.max(jnp.maximum(jnp.maximum(lo - q, q - hi) / width, 0.0))
+    return jnp.max(jnp.maximum(jnp.maximum(lo - x, x - hi) / width, 0.0))
 
 
 def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: bool | None = None,
@@ -410,8 +454,9 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         ex = [jnp.maximum(r_tau / s**2 - 1, 0.0), jnp.maximum(_ratio(qd[1:], lim.qd_max) / s - 1, 0.0),
               jnp.maximum(r_v / s**2 - 1, 0.0),
               jnp.max(jnp.maximum(jnp.maximum(lim.h_min - hs, hs - lim.h_max) / lim.h_max, 0.0))]
-        if lim.q_min is not None:
-            ex.append(q_excess(q, lim))
+        pos = position_excess(robot, q)
+        if pos is not None:
+            ex.append(pos)
         if jerk:
             ex.append(jnp.maximum(r_j / s**3 - 1, 0.0))
         return s, A * s + C / s + B / s**3, jnp.max(jnp.stack(ex))
@@ -492,7 +537,7 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         kinetic = jnp.sum(h * _quad(qd[:-1], Q)) if weights.has_kinetic else None
         r_qd, r_v = _ratio(qd[1:], lim.qd_max), _ratio(v, lim.qdd_max)
         r_j = jerk_ratio(v, h, lim.qddd_max) if jerk else None
-        q_ex = q_excess(q, lim) if lim.q_min is not None else None
+        q_ex = position_excess(robot, q)
 
         def evaluate(ss):
             u = 1 / ss

@@ -766,3 +766,96 @@ def test_repair_of_a_homogeneous_robot_with_a_joint_box():
     assert expected >= 0.1 / 3.4 - 1e-12  # the goal's first joint 0.1 past a box 3.4 wide
     assert float(q_excess(out.q, rb.limits)) == pytest.approx(expected, rel=1e-13)
     assert float(violation(rb, out.q, out.qd, out.v, out.tau, out.h)) >= expected - 1e-15
+
+
+def test_position_and_velocity_constraints_of_parallel_robots_enter_the_violation():
+    # violation_parts against NumPy on hand-built motions: a parallel3 motion through the
+    # workspace centre and out past its path constraints (a leg's reach), a Gough-Stewart
+    # motion whose legs outrun their speed bound, a serial3 arm with a workspace box; the
+    # box terms alone would call every one of them feasible
+    import equinox as eqx
+
+    from jtraj.repair import position_excess, rollout, violation_parts
+
+    @eqx.filter_jit
+    def motion(rb, q0, v, h):
+        q, qd = rollout(q0, jnp.zeros_like(q0), v, h)
+        tau = jax.vmap(rb.inverse_dynamics)(q[:-1], qd[:-1], v)
+        return q, qd, violation_parts(rb, q, qd, v, tau, h)
+
+    def parts(rb, q0, v, h):
+        q, qd, vp = motion(rb, jnp.asarray(q0, float), jnp.asarray(v), jnp.asarray(h))
+        return np.asarray(q), np.asarray(qd), [float(x) for x in vp]
+
+    p3 = robots.get("parallel3")
+    Nh = 8
+    v = np.zeros((Nh, 2))
+    v[: Nh // 2, 0], v[Nh // 2:, 0] = 2.0, -2.0  # rest to rest along x, far towards the box's edge
+    q, qd, got = parts(p3, [0.0, 0.0], v, np.full(Nh, 0.15))
+    path = np.stack([np.asarray(p3.path_constraints(jnp.asarray(x))) for x in q])
+    box = np.max(np.maximum(np.maximum(-0.5 - q, q - 0.5) / 1.0, 0.0))
+    expected = max(box, float(np.max(np.maximum(path, 0.0))))
+    assert np.max(path) > 1e-3  # the motion leaves the path constraints
+    assert got[3] == pytest.approx(expected, rel=1e-12)
+    assert float(position_excess(p3, jnp.asarray(q))) == pytest.approx(expected, rel=1e-12)
+
+    gs = robots.get("gough_stewart")
+    q0 = np.asarray(gs.home) if hasattr(gs, "home") else 0.5 * (np.asarray(gs.limits.q_min) + np.asarray(gs.limits.q_max))
+    v = np.zeros((Nh, 6))
+    v[: Nh // 2, 2], v[Nh // 2:, 2] = 4.0, -4.0  # a fast heave
+    q, qd, got = parts(gs, q0, v, np.full(Nh, 0.06))
+    g = np.stack([np.asarray(gs.velocity_constraints(jnp.asarray(a), jnp.asarray(b))) for a, b in zip(q[1:], qd[1:])])
+    box = np.max(np.abs(qd[1:]) / np.asarray(gs.limits.qd_max)) - 1.0
+    assert np.max(g) > 1e-3
+    assert got[1] == pytest.approx(max(box, float(np.max(g)), 0.0), rel=1e-12)
+
+    s3 = robots.get("serial3")
+    ws = np.array([[0.5, -2.0], [2.5, 2.0]])
+    s3w = eqx.tree_at(lambda r: r.limits.workspace, s3, jnp.asarray(ws), is_leaf=lambda x: x is None)
+    v = np.zeros((Nh, 3))
+    v[: Nh // 2, 0], v[Nh // 2:, 0] = 3.0, -3.0  # the first joint swings the tip up and in
+    q, qd, got = parts(s3w, [0.0, 0.5, 0.5], v, np.full(Nh, 0.2))
+    tip = np.stack([np.asarray(s3w.forward_kinematics(jnp.asarray(x))) for x in q])
+    expected = np.max(np.maximum(np.maximum(ws[0] - tip, tip - ws[1]) / (ws[1] - ws[0]), 0.0))
+    assert expected > 1e-3
+    assert got[3] == pytest.approx(expected, rel=1e-12)
+
+
+def test_planner_of_a_robot_with_lapack_calls_runs_its_chunks_on_one_thread():
+    # parallel3's dynamics solve a 2 x 2 system (jnp.linalg.solve: LAPACK on a CPU), which
+    # jaxlib's CPU kernels do not survive on two threads at once over large batches (the
+    # process hangs): the planner finds the call in its program and runs the chunks one
+    # after the other, with the plans of one call; a planner without such calls keeps
+    # its threads. Its plans report the path constraints (re-computed here).
+    from jtraj import mappings
+    from jtraj.online import Planner, _holds_custom_call
+
+    f = jax.jit(lambda A: jax.vmap(jnp.linalg.solve)(A, A[:, 0]))
+    assert _holds_custom_call(f, np.ones((4, 2, 2)) + np.eye(2), ("lapack_",))
+    assert not _holds_custom_call(jax.jit(jnp.sin), np.ones(3), ("lapack_",))
+    data = mappings.synthetic_dataset(P=10, N=6, seed=0, robot="parallel3")
+    model = mappings.train_mapping(data, "plan", n_rules=2, epochs=2)[0]
+    rb = robots.get("parallel3", h_max=1.0)
+    planner = Planner(model, rb, weights=W)
+    qs, qg = data["q_start"], data["q_goal"]
+    planner.chunk, planner.threads = 4, 2
+    first = planner.plan(qs[:4], qg[:4])  # one call
+    chunked = planner.plan(qs, qg)  # three calls of the same program
+    assert planner._serial is True
+    np.testing.assert_array_equal(chunked.v[:4], first.v)
+    q = np.asarray(chunked.q)
+    path = np.max(np.maximum(np.asarray(jax.vmap(jax.vmap(rb.path_constraints))(q)), 0.0), axis=(1, 2))
+    box = np.max(np.maximum(np.maximum(np.asarray(rb.limits.q_min) - q, q - np.asarray(rb.limits.q_max))
+                            / (np.asarray(rb.limits.q_max) - np.asarray(rb.limits.q_min)), 0.0), axis=(1, 2))
+    np.testing.assert_allclose(np.asarray(chunked.q_violation), np.maximum(path, box), rtol=1e-12, atol=1e-15)
+
+
+def test_planner_refuses_a_robot_with_path_equalities():
+    from jtraj import mappings
+    from jtraj.online import Planner
+
+    data = mappings.synthetic_dataset(P=8, N=6, seed=0, robot="wmr")
+    model = mappings.train_mapping(data, "plan", n_rules=2, epochs=2)[0]
+    with pytest.raises(ValueError, match="robot: 'wmr' has path equalities"):
+        Planner(model, robots.get("wmr"), weights=W)
+    Planner(model, robots.get("wmr"), weights=W, correct=False)  # the raw prediction is allowed
