@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import os
 import re
+import threading
 import time
 from typing import NamedTuple
 
@@ -78,8 +79,9 @@ THREADS = min(os.cpu_count() or 1, 8)
 #: custom calls that one program must not run on two threads at once: jaxlib's CPU LAPACK
 #: kernels (``jnp.linalg.solve``, ``det``, ``cholesky``, ... in a robot's dynamics) then
 #: hang over large batches (reproduced with jaxlib 0.10.2 by a jitted, vmapped 2 x 2 solve
-#: of 65,536 systems called from two threads). :meth:`Planner.plan` runs the chunks of a
-#: program that holds one on a single thread.
+#: of 65,536 systems called from two threads; two different programs ran side by side).
+#: Where a planner's programs hold one, :meth:`Planner.plan` runs a batch's chunks one
+#: after the other and calls from several of the user's threads one at a time.
 SERIAL_CUSTOM_CALLS = ("lapack_",)
 #: the interior-point settings of :meth:`Planner.query`'s refinement from the plan where no
 #: solver is given: a shorter barrier schedule (``mu_init``), a start kept near the plan
@@ -328,7 +330,8 @@ class Planner:
         # what plan() runs: one output buffer, NumPy arrays on the host
         self._flat, self._flat_batch, self._unpack = _packed(core, self.n)
         self.chunk, self.threads, self._pool = CHUNK, THREADS, None
-        self._serial = None  # whether the batched program holds a SERIAL_CUSTOM_CALLS call
+        self._serial = None  # whether the programs hold a SERIAL_CUSTOM_CALLS call (_is_serial)
+        self._lock = threading.Lock()
 
     def _coverage(self):
         from . import coverage
@@ -456,21 +459,35 @@ class Planner:
         ``self.threads`` threads (default :data:`THREADS`), the last call padded with
         copies of the batch's first pair."""
         x = self._inputs(q_start, q_goal)
-        return self._unpack(self._flat(x) if x.ndim == 1 else self._batch(x))
+        return self._unpack(self._call(self._flat, x) if x.ndim == 1 else self._batch(x))
+
+    def _is_serial(self, fn, x) -> bool:
+        """Whether the planner's programs hold a :data:`SERIAL_CUSTOM_CALLS` call (read
+        once, from ``fn``'s program on ``x``: the single and the batched program run the
+        same dynamics)."""
+        if self._serial is None:
+            self._serial = _holds_custom_call(fn, x, SERIAL_CUSTOM_CALLS)
+        return self._serial
+
+    def _call(self, fn, x):
+        """``fn(x)`` as a NumPy array; one such call at a time (from any thread) where the
+        programs hold a :data:`SERIAL_CUSTOM_CALLS` call."""
+        if not self._is_serial(fn, x):
+            return np.asarray(fn(x))
+        with self._lock:
+            return np.asarray(fn(x))
 
     def _batch(self, x):
         """The packed plans of a (B, 2n) batch of starts and goals side by side (:meth:`plan`)."""
         B, C = x.shape[0], int(self.chunk)
         if B <= C:
-            return np.asarray(self._flat_batch(x))
+            return self._call(self._flat_batch, x)
         pad = (-B) % C
         if pad:
             x = np.concatenate([x, np.repeat(x[:1], pad, axis=0)])
         parts = [x[i:i + C] for i in range(0, B + pad, C)]
-        run = lambda p: np.asarray(self._flat_batch(p))  # noqa: E731  (waits for the result)
-        if self.threads > 1 and self._serial is None:
-            self._serial = _holds_custom_call(self._flat_batch, parts[0], SERIAL_CUSTOM_CALLS)
-        if self.threads > 1 and not self._serial:
+        run = lambda p: self._call(self._flat_batch, p)  # noqa: E731  (waits for the result)
+        if self.threads > 1 and not self._is_serial(self._flat_batch, parts[0]):
             if self._pool is None:
                 from concurrent.futures import ThreadPoolExecutor
 

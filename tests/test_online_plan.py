@@ -843,6 +843,12 @@ def test_planner_of_a_robot_with_lapack_calls_runs_its_chunks_on_one_thread():
     chunked = planner.plan(qs, qg)  # three calls of the same program
     assert planner._serial is True
     np.testing.assert_array_equal(chunked.v[:4], first.v)
+    # calls from the user's threads take turns: the plans of the calls made one by one
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:
+        both = list(pool.map(lambda i: planner.plan(qs[4 * i:4 * i + 4], qg[4 * i:4 * i + 4]), range(2)))
+    np.testing.assert_array_equal(np.r_[both[0].v, both[1].v], chunked.v[:8])
     q = np.asarray(chunked.q)
     path = np.max(np.maximum(np.asarray(jax.vmap(jax.vmap(rb.path_constraints))(q)), 0.0), axis=(1, 2))
     box = np.max(np.maximum(np.maximum(np.asarray(rb.limits.q_min) - q, q - np.asarray(rb.limits.q_max))
