@@ -47,6 +47,16 @@ def solution_arrays(solution) -> dict:
                 t=np.concatenate([[0.0], np.cumsum(h)]))
 
 
+def drawable(trajectory) -> bool:
+    """Whether a trajectory (anything :func:`plot_solution` draws) holds only finite
+    values: :func:`plot_solution` refuses one that does not."""
+    return _finite(solution_arrays(trajectory))
+
+
+def _finite(arrays: dict) -> bool:
+    return all(np.all(np.isfinite(x)) for x in arrays.values())
+
+
 def coordinate_units(robot) -> list[str]:
     """The unit of each generalised coordinate, "rad" or "m": the robot's
     ``coordinate_units`` where it declares them (``gough_stewart``, the planar parallel
@@ -262,7 +272,7 @@ def plot_solution(problem, solution, *, guess=True, title: str | None = None, la
         g = solution_arrays(guess)
         guess_label = guess_label or "guess"
     for name, arrays in (("solution", sol), ("guess", g)):
-        if arrays is not None and not all(np.all(np.isfinite(x)) for x in arrays.values()):
+        if arrays is not None and not _finite(arrays):
             raise ValueError(f"{name} holds non-finite values: there is no trajectory to draw")
     names = (label, guess_label)
     fig = Figure(figsize=(15, 8.5), layout="constrained")

@@ -158,18 +158,15 @@ def _plot(planner, q_start, q_goal, out, path) -> bool:
     import numpy as np
 
     import jtraj
-    from jtraj.plotting import plot_solution, save
+    from jtraj.plotting import drawable, plot_solution, save
 
     def trajectory(prefix):
         return SimpleNamespace(**{k: np.asarray(out[prefix + k], float) for k in ("q", "qd", "v", "tau", "h")})
 
-    def finite(t):
-        return all(np.all(np.isfinite(getattr(t, k))) for k in ("q", "qd", "v", "tau", "h"))
-
     plan = trajectory("")
     refined = trajectory("refined_") if "refined_q" in out else None
-    plan = plan if finite(plan) else None
-    refined = refined if refined is not None and finite(refined) else None
+    plan = plan if drawable(plan) else None
+    refined = refined if refined is not None and drawable(refined) else None
     if plan is None and refined is None:
         return False
     title = (f"{planner.robot.name}: plan T = {out['T']:.3f} s, cost {out['cost']:.5g}, feasible = {out['feasible']}"

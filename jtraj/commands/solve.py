@@ -337,9 +337,9 @@ def run(args) -> int:
             json.dump(d, fh, indent=1, allow_nan=False)
         print(f"wrote {args.json}")
     if args.plot:
-        from jtraj.plotting import plot_solution, save
+        from jtraj.plotting import drawable, plot_solution, save
 
-        if all(bool(jnp.all(jnp.isfinite(getattr(sol, k)))) for k in ("q", "qd", "v", "tau", "h")):
+        if drawable(sol):
             title = (f"{args.robot}: {d['status_name']}, T = {d['T']:.3f} s, cost = {d['cost']:.4g} "
                      f"(weights {args.weights})")
             save(plot_solution(problem, sol, title=title), args.plot)
