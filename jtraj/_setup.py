@@ -26,8 +26,11 @@ programs that compile in under a second (JAX's default keeps only longer ones), 
 whole process. Several processes may share the cache:
 jtraj writes its own files (kept traces, the native kernel) to a temporary name and renames
 them (atomic on POSIX); JAX writes its entries in place, so where jtraj sets the cache up
-it caps it at :data:`CACHE_MAX_BYTES` (2 GiB, least recently used programs evicted), which
-makes JAX hold a file lock (the ``filelock`` package) around each entry's read and write.
+it caps it at :data:`CACHE_MAX_BYTES` (2 GiB, least recently used programs evicted;
+``JTRAJ_CACHE_MAX_GB`` sets another cap, 0 none), which makes JAX hold a file lock (the
+``filelock`` package) around each entry's read and write. The cap has a price: each
+write reads the access times of every entry (about 40 us an entry), so a cache of
+thousands of programs spends a tenth of a second per program written.
 
 A cache holds programs that every process loads and runs, so whoever may write to it may
 run code as its users. jtraj uses a cache directory (its own, and the native kernel's of
@@ -60,6 +63,21 @@ TYPICAL_COMPILE = "usually tens of seconds to a minute or two on a 2-core machin
 #: the compilation cache's size cap where jtraj sets the cache up (JAX evicts the least
 #: recently used programs beyond it); one serial3 solver's programs take about 5 MB
 CACHE_MAX_BYTES = 2 << 30
+
+
+def cache_max_bytes() -> int | None:
+    """The size cap jtraj gives the cache it sets up: ``$JTRAJ_CACHE_MAX_GB`` GiB (0: no
+    cap, no eviction and no locks), else :data:`CACHE_MAX_BYTES`."""
+    text = os.environ.get("JTRAJ_CACHE_MAX_GB")
+    if text is None or not text.strip():
+        return CACHE_MAX_BYTES
+    try:
+        gb = float(text)
+    except ValueError:
+        raise ValueError(f"JTRAJ_CACHE_MAX_GB must be a number of GiB (0: no cap), got {text!r}") from None
+    if not gb == gb or gb < 0 or gb == float("inf"):
+        raise ValueError(f"JTRAJ_CACHE_MAX_GB must be a finite number of GiB >= 0 (0: no cap), got {text!r}")
+    return None if gb == 0 else int(gb * 2**30)
 
 _lock = threading.Lock()
 #: id -> weak reference of the problems, robots and weights found float64 (before_solve)
@@ -151,7 +169,8 @@ def enable_cache(path: str | None = None, *, small: bool = True) -> str | None:
     if small:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    if jax.config.jax_compilation_cache_max_size == -1:
+    cap = cache_max_bytes()
+    if cap is not None and jax.config.jax_compilation_cache_max_size == -1:
         try:
             import filelock  # noqa: F401  (JAX's size cap needs it)
         except ImportError:
@@ -160,7 +179,7 @@ def enable_cache(path: str | None = None, *, small: bool = True) -> str | None:
             # a size cap makes JAX take a file lock around every read and write of an entry,
             # which it otherwise writes in place: a process could read another's half-written
             # entry (JAX then warns and compiles). Least recently used entries go first.
-            jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
+            jax.config.update("jax_compilation_cache_max_size", cap)
             remove_orphans(path)
     return path
 

@@ -4,7 +4,12 @@ One run's processes (the xdist workers and the CLI subprocesses) share a persist
 compilation cache in a fresh folder, removed at the end: a program that two test files
 compile is compiled once. Since the numeric solver options and the period bounds are
 traced (see :class:`jtraj.SolverOptions`), most files' serial3 solvers are the same
-programs."""
+programs.
+
+Every process of the run leaves that cache uncapped (``JTRAJ_CACHE_MAX_GB=0`` reaches the
+CLI's subprocesses): a capped process would remove the others' entries as orphans when
+it starts and fail to write beside them, and a cap's eviction reads the whole folder on
+every write, which the run's thousands of entries make slow."""
 
 import os
 import shutil
@@ -18,6 +23,7 @@ else:
     _OWN_CACHE = False
 # the CLI's cache too (in-process and in subprocesses): never the user's ~/.cache/jtraj
 os.environ["JTRAJ_CACHE_DIR"] = os.environ["JTRAJ_TEST_CACHE"]
+os.environ["JTRAJ_CACHE_MAX_GB"] = "0"
 
 # XLA's CPU backend compiles the tests' programs at LLVM optimisation level 0
 # (JTRAJ_TEST_XLA_OPT sets another; 3 is what users' programs get; a level already in

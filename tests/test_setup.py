@@ -20,7 +20,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def _run(code: str, env: dict | None = None, timeout: int = 300) -> subprocess.CompletedProcess:
     """``code`` in a fresh Python process (this checkout's jtraj, no conftest set-up)."""
     e = {k: v for k, v in os.environ.items() if k not in ("JTRAJ_CACHE_DIR", "JTRAJ_CACHE", "JAX_ENABLE_X64",
-                                                          "JAX_COMPILATION_CACHE_DIR")}
+                                                          "JAX_COMPILATION_CACHE_DIR", "JTRAJ_CACHE_MAX_GB")}
     e["PYTHONPATH"] = ROOT + os.pathsep + e.get("PYTHONPATH", "")
     if "JTRAJ_CACHE_DIR" not in (env or {}):
         e["JTRAJ_CACHE"] = "0"  # never the user's ~/.cache/jtraj
@@ -73,20 +73,36 @@ def test_a_directory_others_can_write_to_is_refused(tmp_path, caplog):
     assert stat.S_IMODE(os.stat(new).st_mode) & 0o077 == 0
 
 
+def test_cache_cap_from_the_environment(monkeypatch):
+    monkeypatch.delenv("JTRAJ_CACHE_MAX_GB", raising=False)
+    assert _setup.cache_max_bytes() == _setup.CACHE_MAX_BYTES == 2 * 2**30
+    for text, expected in (("0.5", 2**29), ("8", 8 * 2**30), ("0", None), (" ", _setup.CACHE_MAX_BYTES)):
+        monkeypatch.setenv("JTRAJ_CACHE_MAX_GB", text)
+        assert _setup.cache_max_bytes() == expected, text
+    for text in ("two", "-1", "nan", "inf"):
+        monkeypatch.setenv("JTRAJ_CACHE_MAX_GB", text)
+        with pytest.raises(ValueError, match="JTRAJ_CACHE_MAX_GB must be"):
+            _setup.cache_max_bytes()
+
+
 def test_import_turns_the_cache_on_unless_switched_off_or_set(tmp_path):
     code = """
         import jax
         assert jax.config.jax_compilation_cache_dir is None
         import jtraj
         print(jax.config.jax_compilation_cache_dir)
-        print(jax.config.jax_compilation_cache_max_size == jtraj._setup.CACHE_MAX_BYTES)
+        print(jax.config.jax_compilation_cache_max_size)
         print(jax.config.jax_enable_x64)  # left as it was
     """
     own = tmp_path / "c"
     r = _run(code, {"JTRAJ_CACHE_DIR": str(own)})
     assert r.returncode == 0, r.stderr
     # capped: JAX then locks each entry's read and write (it writes them in place)
-    assert r.stdout.split() == [str(own), "True", "False"] and own.is_dir()
+    assert r.stdout.split() == [str(own), str(_setup.CACHE_MAX_BYTES), "False"] and own.is_dir()
+    # JTRAJ_CACHE_MAX_GB=0: no cap (-1: JAX neither evicts nor locks)
+    r = _run(code, {"JTRAJ_CACHE_DIR": str(own), "JTRAJ_CACHE_MAX_GB": "0"})
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == [str(own), "-1", "False"]
     r = _run(code, {"JTRAJ_CACHE_DIR": str(own), "JTRAJ_CACHE": "0"})
     assert r.returncode == 0, r.stderr
     assert r.stdout.split()[0] == "None"
