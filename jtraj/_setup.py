@@ -169,7 +169,15 @@ def enable_cache(path: str | None = None, *, small: bool = True) -> str | None:
     if small:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    cap = cache_max_bytes()
+    try:
+        cap = cache_max_bytes()
+    except ValueError as err:  # a setting of the cache never stops a program: the default cap
+        cap = CACHE_MAX_BYTES
+        with _lock:
+            first = str(err) not in _state["refused"]
+            _state["refused"].add(str(err))
+        if first:
+            logger.warning("jtraj: %s; capping the cache at %d GiB", err, CACHE_MAX_BYTES >> 30)
     if cap is not None and jax.config.jax_compilation_cache_max_size == -1:
         try:
             import filelock  # noqa: F401  (JAX's size cap needs it)

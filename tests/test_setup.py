@@ -103,6 +103,11 @@ def test_import_turns_the_cache_on_unless_switched_off_or_set(tmp_path):
     r = _run(code, {"JTRAJ_CACHE_DIR": str(own), "JTRAJ_CACHE_MAX_GB": "0"})
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == [str(own), "-1", "False"]
+    # a bad value: a warning naming it, and the default cap
+    r = _run(code, {"JTRAJ_CACHE_DIR": str(own), "JTRAJ_CACHE_MAX_GB": "two"})
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == [str(own), str(_setup.CACHE_MAX_BYTES), "False"]
+    assert "JTRAJ_CACHE_MAX_GB must be a number of GiB" in r.stderr
     r = _run(code, {"JTRAJ_CACHE_DIR": str(own), "JTRAJ_CACHE": "0"})
     assert r.returncode == 0, r.stderr
     assert r.stdout.split()[0] == "None"
