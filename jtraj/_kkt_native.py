@@ -17,9 +17,10 @@ XLA's Riccati recursion, with the same iterations (``benchmarks/iteration_cost.p
 --method ip`` measures the pieces).
 
 The kernel is compiled with the machine's C++ compiler (``$CXX``, else ``g++`` or
-``c++``: ``-O3 -march=native``; ``JTRAJ_NATIVE_MARCH`` sets another ``-march``), one
-library per joint count (``-DJTRAJ_KKT_N=n``: a third of the compile time of all seven),
-once per machine, into ``$JTRAJ_NATIVE_DIR`` (default ``$XDG_CACHE_HOME/jtraj/native`` or
+``c++``: ``-O3 -march=native``; ``JTRAJ_NATIVE_MARCH`` sets another ``-march``,
+``JTRAJ_NATIVE_OPT`` another level: at ``2`` a build takes about a third of the time
+and the kernel runs about 1.6x slower), one library per joint count
+(``-DJTRAJ_KKT_N=n``: a third of the compile time of all seven), once per machine, into ``$JTRAJ_NATIVE_DIR`` (default ``$XDG_CACHE_HOME/jtraj/native`` or
 ``~/.cache/jtraj/native``; used only where no other user can write to it, see
 :func:`jtraj._setup.untrusted`), under a name that hashes the source, the flags, the
 compiler's and jaxlib's versions and the CPU's model and flags, so that a cache shared
@@ -72,8 +73,12 @@ def target(n: int) -> str:
 
 
 def _flags(n: int) -> tuple[str, ...]:
-    # JTRAJ_NATIVE_MARCH: another -march (valgrind, for one, knows no AVX-512: x86-64-v3)
-    return ("-O3", f"-march={os.environ.get('JTRAJ_NATIVE_MARCH', 'native')}", "-std=c++17", "-shared", "-fPIC",
+    # JTRAJ_NATIVE_MARCH: another -march (valgrind, for one, knows no AVX-512: x86-64-v3);
+    # JTRAJ_NATIVE_OPT: another optimisation level (RuntimeError, caught by _family, if bad)
+    level = os.environ.get("JTRAJ_NATIVE_OPT", "3").strip()
+    if level not in ("0", "1", "2", "3"):
+        raise RuntimeError(f"JTRAJ_NATIVE_OPT must be 0, 1, 2 or 3 (the compiler's -O level), got {level!r}")
+    return (f"-O{level}", f"-march={os.environ.get('JTRAJ_NATIVE_MARCH', 'native')}", "-std=c++17", "-shared", "-fPIC",
             f"-DJTRAJ_KKT_N={n}")
 
 

@@ -112,6 +112,19 @@ def test_shorter_step_lengths_are_evaluated_exactly_where_needed():
     assert np.all(np.isinf(np.asarray(skipped[0]))) and np.all(np.isinf(np.asarray(skipped[1])))
 
 
+def test_native_kernels_optimisation_level_from_the_environment(monkeypatch):
+    from jtraj import _kkt_native
+
+    monkeypatch.delenv("JTRAJ_NATIVE_OPT", raising=False)
+    assert _kkt_native._flags(3)[:2] == ("-O3", "-march=native") and "-DJTRAJ_KKT_N=3" in _kkt_native._flags(3)
+    monkeypatch.setenv("JTRAJ_NATIVE_OPT", "1")
+    assert _kkt_native._flags(3)[0] == "-O1"
+    for bad in ("fast", "-O2", "4"):
+        monkeypatch.setenv("JTRAJ_NATIVE_OPT", bad)
+        with pytest.raises(RuntimeError, match="JTRAJ_NATIVE_OPT must be 0, 1, 2 or 3"):
+            _kkt_native._flags(3)
+
+
 def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
     """The native KKT kernel (:mod:`jtraj._kkt_native`, what the solver uses on a CPU in
     float64) against :func:`jtraj.lq.kkt_directions`: one problem and a batch of three
