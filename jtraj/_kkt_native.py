@@ -20,7 +20,8 @@ The kernel is compiled with the machine's C++ compiler (``$CXX``, else ``g++`` o
 ``c++``: ``-O3 -march=native``; ``JTRAJ_NATIVE_MARCH`` sets another ``-march``,
 ``JTRAJ_NATIVE_OPT`` another level: at ``2`` a build takes about a third of the time
 and the kernel runs about 1.6x slower), one library per joint count
-(``-DJTRAJ_KKT_N=n``: a third of the compile time of all seven), once per machine, into ``$JTRAJ_NATIVE_DIR`` (default ``$XDG_CACHE_HOME/jtraj/native`` or
+(``-DJTRAJ_KKT_N=n``: a third of the compile time of all seven), once per machine, into
+``$JTRAJ_NATIVE_DIR`` (default ``$XDG_CACHE_HOME/jtraj/native`` or
 ``~/.cache/jtraj/native``; used only where no other user can write to it, see
 :func:`jtraj._setup.untrusted`), under a name that hashes the source, the flags, the
 compiler's and jaxlib's versions and the CPU's model and flags, so that a cache shared

@@ -50,6 +50,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import stat
 import threading
@@ -75,9 +76,10 @@ def cache_max_bytes() -> int | None:
         gb = float(text)
     except ValueError:
         raise ValueError(f"JTRAJ_CACHE_MAX_GB must be a number of GiB (0: no cap), got {text!r}") from None
-    if not gb == gb or gb < 0 or gb == float("inf"):
+    if not math.isfinite(gb) or gb < 0:
         raise ValueError(f"JTRAJ_CACHE_MAX_GB must be a finite number of GiB >= 0 (0: no cap), got {text!r}")
     return None if gb == 0 else int(gb * 2**30)
+
 
 _lock = threading.Lock()
 #: id -> weak reference of the problems, robots and weights found float64 (before_solve)
