@@ -41,8 +41,9 @@ The files jtraj itself writes there are read without running code
 (:mod:`jtraj._tracecache` stores JSON and ``jax.export``'s serialised bytes, no pickle).
 
 Logging. The library logs through the ``logging`` logger ``"jtraj"``; the line that a
-solver will be compiled is at INFO (``logging.basicConfig(level=logging.INFO)`` shows
-it). The CLI shows the logger's INFO lines on stderr.
+solver will be compiled is at INFO (``logging.basicConfig()`` with
+``logging.getLogger("jtraj").setLevel(logging.INFO)`` shows it). The CLI shows the
+logger's INFO lines on stderr.
 """
 
 from __future__ import annotations
