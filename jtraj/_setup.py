@@ -176,9 +176,9 @@ def enable_cache(path: str | None = None, *, small: bool = True) -> str | None:
         cap = cache_max_bytes()
     except ValueError as err:  # a setting of the cache never stops a program: the default cap
         cap = CACHE_MAX_BYTES
-        with _lock:
-            first = str(err) not in _state["refused"]
-            _state["refused"].add(str(err))
+        with _lock:  # (one warning per process, as a refused folder's: keys (what, value))
+            first = ("cache cap", str(err)) not in _state["refused"]
+            _state["refused"].add(("cache cap", str(err)))
         if first:
             logger.warning("jtraj: %s; capping the cache at %d GiB", err, CACHE_MAX_BYTES >> 30)
     if cap is not None and jax.config.jax_compilation_cache_max_size == -1:
