@@ -145,6 +145,10 @@ def main(argv=None) -> int:
     except ValueError as exc:  # bad input: one readable line, no traceback
         print(f"jtraj {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader of the output left (``jtraj robots | head``): stop quietly
+        if argv is None:  # (Python's own flush of stdout at exit would report it again)
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     except OSError as exc:  # a file the commands' own checks did not catch (removed meanwhile, disk full)
         print(f"jtraj {args.command}: error: {exc}", file=sys.stderr)
         return 2

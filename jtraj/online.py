@@ -282,7 +282,7 @@ class Planner:
                 raise ValueError(f"{name} must be a finite number >= 0, got {x!r}")
         self.model, self.periods = model, periods
         if robot is None:
-            robot = robots.get(meta["robot"], **({"h_max": meta["h_max"]} if meta.get("h_max") else {}))
+            robot = robots.from_metadata(meta)
         self.robot = robot
         self.n = self.robot.n
         self.N = int(meta["N"])

@@ -203,8 +203,13 @@ def check_configurations(robot: Robot, configurations: dict, velocities: dict | 
     failed = {name: {k for k, c in configuration_checks(robot, q).items() if not bool(c)} for name, q in ends}
     for name, q in ends:
         if "joint" in failed[name]:
-            raise ValueError(f"{name} = {np.asarray(q).tolist()} is outside the joint limits "
-                             f"[{np.asarray(lim.q_min).tolist()}, {np.asarray(lim.q_max).tolist()}]")
+            qa, lo, hi = (np.broadcast_to(np.asarray(x, float), np.shape(q)) for x in (q, lim.q_min, lim.q_max))
+            i = int(np.argmax((qa < lo - FACE_TOL) | (qa > hi + FACE_TOL)))
+            names = getattr(robot, "joint_names", None)
+            joint = f"joint {names[i]!r} (index {i})" if names else f"joint {i}"
+            raise ValueError(f"{name} = {np.asarray(q).tolist()} is outside the joint limits: {joint} at "
+                             f"{qa[i]:.6g}, outside [{lo[i]:.6g}, {hi[i]:.6g}] (q_min = {lo.tolist()}, "
+                             f"q_max = {hi.tolist()})")
     for name, qd in (velocities or {}).items():
         if lim.qd_max is not None and bool(jnp.any(jnp.abs(qd) > lim.qd_max * (1 + FACE_TOL))):
             raise ValueError(f"{name} exceeds the velocity limits qd_max = {np.asarray(lim.qd_max).tolist()}")

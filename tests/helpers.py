@@ -77,6 +77,23 @@ def catalogue(slow=()):
     return [pytest.param(n, marks=pytest.mark.slow) if n in slow else n for n in robots.names()]
 
 
+def arm_urdf(name="arm3"):
+    """A small URDF arm: two revolute joints (z, then y) and a revolute 'gripper' joint
+    at the end of the same branch (the default tip)."""
+    def link(n):
+        return (f'<link name="{n}"><inertial><origin xyz="0 0 0.1"/><mass value="1"/><inertia ixx="0.01" '
+                f'ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial></link>')
+
+    def joint(j, parent, child, axis, z):
+        return (f'<joint name="{j}" type="revolute"><parent link="{parent}"/><child link="{child}"/>'
+                f'<origin xyz="0 0 {z}"/><axis xyz="{axis}"/>'
+                f'<limit lower="-1.5" upper="1.5" effort="40" velocity="2"/></joint>')
+
+    return (f'<robot name="{name}"><link name="base"/>{link("l1")}{link("l2")}{link("finger")}'
+            f'{joint("shoulder", "base", "l1", "0 0 1", 0.1)}{joint("elbow", "l1", "l2", "0 1 0", 0.3)}'
+            f'{joint("gripper", "l2", "finger", "0 1 0", 0.3)}</robot>')
+
+
 def sample_state(robot, rng, speed=0.5):
     """(q, qd, qdd) at a random admissible state of ``robot`` (NumPy arrays)."""
     n = robot.n

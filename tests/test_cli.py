@@ -401,3 +401,52 @@ def test_query_refine_exit_code_and_json(plan_model, tmp_path, capsys):
     assert rc2 == rc and "cycloidal start" not in capsys.readouterr().out
     assert not any(k.startswith("cycloidal_") for k in alone)
     assert alone["refined_iterations"] == d["refined_iterations"] and alone["refined_h"] == d["refined_h"]
+
+
+def test_robots_shows_a_urdf_arm_and_joint_names(tmp_path, capsys):
+    """``jtraj robots --urdf``: the arm ``solve --urdf`` and ``dataset --urdf`` would load,
+    with its joint names and limits (the tip link choosing the branch's end); the names
+    reappear in the errors on a wrong number of joint values and a value outside its box."""
+    import jtraj
+    from helpers import arm_urdf
+
+    urdf = tmp_path / "arm.urdf"
+    urdf.write_text(arm_urdf())
+    assert cli.main(["robots", "--urdf", str(urdf)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("arm3: n = 3, SpatialSerial") and "joints   shoulder, elbow, gripper" in out
+    assert "tau_max  [40. 40. 40.]" in out
+    assert cli.main(["robots", "--urdf", str(urdf), "--tip-link", "l2"]) == 0
+    assert "n = 2" in capsys.readouterr().out
+    assert cli.main(["robots", "panda"]) == 0
+    assert "joints   panda_joint1, panda_joint2," in capsys.readouterr().out
+    for args, message in ((["robots", "--tip-link", "l2"], "--tip-link needs --urdf"),
+                          (["robots", "panda", "--urdf", str(urdf)], "not both"),
+                          (["robots", "--urdf", str(urdf), "--tip-link", "hand"], "tip_link 'hand' is not a link"),
+                          (["robots", "nosuchbot"], "name must be one of"),
+                          (["solve", "--urdf", str(urdf), "--start-q", "0,0", "--goal-q", "0.1,0.1,0.1"],
+                           "--start-q must have 3 values for this robot (shoulder, elbow, gripper), got 2"),
+                          (["solve", "--urdf", str(urdf), "--start-q", "0,0,0", "--goal-q", "0.1,1.6,0.1"],
+                           "joint 'elbow' (index 1) at 1.6, outside [-1.5, 1.5]")):
+        assert cli.main(args) == 2, args
+        assert message in capsys.readouterr().err, args
+    robot = jtraj.robots.get("pkm2")  # a robot without joint names: the index
+    with pytest.raises(ValueError, match=r"q_goal .* joint limits: joint 0 at 5, outside \[-0.8, 0.8\]"):
+        jtraj.Problem(robot, [0.0, -1.2], [5.0, -1.2], N=4)
+
+
+def test_a_closed_output_pipe_stops_quietly(monkeypatch, capsys):
+    """``jtraj robots | head -1``: the reader leaves, the command stops with status 1 and
+    no error line (not a traceback, not ``error: [Errno 32] Broken pipe``)."""
+    import sys
+
+    class Closed:
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            pass
+
+    monkeypatch.setattr(sys, "stdout", Closed())
+    assert cli.main(["robots"]) == 1
+    assert capsys.readouterr().err == ""

@@ -22,7 +22,7 @@ from jtraj.cli import main as cli_main
 from jtraj.dataset import sampling, store
 from jtraj.dataset.build import H_MAX_FACTOR
 
-from helpers import catalogue
+from helpers import arm_urdf, catalogue
 
 FAKE = "jtraj.dataset.testing:fake_solve_batch"
 FAKE_CPUS = "jtraj.dataset.testing:fake_solve_batch_cpus"  # iterations: the solving process's CPUs
@@ -666,3 +666,69 @@ def test_every_robot_samples_admissible_pairs_and_stores_them(tmp_path, name):
     assert np.all(np.linalg.norm(data["q_goal"] - data["q_start"], axis=1) >= 0.05)
     dataset.build(spec, str(tmp_path / "b"), progress=False, workers=1)
     np.testing.assert_array_equal(dataset.load(str(tmp_path / "b"))["q_goal"], data["q_goal"])
+
+
+def test_urdf_arm_dataset_trains_and_queries_without_its_file(tmp_path, capsys):
+    """``jtraj dataset --urdf``: the dataset keeps the file's text and tip link, so the
+    dataset's robot, a model trained on it and ``jtraj query`` rebuild the arm after the
+    file is gone; the same file resumes, another tip link is refused (the stand-in solver)."""
+    from jtraj import robots
+    from jtraj.dataset import views
+    from jtraj.online import Planner
+
+    urdf = tmp_path / "arm.urdf"
+    urdf.write_text(arm_urdf())
+    out = tmp_path / "d"
+    build = ["dataset", "--urdf", str(urdf), "--tip-link", "l2", "--pairs", "24", "--batch", "12", "--N", "6",
+             "--out", str(out), "--solver", FAKE, "--workers", "1", "--no-progress"]
+    assert cli_main(build) == 0
+    arm = robots.from_urdf(str(urdf), tip_link="l2")
+    assert arm.n == 2 and arm.joint_names == ("shoulder", "elbow")
+    assert cli_main(build) == 0 and "0 new pairs" in capsys.readouterr().out  # the same file resumes
+    assert cli_main(build[:3] + build[5:]) == 2  # the default tip (the gripper): another arm
+    assert "different parameters" in capsys.readouterr().err
+    assert cli_main(["dataset", "info", str(out)]) == 0
+    assert "robot arm3 (n = 2; a URDF arm, tip link l2)" in capsys.readouterr().out
+    urdf.unlink()
+    data = dataset.load(str(out))
+    robot = views.robot_of(data)
+    assert (robot.name, robot.joint_names) == ("arm3", arm.joint_names)
+    np.testing.assert_array_equal(robot.joint_translation, arm.joint_translation)
+    assert float(robot.limits.h_max) == H_MAX_FACTOR * float(arm.limits.h_max)
+    model = tmp_path / "plan.anfis"
+    assert cli_main(["train", "--data", str(out), "--mapping", "plan", "--order", "0", "--rules", "2",
+                     "--epochs", "2", "--out", str(model), "--no-progress"]) == 0
+    planner = Planner(str(model))
+    assert planner.robot.joint_names == arm.joint_names and float(planner.robot.limits.h_max) == float(
+        robot.limits.h_max)
+    answer = tmp_path / "q.json"
+    assert cli_main(["query", "--model", str(model), "--start", "0.1,-0.2", "--goal", "0.5,0.3",
+                     "--json", str(answer)]) == 0
+    result = json.loads(answer.read_text())
+    assert result["feasible"] is True and np.allclose(result["q"][-1], [0.5, 0.3], atol=1e-6)
+    assert cli_main(["query", "--model", str(model), "--start", "0.1", "--goal", "0.5,0.3"]) == 2
+    assert "--start must have 2 values for this robot (shoulder, elbow), got 1" in capsys.readouterr().err
+
+
+def test_urdf_dataset_bad_input_names_the_option(tmp_path, capsys):
+    urdf = tmp_path / "arm.urdf"
+    urdf.write_text(arm_urdf())
+    text = tmp_path / "notes.txt"
+    text.write_text("not xml")
+    base = ["--pairs", "4", "--out", str(tmp_path / "d"), "--solver", FAKE]
+    cases = [(["--urdf", str(urdf), "--robot", "panda"], "give --robot (a built-in robot) or --urdf"),
+             (["--robot", "panda", "--tip-link", "l2"], "--tip-link needs --urdf"),
+             (["--urdf", str(tmp_path / "missing.urdf")], "--urdf: cannot read"),
+             (["--urdf", str(text)], "is not a URDF file"),
+             (["--urdf", str(urdf), "--tip-link", "hand"], "--tip-link 'hand' is not a link"),
+             ([], "build needs --robot (or --urdf)")]
+    for args, message in cases:
+        assert cli_main(["dataset", *args, *base]) == 2, args
+        assert message in capsys.readouterr().err, args
+    assert not (tmp_path / "d").exists()
+    with pytest.raises(ValueError, match="give robot .* or urdf"):
+        dataset.make_spec("panda", 4, 0, urdf=str(urdf))
+    with pytest.raises(ValueError, match="tip_link needs urdf"):
+        dataset.make_spec("panda", 4, 0, tip_link="l2")
+    spec = dataset.make_spec(None, 4, 0, urdf=arm_urdf("from_text"), solver=FAKE)  # the XML text itself
+    assert spec.robot == "from_text" and spec.robot_model().n == 3

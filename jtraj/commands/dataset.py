@@ -1,6 +1,7 @@
 """Generate, inspect and plot datasets of optimal trajectories.
 
   jtraj dataset [build] --robot serial3 --pairs 10000 --seed 0 --out runs/s3 [--N 20]
+                (or --urdf arm.urdf [--tip-link NAME] in place of --robot)
                 [--weights time=1,energy=0.1] [--space joint|task] [--batch B] [--workers K | --ray auto]
   jtraj dataset info PATH
   jtraj dataset verify PATH
@@ -42,6 +43,10 @@ def configure(parser):
     parser.add_argument("action", nargs="*", metavar="[build | info PATH | verify PATH | plot PATH]",
                         help="what to do (default build)")
     parser.add_argument("--robot", help="robot name (see 'jtraj robots')")
+    parser.add_argument("--urdf", metavar="PATH", help="a serial arm's URDF file instead of --robot "
+                        "(jtraj.robots.from_urdf; the dataset keeps its text, and its models need no file)")
+    parser.add_argument("--tip-link", metavar="NAME", help="with --urdf: the tip link (default: the end of the "
+                        "only branch of movable joints, e.g. a gripper's; see 'jtraj robots --urdf PATH')")
     parser.add_argument("--pairs", type=int, help="number of start/goal pairs P >= 1")
     parser.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
     parser.add_argument("--out", help="build: dataset directory; plot: image file (default <PATH>-overview.png)")
@@ -143,9 +148,14 @@ def run(args) -> int:
         print(f"wrote {out}")
         return 0
 
-    missing = [f"--{k}" for k in ("robot", "pairs", "out") if getattr(args, k) is None]
+    if args.robot is not None and args.urdf is not None:
+        raise ValueError("give --robot (a built-in robot) or --urdf (a URDF file), not both")
+    missing = [f"--{k}" for k in ("robot", "pairs", "out") if getattr(args, k) is None
+               and not (k == "robot" and args.urdf is not None)]
     if missing:
-        raise ValueError(f"build needs {', '.join(missing)}")
+        raise ValueError(f"build needs {', '.join(missing)}" + (" (or --urdf)" if "--robot" in missing else ""))
+    if args.tip_link is not None and args.urdf is None:
+        raise ValueError("--tip-link needs --urdf")
     from jtraj import dataset
     from jtraj.dataset.store import read_manifest
 
@@ -160,11 +170,19 @@ def run(args) -> int:
     # the method recorded too: a dataset resumes only with the same method
     options = solver_overrides(args)
     solve_fn = solve_function(args) or "jtraj:solve_batch"
-    spec = dataset.make_spec(args.robot, args.pairs, args.seed, N=args.N, weights=args.weights,
-                             batch=batch, space=args.space,
-                             start_range=args.start_range, step_range=args.step_range,
-                             min_separation=args.min_separation, ik_method=args.ik_method, options=options,
-                             solver=solve_fn, h_max=_h_max(args.h_max), efforts=args.efforts)
+    try:
+        spec = dataset.make_spec(args.robot, args.pairs, args.seed, N=args.N, weights=args.weights,
+                                 batch=batch, space=args.space,
+                                 start_range=args.start_range, step_range=args.step_range,
+                                 min_separation=args.min_separation, ik_method=args.ik_method, options=options,
+                                 solver=solve_fn, h_max=_h_max(args.h_max), efforts=args.efforts,
+                                 urdf=args.urdf, tip_link=args.tip_link)
+    except ValueError as exc:
+        msg = str(exc)
+        if msg.startswith(("urdf: ", "tip_link")):  # the messages name the options
+            msg = msg.replace("urdf: ", "--urdf: ", 1).replace("tip_link=", "--tip-link").replace("tip_link", "--tip-link")
+            raise ValueError(msg) from None
+        raise
     stats = dataset.build(spec, args.out, ray=args.ray, workers=getattr(args, "workers", None),
                           progress=not args.no_progress)
     P = stats["pairs_done"]

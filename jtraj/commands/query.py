@@ -65,13 +65,14 @@ def configure(parser):
                              "refined optimum with the plan dashed beside it")
 
 
-def _vector(text, name, n, deg):
+def _vector(text, name, robot, deg):
     from jtraj.commands.solve import parse_vector
 
     if not isinstance(text, str):  # a sequence of numbers (a Python caller's args)
         text = ",".join(str(float(x)) for x in text)
     # (spaces separate as well as commas)
-    return parse_vector(",".join(text.replace(",", " ").split()), name, n, deg=deg)
+    return parse_vector(",".join(text.replace(",", " ").split()), name, robot.n, deg=deg,
+                        joints=getattr(robot, "joint_names", None))
 
 
 def run(args) -> int:
@@ -103,8 +104,8 @@ def run(args) -> int:
             raise ValueError(f"--weights: {exc}") from None
     planner = Planner(args.model, periods=getattr(args, "periods", None))
     deg = getattr(args, "deg", False)
-    q_start = _vector(args.start, "--start", planner.n, deg)
-    q_goal = _vector(args.goal, "--goal", planner.n, deg)
+    q_start = _vector(args.start, "--start", planner.robot, deg)
+    q_goal = _vector(args.goal, "--goal", planner.robot, deg)
     check_joint_values(planner.robot, {"--start": q_start, "--goal": q_goal}, deg)
     solver = None
     if args.refine:

@@ -1,25 +1,53 @@
-"""List the built-in robots, their degrees of freedom, parameters and limits."""
+"""List the built-in robots, their degrees of freedom, parameters and limits; or show
+the serial arm a URDF file describes, as ``jtraj solve --urdf`` and ``jtraj dataset
+--urdf`` would load it."""
 
-HELP = "list the built-in robots and their parameters"
+HELP = "list the built-in robots and their parameters, or show a URDF arm"
 
 
 def configure(parser):
     parser.add_argument("name", nargs="?", help="show one robot in detail")
+    parser.add_argument("--urdf", metavar="PATH", help="show the serial arm of this URDF file in detail "
+                        "(jtraj.robots.from_urdf: limits from the file, qdd_max 10 rad/s^2)")
+    parser.add_argument("--tip-link", metavar="NAME", help="with --urdf: the tip link (default: the end of the "
+                        "only branch of movable joints)")
 
 
 def run(args) -> int:
-    import numpy as np
-
     from jtraj import robots
 
-    names = [args.name] if args.name else robots.names()
-    for name in names:
-        r = robots.get(name)
-        print(f"{name}: n = {r.n}, {type(r).__name__}")
+    if args.tip_link is not None and args.urdf is None:
+        raise ValueError("--tip-link needs --urdf")
+    if args.urdf is not None:
+        if args.name is not None:
+            raise ValueError(f"give a built-in robot's name or --urdf, not both; got {args.name!r}")
+        try:
+            robot = robots.from_urdf(args.urdf, tip_link=args.tip_link)
+        except ValueError as exc:
+            raise ValueError(f"--urdf {args.urdf}: {exc}") from None
+        _show(robot.name, robot, None)
+        return 0
+    if args.name is not None and args.name not in robots.names():
+        raise ValueError(f"name must be one of {robots.names()} (or give --urdf PATH), got {args.name!r}")
+    for name in [args.name] if args.name else robots.names():
+        robot = robots.get(name)
         if args.name:
-            print("  parameters:", ", ".join(robots.parameter_names(name)))
-            lim = r.limits
-            for f in ("q_min", "q_max", "qd_max", "qdd_max", "tau_max", "h_min", "h_max"):
-                val = getattr(lim, f)
-                print(f"  {f:8s} {'-' if val is None else np.array2string(np.asarray(val), precision=4)}")
+            _show(name, robot, robots.parameter_names(name))
+        else:
+            print(f"{name}: n = {robot.n}, {type(robot).__name__}")
     return 0
+
+
+def _show(name, robot, parameters):
+    import numpy as np
+
+    print(f"{name}: n = {robot.n}, {type(robot).__name__}")
+    joints = getattr(robot, "joint_names", None)
+    if joints:
+        print("  joints  ", ", ".join(joints))
+    if parameters:
+        print("  parameters:", ", ".join(parameters))
+    lim = robot.limits
+    for f in ("q_min", "q_max", "qd_max", "qdd_max", "tau_max", "h_min", "h_max"):
+        val = getattr(lim, f)
+        print(f"  {f:8s} {'-' if val is None else np.array2string(np.asarray(val), precision=4)}")

@@ -73,7 +73,7 @@ def configure(parser):
     parser.add_argument("--plot", metavar="PATH", help="write the figures (PNG, PDF, SVG by extension)")
 
 
-def parse_vector(text, name, n=None, *, deg=False):
+def parse_vector(text, name, n=None, *, deg=False, joints=None):
     """'a,b,c' -> float array, ValueError naming ``name`` on malformed or non-finite input."""
     import math
 
@@ -89,7 +89,8 @@ def parse_vector(text, name, n=None, *, deg=False):
     if not all(math.isfinite(v) for v in vals):
         raise ValueError(f"{name} must be finite numbers (no NaN or inf); got {text!r}")
     if n is not None and len(vals) != n:
-        raise ValueError(f"{name} must have {n} values for this robot, got {len(vals)} ({text!r})")
+        names = f" ({', '.join(joints)})" if joints else ""
+        raise ValueError(f"{name} must have {n} values for this robot{names}, got {len(vals)} ({text!r})")
     arr = np.asarray(vals, dtype=float)
     return np.deg2rad(arr) if deg else arr
 
@@ -189,8 +190,9 @@ def build_problem(args):
     if not (math.isfinite(args.via_tol) and args.via_tol > 0):
         raise ValueError(f"--via-tol must be a finite number > 0, got {args.via_tol}")
     d = int(np.asarray(robot.forward_kinematics(np.zeros(n))).shape[0])
-    q_start = parse_vector(args.start_q, "--start-q", n, deg=args.deg)
-    q_goal = parse_vector(args.goal_q, "--goal-q", n, deg=args.deg)
+    joints = getattr(robot, "joint_names", None)
+    q_start = parse_vector(args.start_q, "--start-q", n, deg=args.deg, joints=joints)
+    q_goal = parse_vector(args.goal_q, "--goal-q", n, deg=args.deg, joints=joints)
     p_start = parse_vector(args.start_xy, "--start-xy", d)
     p_goal = parse_vector(args.goal_xy, "--goal-xy", d)
     vias = [ViaPoint(point=parse_vector(v, "--via", d), tol=args.via_tol) for v in args.via]

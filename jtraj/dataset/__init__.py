@@ -166,6 +166,13 @@ def summary(path: str) -> str:
     return summary_and_check(path)[0]
 
 
+def _urdf_note(md) -> str:
+    urdf = md.get("urdf")
+    if not urdf:
+        return ""
+    return "; a URDF arm" + (f", tip link {urdf['tip_link']}" if urdf.get("tip_link") else "")
+
+
 def summary_and_check(path: str) -> tuple[str, dict]:
     """:func:`summary`'s text and :func:`verify`'s result."""
     from jtraj.solver import Status
@@ -174,7 +181,7 @@ def summary_and_check(path: str) -> tuple[str, dict]:
     data = Dataset(path, partial=True, exclude=set(check["corrupt"]))
     md = data.metadata
     lines = [f"dataset {data.path}",
-             f"  robot {md['robot']} (n = {md['n']}), N = {md['N']}, weights {md['weights_text']}, "
+             f"  robot {md['robot']} (n = {md['n']}{_urdf_note(md)}), N = {md['N']}, weights {md['weights_text']}, "
              f"seed {md['seed']}, batch {md['batch']}",
              f"  h in [{md['limits']['h_min']:g}, {md['limits']['h_max']:g}] s (T <= {md['N'] * md['limits']['h_max']:g} s)"
              f"; torque bound at the {_EFFORTS_TEXT[md.get('efforts', 'samples')]}",

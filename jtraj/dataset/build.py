@@ -29,6 +29,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -108,6 +109,9 @@ class Spec:
     solver: str = DEFAULT_SOLVER
     h_max: float | None = None  # sampling-period bound [s] replacing the robot's (None: the robot's)
     efforts: str = "samples"  # where the torque bound holds (jtraj.Problem's efforts)
+    #: a URDF arm's file text and tip link (None: ``robot`` is a built-in robot's name)
+    urdf: str | None = None
+    tip_link: str | None = None
 
     @property
     def n_chunks(self) -> int:
@@ -118,8 +122,14 @@ class Spec:
 
     # cached per process (a Ray worker reuses them across chunks)
     def robot_model(self):
-        overrides = {} if self.h_max is None else {"h_max": self.h_max}
-        return _cached(("robot", self.robot, self.h_max), lambda: _robots().get(self.robot, **overrides))
+        return _cached(("robot", self.robot, self.h_max, self.urdf, self.tip_link),
+                       lambda: _robots().from_metadata(self.robot_record() | {"h_max": self.h_max}))
+
+    def robot_record(self) -> dict:
+        """The metadata that names the robot (:func:`jtraj.robots.from_metadata`)."""
+        if self.urdf is None:
+            return {"robot": self.robot}
+        return {"robot": self.robot, "urdf": {"text": self.urdf, "tip_link": self.tip_link}}
 
     def weights_obj(self):
         import jtraj
@@ -151,6 +161,7 @@ class Spec:
             # only where it differs from the default, so that datasets started before the
             # option existed keep their identity (and resume)
             **({} if self.efforts == "samples" else {"efforts": self.efforts}),
+            **({} if self.urdf is None else {"urdf_tip_link": self.tip_link}),
         }
 
 
@@ -382,10 +393,16 @@ def _versions() -> dict:
     return v
 
 
-def make_spec(robot: str, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=None, space="joint",
+def make_spec(robot: str | None, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=None, space="joint",
               start_range=1.2, step_range=0.8, min_separation=0.05, ik_method="weighted", options=None,
-              solver=DEFAULT_SOLVER, h_max="auto", efforts="samples") -> Spec:
+              solver=DEFAULT_SOLVER, h_max="auto", efforts="samples", urdf=None, tip_link=None) -> Spec:
     """Validated :class:`Spec` (raises ``ValueError`` naming the bad argument; no compute).
+
+    ``robot``: a built-in robot's name (:func:`jtraj.robots.names`), or None with
+    ``urdf``: the path of a URDF file (or its XML text) of a serial arm, loaded by
+    :func:`jtraj.robots.from_urdf` with its defaults and ``tip_link``. The dataset keeps
+    the file's text, so that its robot (:func:`jtraj.robots.from_metadata`), the models
+    trained on it and their queries need no file; it is named by the URDF's robot name.
 
     ``h_max``: the sampling-period bound [s] of the dataset's problems: ``"auto"``
     (default) is :data:`H_MAX_FACTOR` times the robot's own bound, ``"robot"`` keeps the
@@ -401,8 +418,16 @@ def make_spec(robot: str, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=N
     ``"module:function"`` (default :data:`DEFAULT_SOLVER`)."""
     from jtraj import robots
 
-    if not isinstance(robot, str) or robot not in robots.names():
+    if urdf is not None:
+        if robot is not None:
+            raise ValueError(f"give robot (a built-in robot's name) or urdf (a URDF file), not both; got robot "
+                             f"{robot!r}")
+        urdf, robot = _urdf_text(urdf, tip_link)
+    elif tip_link is not None:
+        raise ValueError("tip_link needs urdf (it names a link of a URDF arm)")
+    elif not isinstance(robot, str) or robot not in robots.names():
         raise ValueError(f"unknown robot {robot!r}; choose one of {robots.names()}")
+    record = {"robot": robot} if urdf is None else {"robot": robot, "urdf": {"text": urdf, "tip_link": tip_link}}
 
     def integer(x, name, lo):
         if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < lo:
@@ -439,7 +464,7 @@ def make_spec(robot: str, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=N
     if not isinstance(solver, str):
         raise ValueError(f"solver must be a solver object or 'module:function', got {type(solver).__name__}")
     resolve_solver(solver)
-    limits = robots.get(robot).limits
+    limits = robots.from_metadata(record).limits
     if isinstance(h_max, str):
         if h_max not in ("auto", "robot"):
             raise ValueError(f"h_max must be 'auto', 'robot' or a number of seconds, got {h_max!r}")
@@ -455,15 +480,42 @@ def make_spec(robot: str, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=N
     if efforts not in EFFORTS:
         raise ValueError(f"efforts must be one of {EFFORTS}, got {efforts!r}")
     spec = Spec(robot=robot, pairs=pairs, seed=seed, N=N, weights=weights, batch=batch, distribution=dist,
-                options=opts, solver=solver, h_max=h_max, efforts=efforts)
+                options=opts, solver=solver, h_max=h_max, efforts=efforts, urdf=urdf, tip_link=tip_link)
     sampling.check(spec.robot_model(), dist)
     return spec
+
+
+def _urdf_text(source, tip_link) -> tuple[str, str]:
+    """(the XML text, the arm's name) of a URDF file or text that
+    :func:`jtraj.robots.from_urdf` loads (``ValueError`` naming ``urdf`` or ``tip_link``)."""
+    from jtraj import robots
+
+    if tip_link is not None and not isinstance(tip_link, str):
+        raise ValueError(f"tip_link must be a link's name, got {tip_link!r}")
+    if isinstance(source, (str, os.PathLike)) and not str(source).lstrip().startswith("<"):
+        try:
+            text = Path(source).read_text()
+        except OSError as exc:
+            raise ValueError(f"urdf: cannot read {str(source)!r} ({exc.strerror or exc})") from None
+        except UnicodeDecodeError:
+            text = ""
+        if not text.lstrip().startswith("<"):
+            raise ValueError(f"urdf: {str(source)!r} is not a URDF file (expected XML text)")
+    elif isinstance(source, str):
+        text = source
+    else:
+        raise ValueError(f"urdf must be a URDF file's path or its XML text, got {type(source).__name__}")
+    try:
+        arm = robots.from_urdf(text, tip_link=tip_link)
+    except ValueError as exc:
+        raise ValueError(str(exc) if str(exc).startswith("tip_link") else f"urdf: {exc}") from None
+    return text, arm.name
 
 
 def metadata(spec: Spec) -> dict:
     robot = spec.robot_model()
     d = {
-        "robot": spec.robot,
+        **spec.robot_record(),
         "n": robot.n,
         "limits": _plain(robot.limits),
         "pairs": spec.pairs,

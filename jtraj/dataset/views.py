@@ -48,10 +48,11 @@ def _traj(index, K):
 
 
 def robot_of(data):
-    """The robot a dataset was made with (by name; the stored model is checked)."""
+    """The robot a dataset was made with (:func:`jtraj.robots.from_metadata`: the built-in
+    robot it names, or the URDF arm it stores; with its sampling-period bound)."""
     from jtraj import robots
 
-    return robots.get(data["metadata"]["robot"])
+    return robots.from_metadata(data["metadata"])
 
 
 def nefotc(data, *, converged_only: bool = True) -> View:
