@@ -78,20 +78,23 @@ def catalogue(slow=()):
 
 
 def arm_urdf(name="arm3"):
-    """A small URDF arm: two revolute joints (z, then y) and a revolute 'gripper' joint
-    at the end of the same branch (the default tip)."""
+    """A small URDF arm: a shoulder (about z) and an elbow (about y) carrying a tool
+    0.25 m out (a fixed joint), and a revolute 'gripper' joint beside it at the end of
+    the only branch of movable joints (the default tip: three joints; ``tip_link="tool"``:
+    two)."""
     def link(n):
-        return (f'<link name="{n}"><inertial><origin xyz="0 0 0.1"/><mass value="1"/><inertia ixx="0.01" '
+        return (f'<link name="{n}"><inertial><origin xyz="0.1 0 0.1"/><mass value="1"/><inertia ixx="0.01" '
                 f'ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial></link>')
 
-    def joint(j, parent, child, axis, z):
-        return (f'<joint name="{j}" type="revolute"><parent link="{parent}"/><child link="{child}"/>'
-                f'<origin xyz="0 0 {z}"/><axis xyz="{axis}"/>'
-                f'<limit lower="-1.5" upper="1.5" effort="40" velocity="2"/></joint>')
+    def joint(j, parent, child, axis, xyz, kind="revolute"):
+        limit = '<limit lower="-1.5" upper="1.5" effort="40" velocity="2"/>' if kind == "revolute" else ""
+        return (f'<joint name="{j}" type="{kind}"><parent link="{parent}"/><child link="{child}"/>'
+                f'<origin xyz="{xyz}"/><axis xyz="{axis}"/>{limit}</joint>')
 
-    return (f'<robot name="{name}"><link name="base"/>{link("l1")}{link("l2")}{link("finger")}'
-            f'{joint("shoulder", "base", "l1", "0 0 1", 0.1)}{joint("elbow", "l1", "l2", "0 1 0", 0.3)}'
-            f'{joint("gripper", "l2", "finger", "0 1 0", 0.3)}</robot>')
+    return (f'<robot name="{name}"><link name="base"/>{link("l1")}{link("l2")}{link("finger")}<link name="tool"/>'
+            f'{joint("shoulder", "base", "l1", "0 0 1", "0 0 0.1")}{joint("elbow", "l1", "l2", "0 1 0", "0 0 0.3")}'
+            f'{joint("mount", "l2", "tool", "0 0 1", "0.25 0 0", "fixed")}'
+            f'{joint("gripper", "l2", "finger", "0 1 0", "0.2 0 0")}</robot>')
 
 
 def sample_state(robot, rng, speed=0.5):

@@ -416,11 +416,11 @@ def test_robots_shows_a_urdf_arm_and_joint_names(tmp_path, capsys):
     out = capsys.readouterr().out
     assert out.startswith("arm3: n = 3, SpatialSerial") and "joints   shoulder, elbow, gripper" in out
     assert "tau_max  [40. 40. 40.]" in out
-    assert cli.main(["robots", "--urdf", str(urdf), "--tip-link", "l2"]) == 0
+    assert cli.main(["robots", "--urdf", str(urdf), "--tip-link", "tool"]) == 0
     assert "n = 2" in capsys.readouterr().out
     assert cli.main(["robots", "panda"]) == 0
     assert "joints   panda_joint1, panda_joint2," in capsys.readouterr().out
-    for args, message in ((["robots", "--tip-link", "l2"], "--tip-link needs --urdf"),
+    for args, message in ((["robots", "--tip-link", "tool"], "--tip-link needs --urdf"),
                           (["robots", "panda", "--urdf", str(urdf)], "not both"),
                           (["robots", "--urdf", str(urdf), "--tip-link", "hand"], "tip_link 'hand' is not a link"),
                           (["robots", "nosuchbot"], "name must be one of"),
@@ -433,6 +433,22 @@ def test_robots_shows_a_urdf_arm_and_joint_names(tmp_path, capsys):
     robot = jtraj.robots.get("pkm2")  # a robot without joint names: the index
     with pytest.raises(ValueError, match=r"q_goal .* joint limits: joint 0 at 5, outside \[-0.8, 0.8\]"):
         jtraj.Problem(robot, [0.0, -1.2], [5.0, -1.2], N=4)
+
+
+@pytest.mark.slow
+def test_gradcheck_of_a_urdf_arm(tmp_path, capsys):
+    """``jtraj gradcheck --urdf``: a two-joint arm (its manipulability, in the
+    singularity term the check switches on, from ``J^T J``) passes against the adjoint
+    and finite differences."""
+    from helpers import arm_urdf
+
+    urdf = tmp_path / "arm.urdf"
+    urdf.write_text(arm_urdf())
+    assert cli.main(["gradcheck", "--urdf", str(urdf), "--tip-link", "tool", "--N", "4", "--points", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "arm3" in out and "PASSED" in out
+    assert cli.main(["gradcheck", "--urdf", str(urdf), "--robot", "panda"]) == 2
+    assert "not both" in capsys.readouterr().err
 
 
 def test_a_closed_output_pipe_stops_quietly(monkeypatch, capsys):

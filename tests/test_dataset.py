@@ -679,16 +679,16 @@ def test_urdf_arm_dataset_trains_and_queries_without_its_file(tmp_path, capsys):
     urdf = tmp_path / "arm.urdf"
     urdf.write_text(arm_urdf())
     out = tmp_path / "d"
-    build = ["dataset", "--urdf", str(urdf), "--tip-link", "l2", "--pairs", "24", "--batch", "12", "--N", "6",
+    build = ["dataset", "--urdf", str(urdf), "--tip-link", "tool", "--pairs", "24", "--batch", "12", "--N", "6",
              "--out", str(out), "--solver", FAKE, "--workers", "1", "--no-progress"]
     assert cli_main(build) == 0
-    arm = robots.from_urdf(str(urdf), tip_link="l2")
+    arm = robots.from_urdf(str(urdf), tip_link="tool")
     assert arm.n == 2 and arm.joint_names == ("shoulder", "elbow")
     assert cli_main(build) == 0 and "0 new pairs" in capsys.readouterr().out  # the same file resumes
     assert cli_main(build[:3] + build[5:]) == 2  # the default tip (the gripper): another arm
     assert "different parameters" in capsys.readouterr().err
     assert cli_main(["dataset", "info", str(out)]) == 0
-    assert "robot arm3 (n = 2; a URDF arm, tip link l2)" in capsys.readouterr().out
+    assert "robot arm3 (n = 2; a URDF arm, tip link tool)" in capsys.readouterr().out
     urdf.unlink()
     data = dataset.load(str(out))
     robot = views.robot_of(data)
@@ -717,7 +717,7 @@ def test_urdf_dataset_bad_input_names_the_option(tmp_path, capsys):
     text.write_text("not xml")
     base = ["--pairs", "4", "--out", str(tmp_path / "d"), "--solver", FAKE]
     cases = [(["--urdf", str(urdf), "--robot", "panda"], "give --robot (a built-in robot) or --urdf"),
-             (["--robot", "panda", "--tip-link", "l2"], "--tip-link needs --urdf"),
+             (["--robot", "panda", "--tip-link", "tool"], "--tip-link needs --urdf"),
              (["--urdf", str(tmp_path / "missing.urdf")], "--urdf: cannot read"),
              (["--urdf", str(text)], "is not a URDF file"),
              (["--urdf", str(urdf), "--tip-link", "hand"], "--tip-link 'hand' is not a link"),
@@ -729,6 +729,6 @@ def test_urdf_dataset_bad_input_names_the_option(tmp_path, capsys):
     with pytest.raises(ValueError, match="give robot .* or urdf"):
         dataset.make_spec("panda", 4, 0, urdf=str(urdf))
     with pytest.raises(ValueError, match="tip_link needs urdf"):
-        dataset.make_spec("panda", 4, 0, tip_link="l2")
+        dataset.make_spec("panda", 4, 0, tip_link="tool")
     spec = dataset.make_spec(None, 4, 0, urdf=arm_urdf("from_text"), solver=FAKE)  # the XML text itself
     assert spec.robot == "from_text" and spec.robot_model().n == 3

@@ -319,6 +319,28 @@ def test_small_arm_limits_and_manipulability(arm):
     assert np.allclose(custom.limits.qddd_max, 100)
 
 
+def test_manipulability_of_an_arm_with_fewer_joints_than_task_coordinates():
+    """Two joints and a 3-D task point: ``J J^T`` (3 x 3) is singular everywhere, so the
+    manipulability is the product of J's singular values, ``sqrt(det(J^T J))`` (NumPy's
+    SVD the reference), with a gradient that matches central differences; at a
+    singular configuration (serial3 stretched out) it is 0 with a zero gradient, not NaN."""
+    from helpers import arm_urdf
+
+    arm2 = from_urdf(arm_urdf(), tip_link="tool")
+    assert arm2.n == 2
+    for q in (jnp.array([0.3, 0.4]), jnp.array([-1.0, 1.2])):
+        sv = np.linalg.svd(np.asarray(arm2.jacobian(q)), compute_uv=False)
+        assert float(arm2.manipulability(q)) == pytest.approx(float(np.prod(sv)), rel=1e-12)
+        assert float(np.prod(sv)) > 1e-3
+        g = np.asarray(jax.grad(arm2.manipulability)(q))
+        fd = [(float(arm2.manipulability(q + d)) - float(arm2.manipulability(q - d))) / 2e-6
+              for d in 1e-6 * jnp.eye(2)]
+        assert rel_err(g, np.array(fd)) < 1e-7
+    s3 = jtraj.robots.get("serial3")
+    w, g = s3.manipulability(jnp.zeros(3)), jax.grad(s3.manipulability)(jnp.zeros(3))
+    assert float(w) == 0.0 and np.all(np.asarray(g) == 0.0)
+
+
 def test_payload_sensitivity_is_differentiable(arm):
     """d tau / d (mass of body 3) by autodiff against a central difference."""
     q, qd, qdd = jnp.array([0.2, 0.5, 0.1]), jnp.array([0.3, -0.2, 0.1]), jnp.array([1.0, -0.5, 0.2])

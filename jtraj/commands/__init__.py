@@ -33,6 +33,30 @@ def check_output_file(path, option: str) -> None:
         raise ValueError(f"{option} {path!r} is not writable")
 
 
+def add_urdf_arguments(parser, use: str) -> None:
+    """``--urdf PATH`` and ``--tip-link NAME`` (``use``: what ``--urdf`` does, the start
+    of its help)."""
+    parser.add_argument("--urdf", metavar="PATH", help=f"{use} (jtraj.robots.from_urdf: limits from the file, "
+                        "qdd_max 10 rad/s^2)")
+    parser.add_argument("--tip-link", metavar="NAME", help="with --urdf: the tip link (default: the end of the only "
+                        "branch of movable joints, which may be a gripper's; see 'jtraj robots --urdf PATH')")
+
+
+def urdf_robot(args):
+    """The arm ``--urdf`` and ``--tip-link`` give, or None without ``--urdf``
+    (``ValueError`` naming the option)."""
+    if args.tip_link is not None and args.urdf is None:
+        raise ValueError("--tip-link needs --urdf")
+    if args.urdf is None:
+        return None
+    from jtraj import robots
+
+    try:
+        return robots.from_urdf(args.urdf, tip_link=args.tip_link)
+    except ValueError as exc:
+        raise ValueError(f"--urdf {args.urdf}: {exc}") from None
+
+
 #: ``--solver`` names and the method each is (``ipm``/``ip`` the interior-point method
 #: with its AL fallback, ``al`` the augmented-Lagrangian method alone)
 SOLVER_NAMES = {"auto": "auto", "ipm": "ip", "ip": "ip", "al": "al"}

@@ -38,15 +38,13 @@ ACTIONS = ("build", "info", "verify", "plot")
 
 
 def configure(parser):
-    from jtraj.commands import add_solver_arguments
+    from jtraj.commands import add_solver_arguments, add_urdf_arguments
 
     parser.add_argument("action", nargs="*", metavar="[build | info PATH | verify PATH | plot PATH]",
                         help="what to do (default build)")
     parser.add_argument("--robot", help="robot name (see 'jtraj robots')")
-    parser.add_argument("--urdf", metavar="PATH", help="a serial arm's URDF file instead of --robot "
-                        "(jtraj.robots.from_urdf; the dataset keeps its text, and its models need no file)")
-    parser.add_argument("--tip-link", metavar="NAME", help="with --urdf: the tip link (default: the end of the "
-                        "only branch of movable joints, e.g. a gripper's; see 'jtraj robots --urdf PATH')")
+    add_urdf_arguments(parser, "a serial arm's URDF file instead of --robot; the dataset keeps its text, and "
+                       "its models need no file")
     parser.add_argument("--pairs", type=int, help="number of start/goal pairs P >= 1")
     parser.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
     parser.add_argument("--out", help="build: dataset directory; plot: image file (default <PATH>-overview.png)")

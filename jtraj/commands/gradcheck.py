@@ -8,13 +8,17 @@ available yet are listed as skipped.
 
     jtraj gradcheck --robot all
     jtraj gradcheck --robot serial3 --N 20 --points 5 --json gradcheck.json
+    jtraj gradcheck --urdf arm.urdf --tip-link tool0
 """
 
 HELP = "check autodiff gradients against the discrete adjoint and finite differences"
 
 
 def configure(parser):
-    parser.add_argument("--robot", default="all", help="a robot name (see `jtraj robots`) or 'all' (default)")
+    from jtraj.commands import add_urdf_arguments
+
+    parser.add_argument("--robot", default=None, help="a robot name (see `jtraj robots`) or 'all' (default)")
+    add_urdf_arguments(parser, "check the serial arm of a URDF file instead of --robot")
     parser.add_argument("--N", type=int, default=10, help="number of intervals (default 10)")
     parser.add_argument("--points", type=int, default=3, help="random points per robot (default 3)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -33,11 +37,14 @@ def run(args) -> int:
     from jtraj import robots
     from jtraj.problem import Weights
 
-    from jtraj.commands import check_output_file
+    from jtraj.commands import check_output_file, urdf_robot
 
     check_output_file(args.json, "--json")
-    if args.robot != "all" and args.robot not in robots.names():
-        raise ValueError(f"--robot must be 'all' or one of {robots.names()}, got {args.robot!r}")
+    if args.robot is not None and args.urdf is not None:
+        raise ValueError("give --robot (a built-in robot, or 'all') or --urdf (a URDF file), not both")
+    robot = urdf_robot(args) or args.robot or "all"
+    if isinstance(robot, str) and robot != "all" and robot not in robots.names():
+        raise ValueError(f"--robot must be 'all' or one of {robots.names()}, got {robot!r}")
     if args.N < 2:
         raise ValueError(f"--N must be >= 2, got {args.N}")
     if args.points < 1:
@@ -49,7 +56,7 @@ def run(args) -> int:
         weights = None if args.weights is None else Weights.parse(args.weights)
     except ValueError as exc:
         raise ValueError(f"--weights: {exc}") from exc
-    report = gc.gradcheck(args.robot, N=args.N, seed=args.seed, points=args.points, weights=weights,
+    report = gc.gradcheck(robot, N=args.N, seed=args.seed, points=args.points, weights=weights,
                           fd_step=step)
     print(gc.format_table(report))
     if args.json:

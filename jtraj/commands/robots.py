@@ -6,25 +6,20 @@ HELP = "list the built-in robots and their parameters, or show a URDF arm"
 
 
 def configure(parser):
+    from jtraj.commands import add_urdf_arguments
+
     parser.add_argument("name", nargs="?", help="show one robot in detail")
-    parser.add_argument("--urdf", metavar="PATH", help="show the serial arm of this URDF file in detail "
-                        "(jtraj.robots.from_urdf: limits from the file, qdd_max 10 rad/s^2)")
-    parser.add_argument("--tip-link", metavar="NAME", help="with --urdf: the tip link (default: the end of the "
-                        "only branch of movable joints)")
+    add_urdf_arguments(parser, "show the serial arm of this URDF file in detail")
 
 
 def run(args) -> int:
     from jtraj import robots
+    from jtraj.commands import urdf_robot
 
-    if args.tip_link is not None and args.urdf is None:
-        raise ValueError("--tip-link needs --urdf")
-    if args.urdf is not None:
-        if args.name is not None:
-            raise ValueError(f"give a built-in robot's name or --urdf, not both; got {args.name!r}")
-        try:
-            robot = robots.from_urdf(args.urdf, tip_link=args.tip_link)
-        except ValueError as exc:
-            raise ValueError(f"--urdf {args.urdf}: {exc}") from None
+    if args.urdf is not None and args.name is not None:
+        raise ValueError(f"give a built-in robot's name or --urdf, not both; got {args.name!r}")
+    robot = urdf_robot(args)
+    if robot is not None:
         _show(robot.name, robot, None)
         return 0
     if args.name is not None and args.name not in robots.names():

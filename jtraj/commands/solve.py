@@ -31,13 +31,10 @@ CONSTANT_ACCELERATION = ("decoupled", "coupled")
 
 
 def configure(parser):
-    from jtraj.commands import add_solver_arguments
+    from jtraj.commands import add_solver_arguments, add_urdf_arguments
 
     parser.add_argument("--robot", default="serial3", help="robot name (see `jtraj robots`), default serial3")
-    parser.add_argument("--urdf", metavar="PATH", help="load a serial arm from a URDF file instead of --robot "
-                        "(jtraj.robots.from_urdf: limits from the file, qdd_max 10 rad/s^2)")
-    parser.add_argument("--tip-link", metavar="NAME", help="with --urdf: the tip link (default: the end of the "
-                        "only branch of movable joints)")
+    add_urdf_arguments(parser, "load a serial arm from a URDF file instead of --robot")
     start = parser.add_mutually_exclusive_group()
     start.add_argument("--start-q", metavar="Q1,Q2,...", help="start configuration (rad, or deg with --deg)")
     start.add_argument("--start-xy", metavar="X,Y", help="start task point [m] (X,Y,Z for spatial arms; inverse kinematics)")
@@ -147,13 +144,10 @@ def build_problem(args):
 
     from jtraj import Problem, ViaPoint, Weights, robots
 
-    if getattr(args, "tip_link", None) is not None and getattr(args, "urdf", None) is None:
-        raise ValueError("--tip-link needs --urdf")
-    if getattr(args, "urdf", None) is not None:
-        try:
-            robot = robots.from_urdf(args.urdf, tip_link=args.tip_link)
-        except ValueError as exc:
-            raise ValueError(f"--urdf {args.urdf}: {exc}") from None
+    from jtraj.commands import urdf_robot
+
+    robot = urdf_robot(args)
+    if robot is not None:
         args.robot = robot.name
     else:
         if args.robot not in robots.names():

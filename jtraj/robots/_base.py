@@ -163,6 +163,17 @@ class Actuator(eqx.Module):
                         b_s=v(b_s, "b_s"), b_m=v(b_m, "b_m"))
 
 
+
+def yoshikawa(J: Array) -> Array:
+    """Yoshikawa's manipulability of a (d, n) Jacobian: the product of its singular
+    values, ``sqrt(det(J J^T))`` where d <= n and ``sqrt(det(J^T J))`` where the arm has
+    fewer joints than task coordinates (``J J^T`` is singular everywhere there); 0 at a
+    singularity, with a zero gradient there (not the NaN of ``sqrt`` at 0)."""
+    G = J @ J.T if J.shape[-2] <= J.shape[-1] else J.T @ J
+    det = jnp.linalg.det(G)
+    regular = det > 0
+    return jnp.where(regular, jnp.sqrt(jnp.where(regular, det, 1.0)), 0.0)
+
 class Robot(eqx.Module):
     """Base class: a robot is its kinematics and its energies.
 
@@ -216,8 +227,7 @@ class Robot(eqx.Module):
 
     def manipulability(self, q: Vec) -> Array:
         """Yoshikawa manipulability sqrt(det(J J^T)); 0 at singular configurations."""
-        J = self.jacobian(q)
-        return jnp.sqrt(jnp.maximum(jnp.linalg.det(J @ J.T), 0.0))
+        return yoshikawa(self.jacobian(q))
 
     # ----- Lagrangian dynamics ------------------------------------------------------
     def _mass_matrix_mechanism(self, q: Vec) -> Array:

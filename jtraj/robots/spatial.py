@@ -52,7 +52,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._math import sincos, small_matmul
-from ._base import Actuator, Friction, Limits, Robot, Vec
+from ._base import Actuator, Friction, Limits, Robot, Vec, yoshikawa
 
 JOINT_TYPES = ("revolute", "prismatic")
 #: the formulations of the recursive Newton-Euler pass (:attr:`SpatialSerial.newton_euler`)
@@ -273,11 +273,11 @@ class SpatialSerial(Robot):
     def manipulability(self, q: Vec) -> Array:
         """Yoshikawa's ``sqrt(det(J J^T))`` of the tip's geometric Jacobian (6 x n) on an
         arm of 6 or more joints, so that wrist singularities count, of the positional
-        Jacobian (3 x n) on a shorter arm (whose 6 x n Jacobian never has full row rank);
-        0 at a singularity. The solver's singularity term (``Weights(singularity=...)``)
-        is its inverse."""
-        J = self.geometric_jacobian(q) if self.n >= 6 else self.jacobian(q)
-        return jnp.sqrt(jnp.maximum(jnp.linalg.det(J @ J.T), 0.0))
+        Jacobian (3 x n) on a shorter arm (whose 6 x n Jacobian never has full row rank;
+        ``sqrt(det(J^T J))`` below 3 joints: :func:`jtraj.robots._base.yoshikawa`); 0 at
+        a singularity. The solver's singularity term (``Weights(singularity=...)``) is its
+        inverse."""
+        return yoshikawa(self.geometric_jacobian(q) if self.n >= 6 else self.jacobian(q))
 
     # ----- energies (the Lagrangian path) -------------------------------------------
     def kinetic_energy(self, q, qd):
