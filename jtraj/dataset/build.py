@@ -127,9 +127,7 @@ class Spec:
 
     def robot_record(self) -> dict:
         """The metadata that names the robot (:func:`jtraj.robots.from_metadata`)."""
-        if self.urdf is None:
-            return {"robot": self.robot}
-        return {"robot": self.robot, "urdf": {"text": self.urdf, "tip_link": self.tip_link}}
+        return _robot_record(self.robot, self.urdf, self.tip_link)
 
     def weights_obj(self):
         import jtraj
@@ -427,7 +425,6 @@ def make_spec(robot: str | None, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, 
         raise ValueError("tip_link needs urdf (it names a link of a URDF arm)")
     elif not isinstance(robot, str) or robot not in robots.names():
         raise ValueError(f"unknown robot {robot!r}; choose one of {robots.names()}")
-    record = {"robot": robot} if urdf is None else {"robot": robot, "urdf": {"text": urdf, "tip_link": tip_link}}
 
     def integer(x, name, lo):
         if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < lo:
@@ -464,7 +461,7 @@ def make_spec(robot: str | None, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, 
     if not isinstance(solver, str):
         raise ValueError(f"solver must be a solver object or 'module:function', got {type(solver).__name__}")
     resolve_solver(solver)
-    limits = robots.from_metadata(record).limits
+    limits = robots.from_metadata(_robot_record(robot, urdf, tip_link)).limits
     if isinstance(h_max, str):
         if h_max not in ("auto", "robot"):
             raise ValueError(f"h_max must be 'auto', 'robot' or a number of seconds, got {h_max!r}")
@@ -483,6 +480,12 @@ def make_spec(robot: str | None, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, 
                 options=opts, solver=solver, h_max=h_max, efforts=efforts, urdf=urdf, tip_link=tip_link)
     sampling.check(spec.robot_model(), dist)
     return spec
+
+
+def _robot_record(robot: str, urdf: str | None, tip_link: str | None) -> dict:
+    if urdf is None:
+        return {"robot": robot}
+    return {"robot": robot, "urdf": {"text": urdf, "tip_link": tip_link}}
 
 
 def _urdf_text(source, tip_link) -> tuple[str, str]:
