@@ -399,6 +399,11 @@ BAD = {
                          {"base_link": "b", "tip_link": "c"}, "no movable joint"),
     "bad origin": (_urdf(LINK.format("a") + LINK.format("b") + _joint("j", "a", "b", extra=LIMIT + '<origin xyz="0 1"/>')),
                    {}, "'j'.*<origin xyz>: expected 3 finite numbers"),
+    "xacro macros": ('<robot name="x" xmlns:xacro="http://www.ros.org/wiki/xacro"><xacro:include filename="arm.xacro"/>'
+                     + GOOD + '</robot>', {}, "holds xacro macros, not plain URDF; expand the file first: xacro"),
+    "xacro expression": (_urdf(LINK.format("a") + LINK.format("b").replace('value="1"', 'value="${m}"')
+                               + _joint("j", "a", "b")), {},
+                         r"'b'.*<mass>: attribute value must be a number, got '\$\{m\}' \(a xacro expression"),
 }
 
 

@@ -66,7 +66,7 @@ def _floats(text, what, count=3, default=None):
     try:
         vals = np.asarray([float(x) for x in text.split()], dtype=float)
     except ValueError:
-        raise ValueError(f"{what}: expected {count} numbers, got {text!r}") from None
+        raise ValueError(f"{what}: expected {count} numbers, got {text!r}{_xacro_note(text)}") from None
     if vals.shape != (count,) or not np.isfinite(vals).all():
         raise ValueError(f"{what}: expected {count} finite numbers, got {text!r}")
     return vals
@@ -79,9 +79,9 @@ def _attr_float(el, key, what):
     try:
         val = float(text)
     except ValueError:
-        raise ValueError(f"{what}: attribute {key} must be a number, got {text!r}") from None
+        val = math.nan
     if math.isnan(val):
-        raise ValueError(f"{what}: attribute {key} must be a number, got {text!r}")
+        raise ValueError(f"{what}: attribute {key} must be a number, got {text!r}{_xacro_note(text)}")
     return val
 
 
@@ -120,7 +120,18 @@ def _read_root(source):
         raise ValueError(f"source: malformed XML in {where}: {err}") from None
     if root.tag != "robot":
         raise ValueError(f"source: expected a <robot> root element in {where}, got <{root.tag}>")
+    if any(el.tag.startswith(_XACRO) for el in root.iter()):
+        raise ValueError(f"source: {where} holds xacro macros, not plain URDF; {_XACRO_HINT}")
     return root
+
+
+_XACRO = "{http://www.ros.org/wiki/xacro}"  # the xacro namespace, as ElementTree writes tags in it
+_XACRO_HINT = "expand the file first: xacro arm.urdf.xacro > arm.urdf (pip install xacro, or ROS's xacro package)"
+
+
+def _xacro_note(text: str) -> str:
+    """The hint for a number that is a xacro expression, else ''."""
+    return f" (a xacro expression: {_XACRO_HINT})" if "${" in text or "$(" in text else ""
 
 
 class _Link:
