@@ -399,7 +399,7 @@ BAD = {
                          {"base_link": "b", "tip_link": "c"}, "no movable joint"),
     "bad origin": (_urdf(LINK.format("a") + LINK.format("b") + _joint("j", "a", "b", extra=LIMIT + '<origin xyz="0 1"/>')),
                    {}, "'j'.*<origin xyz>: expected 3 finite numbers"),
-    "xacro macros": ('<robot name="x" xmlns:xacro="http://www.ros.org/wiki/xacro"><xacro:include filename="arm.xacro"/>'
+    "xacro macros": ('<robot name="x" xmlns:xacro="http://wiki.ros.org/xacro"><xacro:include filename="arm.xacro"/>'
                      + GOOD + '</robot>', {}, "holds xacro macros, not plain URDF; expand the file first: xacro"),
     "xacro expression": (_urdf(LINK.format("a") + LINK.format("b").replace('value="1"', 'value="${m}"')
                                + _joint("j", "a", "b")), {},
@@ -412,6 +412,18 @@ def test_bad_input(case):
     source, kwargs, message = BAD[case]
     with pytest.raises(ValueError, match=message):
         from_urdf(source, **kwargs)
+
+
+def test_a_bad_inertia_counts_only_where_it_moves_with_the_chain():
+    """A link with an indefinite inertia (a tiny part's rounded data, as on some mobile
+    manipulators' bases) fixed to the base or on a branch the chain does not reach leaves
+    the arm loadable; fixed to a moving body it is refused, naming the link."""
+    bad = ('<link name="antenna"><inertial><mass value="1e-6"/><inertia ixx="2.4e-8" ixy="6.1e-8" ixz="1.2e-8" '
+           'iyy="2.8e-8" iyz="7.7e-9" izz="3.8e-8"/></inertial></link>')
+    on_base = from_urdf(_urdf(GOOD + bad + _joint("fix", "a", "antenna", "fixed", "")))
+    assert on_base.n == 1 and np.allclose(on_base.masses, from_urdf(_urdf(GOOD)).masses)
+    with pytest.raises(ValueError, match="'antenna'.*positive semidefinite"):
+        from_urdf(_urdf(GOOD + bad + _joint("fix", "b", "antenna", "fixed", "")))
 
 
 def test_massless_link_carrying_a_fixed_child_is_merged():

@@ -120,12 +120,12 @@ def _read_root(source):
         raise ValueError(f"source: malformed XML in {where}: {err}") from None
     if root.tag != "robot":
         raise ValueError(f"source: expected a <robot> root element in {where}, got <{root.tag}>")
-    if any(el.tag.startswith(_XACRO) for el in root.iter()):
+    if any(isinstance(el.tag, str) and el.tag.startswith("{") and "xacro" in el.tag.partition("}")[0]
+           for el in root.iter()):  # an element in a xacro namespace (www.ros.org/wiki/xacro, wiki.ros.org/xacro)
         raise ValueError(f"source: {where} holds xacro macros, not plain URDF; {_XACRO_HINT}")
     return root
 
 
-_XACRO = "{http://www.ros.org/wiki/xacro}"  # the xacro namespace, as ElementTree writes tags in it
 _XACRO_HINT = "expand the file first: xacro arm.urdf.xacro > arm.urdf (pip install xacro, or ROS's xacro package)"
 
 
@@ -140,6 +140,10 @@ class _Link:
         what = f"<link name={self.name!r}> <inertial>"
         inertial = el.find("inertial")
         self.mass, self.com, self.inertia = 0.0, np.zeros(3), np.zeros((3, 3))
+        #: why the inertia cannot be used (None: it can): raised only where the link moves
+        #: with the chain, so that a bad inertia elsewhere (on the fixed base, or on a
+        #: branch above the chain) does not stop an arm from loading
+        self.problem = None
         if inertial is None:
             return
         m_el = inertial.find("mass")
@@ -160,8 +164,7 @@ class _Link:
                       [vals["ixz"], vals["iyz"], vals["izz"]]])
         ev = np.linalg.eigvalsh(I)
         if ev.min() < -1e-12 * max(abs(ev).max(), 1e-300):
-            raise ValueError(f"{what}: the inertia tensor must be positive semidefinite, its eigenvalues are "
-                             f"{ev.tolist()}")
+            self.problem = f"{what}: the inertia tensor must be positive semidefinite, its eigenvalues are {ev.tolist()}"
         self.mass, self.com, self.inertia = mass, t, R @ I @ R.T
 
 
@@ -334,6 +337,8 @@ def from_urdf(source, *, base_link: str | None = None, tip_link: str | None = No
         L = links[ln]
         if b < 0 or L.mass == 0:
             continue
+        if L.problem:
+            raise ValueError(L.problem)
         R, t = pose[ln]
         c = R @ L.com + t
         mass[b] += L.mass
