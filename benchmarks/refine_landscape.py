@@ -71,8 +71,7 @@ def main(argv=None):
 
     data = dataset.load(args.data)
     meta = data["metadata"]
-    h_max = (meta.get("limits") or {}).get("h_max")
-    robot = jtraj.robots.get(meta["robot"], **({"h_max": float(h_max)} if h_max else {}))
+    robot = jtraj.robots.from_metadata(meta)  # with the dataset's period bound; a URDF arm from its text
     N, n = int(meta["N"]), robot.n
     weights = jtraj.Weights.parse(meta.get("weights_text", "time=1,energy=0.1"))
     planner = Planner(anfis.load(args.model, mapping="plan"), robot, weights=weights)
