@@ -64,6 +64,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 
 import jax
@@ -72,6 +73,8 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+
+sys.path.append(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository root: jtraj_peers
 
 VARIANTS = ("cold", "plan_primal", "plan_full", "nn_primal", "plan_mu3", "plan_warm", "al_cold", "al_plan_full")
 
