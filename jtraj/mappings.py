@@ -417,8 +417,9 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     meta = data["metadata"]
     md = dict(mapping=mapping, robot=meta.get("robot"), N=meta.get("N"), inputs=in_names, outputs=out_names,
               goal_inputs=goal, phase_input=bool(phase), augment="none" if why_not else "mirror")
-    if meta.get("urdf"):
-        md["urdf"] = meta["urdf"]  # the URDF arm's text and tip link (jtraj.robots.from_metadata)
+    for key in ("urdf", "robot_params"):  # the URDF arm's text and tip link, parameters replaced
+        if meta.get(key):  # (jtraj.robots.from_metadata)
+            md[key] = meta[key]
     if meta.get("weights_text"):
         md["weights"] = meta["weights_text"]  # the cost the trajectories are optimal for (Planner refine)
     h_max = (meta.get("limits") or {}).get("h_max")

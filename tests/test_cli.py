@@ -416,14 +416,24 @@ def test_robots_shows_a_urdf_arm_and_joint_names(tmp_path, capsys):
     out = capsys.readouterr().out
     assert out.startswith("arm3: n = 3, SpatialSerial") and "joints   shoulder, elbow, gripper" in out
     assert "tau_max  [40. 40. 40.]" in out
-    assert cli.main(["robots", "--urdf", str(urdf), "--tip-link", "tool"]) == 0
-    assert "n = 2" in capsys.readouterr().out
+    assert cli.main(["robots", "--urdf", str(urdf), "--tip-link", "tool", "--robot-param", "qdd_max=4,5"]) == 0
+    out = capsys.readouterr().out
+    assert "n = 2" in out and "qdd_max  [4. 5.]" in out
+    args = cli.build_parser().parse_args(["solve", "--urdf", str(urdf), "--robot-param", "tau_max=7",
+                                          "--start-q", "0,0,0", "--goal-q", "0.1,0.1,0.1"])
+    from jtraj.commands.solve import build_problem
+
+    robot, problem = build_problem(args)
+    np.testing.assert_array_equal(problem.robot.limits.tau_max, [7.0, 7.0, 7.0])
     assert cli.main(["robots", "panda"]) == 0
     assert "joints   panda_joint1, panda_joint2," in capsys.readouterr().out
     for args, message in ((["robots", "--tip-link", "tool"], "--tip-link needs --urdf"),
                           (["robots", "panda", "--urdf", str(urdf)], "not both"),
                           (["robots", "--urdf", str(urdf), "--tip-link", "hand"], "tip_link 'hand' is not a link"),
                           (["robots", "nosuchbot"], "name must be one of"),
+                          (["robots", "--robot-param", "qdd_max=1"], "--robot-param needs a robot"),
+                          (["solve", "--robot", "serial3", "--robot-param", "tau_max=-1", "--start-q", "0,0,0",
+                            "--goal-q", "0.1,0.1,0.1"], "--robot-param: tau_max must be > 0"),
                           (["solve", "--urdf", str(urdf), "--start-q", "0,0", "--goal-q", "0.1,0.1,0.1"],
                            "--start-q must have 3 values for this robot (shoulder, elbow, gripper), got 2"),
                           (["solve", "--urdf", str(urdf), "--start-q", "0,0,0", "--goal-q", "0.1,1.6,0.1"],

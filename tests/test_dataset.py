@@ -680,27 +680,33 @@ def test_urdf_arm_dataset_trains_and_queries_without_its_file(tmp_path, capsys):
     urdf.write_text(arm_urdf())
     out = tmp_path / "d"
     build = ["dataset", "--urdf", str(urdf), "--tip-link", "tool", "--pairs", "24", "--batch", "12", "--N", "6",
-             "--out", str(out), "--solver", FAKE, "--workers", "1", "--no-progress"]
+             "--out", str(out), "--solver", FAKE, "--workers", "1", "--no-progress", "--robot-param", "qdd_max=5",
+             "--robot-param", "tau_max=30,20"]
     assert cli_main(build) == 0
     arm = robots.from_urdf(str(urdf), tip_link="tool")
     assert arm.n == 2 and arm.joint_names == ("shoulder", "elbow")
     assert cli_main(build) == 0 and "0 new pairs" in capsys.readouterr().out  # the same file resumes
-    assert cli_main(build[:3] + build[5:]) == 2  # the default tip (the gripper): another arm
+    assert cli_main(build[:3] + build[5:-4]) == 2  # the default tip (the gripper): another arm
     assert "different parameters" in capsys.readouterr().err
     assert cli_main(["dataset", "info", str(out)]) == 0
-    assert "robot arm3 (n = 2; a URDF arm, tip link tool)" in capsys.readouterr().out
+    assert ("robot arm3 (n = 2; a URDF arm, tip link tool; qdd_max = 5.0, tau_max = [30.0, 20.0])"
+            in capsys.readouterr().out)
+    assert cli_main(build[:-2]) == 2 and "different parameters" in capsys.readouterr().err  # tau_max left out
     urdf.unlink()
     data = dataset.load(str(out))
     robot = views.robot_of(data)
     assert (robot.name, robot.joint_names) == ("arm3", arm.joint_names)
     np.testing.assert_array_equal(robot.joint_translation, arm.joint_translation)
     assert float(robot.limits.h_max) == H_MAX_FACTOR * float(arm.limits.h_max)
+    np.testing.assert_array_equal(robot.limits.qdd_max, [5.0, 5.0])
+    np.testing.assert_array_equal(robot.limits.tau_max, [30.0, 20.0])
     model = tmp_path / "plan.anfis"
     assert cli_main(["train", "--data", str(out), "--mapping", "plan", "--order", "0", "--rules", "2",
                      "--epochs", "2", "--out", str(model), "--no-progress"]) == 0
     planner = Planner(str(model))
     assert planner.robot.joint_names == arm.joint_names and float(planner.robot.limits.h_max) == float(
         robot.limits.h_max)
+    np.testing.assert_array_equal(planner.robot.limits.tau_max, [30.0, 20.0])
     answer = tmp_path / "q.json"
     assert cli_main(["query", "--model", str(model), "--start", "0.1,-0.2", "--goal", "0.5,0.3",
                      "--json", str(answer)]) == 0
@@ -721,6 +727,11 @@ def test_urdf_dataset_bad_input_names_the_option(tmp_path, capsys):
              (["--urdf", str(tmp_path / "missing.urdf")], "--urdf: cannot read"),
              (["--urdf", str(text)], "is not a URDF file"),
              (["--urdf", str(urdf), "--tip-link", "hand"], "--tip-link 'hand' is not a link"),
+             (["--robot", "panda", "--robot-param", "qdd_max"], "--robot-param must look like NAME=VALUE"),
+             (["--robot", "panda", "--robot-param", "qdd_max=fast"], "--robot-param qdd_max: expected a number"),
+             (["--robot", "panda", "--robot-param", "mass=1"], "--robot-param: unknown override 'mass'"),
+             (["--robot", "panda", "--robot-param", "tau_max=1,2"], "tau_max must have shape (7,), got (2,)"),
+             (["--robot", "panda", "--robot-param", "h_max=0.3"], "h_max is the dataset's own option (--h-max)"),
              ([], "build needs --robot (or --urdf)")]
     for args, message in cases:
         assert cli_main(["dataset", *args, *base]) == 2, args

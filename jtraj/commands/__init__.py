@@ -57,6 +57,48 @@ def urdf_robot(args):
         raise ValueError(f"--urdf {args.urdf}: {exc}") from None
 
 
+def add_robot_param_argument(parser) -> None:
+    """The repeatable ``--robot-param NAME=VALUE`` (:func:`robot_params`)."""
+    parser.add_argument("--robot-param", action="append", default=[], metavar="NAME=VALUE",
+                        help="replace a parameter of the robot (repeatable; jtraj.robots.with_params): a limit "
+                             "(qdd_max, tau_max, qd_max, ...) or a model parameter (masses, ...), one number for "
+                             "every joint or one per joint, e.g. qdd_max=5 or tau_max=87,87,87,87,12,12,12; see "
+                             "'jtraj robots NAME' for the names")
+
+
+def robot_params(args) -> dict:
+    """``--robot-param NAME=VALUE`` as {name: number or list of numbers} (``ValueError``
+    naming the option)."""
+    params = {}
+    for item in getattr(args, "robot_param", None) or []:
+        name, sep, text = item.partition("=")
+        name = name.strip()
+        if not sep or not name or not text.strip():
+            raise ValueError(f"--robot-param must look like NAME=VALUE (e.g. qdd_max=5), got {item!r}")
+        try:
+            values = [float(x) for x in text.replace(",", " ").split()]
+        except ValueError:
+            raise ValueError(f"--robot-param {name}: expected a number or comma-separated numbers, got "
+                             f"{text!r}") from None
+        if name in params:
+            raise ValueError(f"--robot-param {name} given twice")
+        params[name] = values[0] if len(values) == 1 else values
+    return params
+
+
+def with_robot_params(robot, args):
+    """``robot`` with ``--robot-param``'s parameters replaced (``ValueError`` naming the option)."""
+    params = robot_params(args)
+    if not params:
+        return robot
+    from jtraj import robots
+
+    try:
+        return robots.with_params(robot, **params)
+    except ValueError as exc:
+        raise ValueError(f"--robot-param: {exc}") from None
+
+
 #: ``--solver`` names and the method each is (``ipm``/``ip`` the interior-point method
 #: with its AL fallback, ``al`` the augmented-Lagrangian method alone)
 SOLVER_NAMES = {"auto": "auto", "ipm": "ip", "ip": "ip", "al": "al"}

@@ -38,13 +38,14 @@ ACTIONS = ("build", "info", "verify", "plot")
 
 
 def configure(parser):
-    from jtraj.commands import add_solver_arguments, add_urdf_arguments
+    from jtraj.commands import add_robot_param_argument, add_solver_arguments, add_urdf_arguments
 
     parser.add_argument("action", nargs="*", metavar="[build | info PATH | verify PATH | plot PATH]",
                         help="what to do (default build)")
     parser.add_argument("--robot", help="robot name (see 'jtraj robots')")
     add_urdf_arguments(parser, "a serial arm's URDF file instead of --robot; the dataset keeps its text, and "
                        "its models need no file")
+    add_robot_param_argument(parser)
     parser.add_argument("--pairs", type=int, help="number of start/goal pairs P >= 1")
     parser.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
     parser.add_argument("--out", help="build: dataset directory; plot: image file (default <PATH>-overview.png)")
@@ -163,7 +164,7 @@ def run(args) -> int:
             batch = read_manifest(args.out)["identity"]["batch"]
         except (ValueError, KeyError):
             batch = None  # not a dataset (yet): the build reports what is wrong there
-    from jtraj.commands import solve_function, solver_overrides
+    from jtraj.commands import robot_params, solve_function, solver_overrides
 
     # the method recorded too: a dataset resumes only with the same method
     options = solver_overrides(args)
@@ -174,11 +175,12 @@ def run(args) -> int:
                                  start_range=args.start_range, step_range=args.step_range,
                                  min_separation=args.min_separation, ik_method=args.ik_method, options=options,
                                  solver=solve_fn, h_max=_h_max(args.h_max), efforts=args.efforts,
-                                 urdf=args.urdf, tip_link=args.tip_link)
+                                 urdf=args.urdf, tip_link=args.tip_link, robot_params=robot_params(args) or None)
     except ValueError as exc:
         msg = str(exc)
-        if msg.startswith(("urdf: ", "tip_link")):  # the messages name the options
-            msg = msg.replace("urdf: ", "--urdf: ", 1).replace("tip_link=", "--tip-link").replace("tip_link", "--tip-link")
+        if msg.startswith(("urdf: ", "tip_link", "robot_params: ")):  # the messages name the options
+            msg = (msg.replace("urdf: ", "--urdf: ", 1).replace("robot_params: ", "--robot-param: ", 1)
+                   .replace("tip_link=", "--tip-link").replace("tip_link", "--tip-link").replace("h_max=", "--h-max"))
             raise ValueError(msg) from None
         raise
     stats = dataset.build(spec, args.out, ray=args.ray, workers=getattr(args, "workers", None),

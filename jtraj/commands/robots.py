@@ -6,28 +6,31 @@ HELP = "list the built-in robots and their parameters, or show a URDF arm"
 
 
 def configure(parser):
-    from jtraj.commands import add_urdf_arguments
+    from jtraj.commands import add_robot_param_argument, add_urdf_arguments
 
     parser.add_argument("name", nargs="?", help="show one robot in detail")
     add_urdf_arguments(parser, "show the serial arm of this URDF file in detail")
+    add_robot_param_argument(parser)
 
 
 def run(args) -> int:
     from jtraj import robots
-    from jtraj.commands import urdf_robot
+    from jtraj.commands import urdf_robot, with_robot_params
 
     if args.urdf is not None and args.name is not None:
         raise ValueError(f"give a built-in robot's name or --urdf, not both; got {args.name!r}")
+    if args.robot_param and args.urdf is None and args.name is None:
+        raise ValueError("--robot-param needs a robot: a name or --urdf PATH")
     robot = urdf_robot(args)
     if robot is not None:
-        _show(robot.name, robot, None)
+        _show(robot.name, with_robot_params(robot, args), robots.parameter_names(robot))
         return 0
     if args.name is not None and args.name not in robots.names():
         raise ValueError(f"name must be one of {robots.names()} (or give --urdf PATH), got {args.name!r}")
     for name in [args.name] if args.name else robots.names():
         robot = robots.get(name)
         if args.name:
-            _show(name, robot, robots.parameter_names(name))
+            _show(name, with_robot_params(robot, args), robots.parameter_names(name))
         else:
             print(f"{name}: n = {robot.n}, {type(robot).__name__}")
     return 0

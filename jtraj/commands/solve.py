@@ -31,10 +31,11 @@ CONSTANT_ACCELERATION = ("decoupled", "coupled")
 
 
 def configure(parser):
-    from jtraj.commands import add_solver_arguments, add_urdf_arguments
+    from jtraj.commands import add_robot_param_argument, add_solver_arguments, add_urdf_arguments
 
     parser.add_argument("--robot", default="serial3", help="robot name (see `jtraj robots`), default serial3")
     add_urdf_arguments(parser, "load a serial arm from a URDF file instead of --robot")
+    add_robot_param_argument(parser)
     start = parser.add_mutually_exclusive_group()
     start.add_argument("--start-q", metavar="Q1,Q2,...", help="start configuration (rad, or deg with --deg)")
     start.add_argument("--start-xy", metavar="X,Y", help="start task point [m] (X,Y,Z for spatial arms; inverse kinematics)")
@@ -144,7 +145,7 @@ def build_problem(args):
 
     from jtraj import Problem, ViaPoint, Weights, robots
 
-    from jtraj.commands import urdf_robot
+    from jtraj.commands import urdf_robot, with_robot_params
 
     robot = urdf_robot(args)
     if robot is not None:
@@ -156,6 +157,7 @@ def build_problem(args):
             robot = robots.get(args.robot)
         except (ModuleNotFoundError, ImportError) as exc:
             raise ValueError(f"--robot {args.robot}: model not available in this installation ({exc})") from None
+    robot = with_robot_params(robot, args)
     n = robot.n
     if args.start_q is None and args.start_xy is None:
         raise ValueError("give a start: --start-q Q1,Q2,... (joint space) or --start-xy X,Y (task space)")

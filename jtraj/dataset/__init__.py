@@ -166,11 +166,11 @@ def summary(path: str) -> str:
     return summary_and_check(path)[0]
 
 
-def _urdf_note(md) -> str:
-    urdf = md.get("urdf")
-    if not urdf:
-        return ""
-    return "; a URDF arm" + (f", tip link {urdf['tip_link']}" if urdf.get("tip_link") else "")
+def _robot_note(md) -> str:
+    """The URDF arm and the parameters replaced, for the summary's robot line."""
+    urdf, params = md.get("urdf"), md.get("robot_params")
+    note = "" if not urdf else "; a URDF arm" + (f", tip link {urdf['tip_link']}" if urdf.get("tip_link") else "")
+    return note + ("; " + ", ".join(f"{k} = {v}" for k, v in params.items()) if params else "")
 
 
 def summary_and_check(path: str) -> tuple[str, dict]:
@@ -181,7 +181,7 @@ def summary_and_check(path: str) -> tuple[str, dict]:
     data = Dataset(path, partial=True, exclude=set(check["corrupt"]))
     md = data.metadata
     lines = [f"dataset {data.path}",
-             f"  robot {md['robot']} (n = {md['n']}{_urdf_note(md)}), N = {md['N']}, weights {md['weights_text']}, "
+             f"  robot {md['robot']} (n = {md['n']}{_robot_note(md)}), N = {md['N']}, weights {md['weights_text']}, "
              f"seed {md['seed']}, batch {md['batch']}",
              f"  h in [{md['limits']['h_min']:g}, {md['limits']['h_max']:g}] s (T <= {md['N'] * md['limits']['h_max']:g} s)"
              f"; torque bound at the {_EFFORTS_TEXT[md.get('efforts', 'samples')]}",

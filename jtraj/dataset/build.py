@@ -112,6 +112,8 @@ class Spec:
     #: a URDF arm's file text and tip link (None: ``robot`` is a built-in robot's name)
     urdf: str | None = None
     tip_link: str | None = None
+    #: (name, value) parameters of the robot replaced (jtraj.robots.with_params)
+    robot_params: tuple = ()
 
     @property
     def n_chunks(self) -> int:
@@ -122,12 +124,12 @@ class Spec:
 
     # cached per process (a Ray worker reuses them across chunks)
     def robot_model(self):
-        return _cached(("robot", self.robot, self.h_max, self.urdf, self.tip_link),
+        return _cached(("robot", self.robot, self.h_max, self.urdf, self.tip_link, self.robot_params),
                        lambda: _robots().from_metadata(self.robot_record() | {"h_max": self.h_max}))
 
     def robot_record(self) -> dict:
         """The metadata that names the robot (:func:`jtraj.robots.from_metadata`)."""
-        return _robot_record(self.robot, self.urdf, self.tip_link)
+        return _robot_record(self.robot, self.urdf, self.tip_link, self.robot_params)
 
     def weights_obj(self):
         import jtraj
@@ -160,6 +162,7 @@ class Spec:
             # option existed keep their identity (and resume)
             **({} if self.efforts == "samples" else {"efforts": self.efforts}),
             **({} if self.urdf is None else {"urdf_tip_link": self.tip_link}),
+            **({"robot_params": dict(self.robot_params)} if self.robot_params else {}),
         }
 
 
@@ -393,7 +396,8 @@ def _versions() -> dict:
 
 def make_spec(robot: str | None, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, batch=None, space="joint",
               start_range=1.2, step_range=0.8, min_separation=0.05, ik_method="weighted", options=None,
-              solver=DEFAULT_SOLVER, h_max="auto", efforts="samples", urdf=None, tip_link=None) -> Spec:
+              solver=DEFAULT_SOLVER, h_max="auto", efforts="samples", urdf=None, tip_link=None,
+              robot_params=None) -> Spec:
     """Validated :class:`Spec` (raises ``ValueError`` naming the bad argument; no compute).
 
     ``robot``: a built-in robot's name (:func:`jtraj.robots.names`), or None with
@@ -401,6 +405,9 @@ def make_spec(robot: str | None, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, 
     :func:`jtraj.robots.from_urdf` with its defaults and ``tip_link``. The dataset keeps
     the file's text, so that its robot (:func:`jtraj.robots.from_metadata`), the models
     trained on it and their queries need no file; it is named by the URDF's robot name.
+    ``robot_params``: parameters of the robot replaced (a dict for
+    :func:`jtraj.robots.with_params`, e.g. ``{"qdd_max": 5.0}`` or per-joint lists,
+    ``{"masses": [...]}``), recorded with the dataset like the URDF.
 
     ``h_max``: the sampling-period bound [s] of the dataset's problems: ``"auto"``
     (default) is :data:`H_MAX_FACTOR` times the robot's own bound, ``"robot"`` keeps the
@@ -461,7 +468,8 @@ def make_spec(robot: str | None, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, 
     if not isinstance(solver, str):
         raise ValueError(f"solver must be a solver object or 'module:function', got {type(solver).__name__}")
     resolve_solver(solver)
-    limits = robots.from_metadata(_robot_record(robot, urdf, tip_link)).limits
+    params = _robot_params(robot_params, _robot_record(robot, urdf, tip_link, ()))
+    limits = robots.from_metadata(_robot_record(robot, urdf, tip_link, params)).limits
     if isinstance(h_max, str):
         if h_max not in ("auto", "robot"):
             raise ValueError(f"h_max must be 'auto', 'robot' or a number of seconds, got {h_max!r}")
@@ -477,15 +485,37 @@ def make_spec(robot: str | None, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, 
     if efforts not in EFFORTS:
         raise ValueError(f"efforts must be one of {EFFORTS}, got {efforts!r}")
     spec = Spec(robot=robot, pairs=pairs, seed=seed, N=N, weights=weights, batch=batch, distribution=dist,
-                options=opts, solver=solver, h_max=h_max, efforts=efforts, urdf=urdf, tip_link=tip_link)
+                options=opts, solver=solver, h_max=h_max, efforts=efforts, urdf=urdf, tip_link=tip_link,
+                robot_params=params)
     sampling.check(spec.robot_model(), dist)
     return spec
 
 
-def _robot_record(robot: str, urdf: str | None, tip_link: str | None) -> dict:
-    if urdf is None:
-        return {"robot": robot}
-    return {"robot": robot, "urdf": {"text": urdf, "tip_link": tip_link}}
+def _robot_record(robot: str, urdf: str | None, tip_link: str | None, params: tuple) -> dict:
+    record = {"robot": robot} if urdf is None else {"robot": robot, "urdf": {"text": urdf, "tip_link": tip_link}}
+    return record | ({"robot_params": dict(params)} if params else {})
+
+
+def _robot_params(params, record: dict) -> tuple:
+    """``robot_params`` (a dict of :func:`jtraj.robots.with_params` overrides) checked on
+    the robot and made hashable: sorted (name, number or tuple of numbers) pairs."""
+    from jtraj import robots
+
+    if params is None:
+        return ()
+    if not isinstance(params, dict) or not all(isinstance(k, str) for k in params):
+        raise ValueError(f"robot_params must be a dict of parameter names to values, got {params!r}")
+    if "h_max" in params:
+        raise ValueError("robot_params: h_max is the dataset's own option (h_max=), not a robot parameter here")
+    try:
+        plain = {k: np.asarray(v, dtype=float).tolist() for k, v in params.items()}
+    except (TypeError, ValueError):
+        raise ValueError(f"robot_params: values must be numbers or sequences of numbers, got {params!r}") from None
+    try:
+        robots.with_params(robots.from_metadata(record), **plain)
+    except ValueError as exc:
+        raise ValueError(f"robot_params: {exc}") from None
+    return tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in plain.items()))
 
 
 def _urdf_text(source, tip_link) -> tuple[str, str]:

@@ -66,10 +66,12 @@ def from_metadata(meta: dict) -> Robot:
     """The robot a dataset's or a trained model's metadata names: the URDF arm it stores
     (``meta["urdf"]``: the file's text and tip link, which ``jtraj dataset --urdf``
     records, so that the dataset and the models trained on it need no file), else the
-    built-in robot ``meta["robot"]``; with the sampling-period bound ``meta["h_max"]``
-    (a model's) or ``meta["limits"]["h_max"]`` (a dataset's) where there is one."""
+    built-in robot ``meta["robot"]``; with the parameters ``meta["robot_params"]``
+    replaced (:func:`with_params`, ``jtraj dataset --robot-param``) and the
+    sampling-period bound ``meta["h_max"]`` (a model's) or ``meta["limits"]["h_max"]``
+    (a dataset's) where there is one."""
     h_max = meta.get("h_max", (meta.get("limits") or {}).get("h_max"))
-    overrides = {} if h_max is None else {"h_max": float(h_max)}
+    overrides = dict(meta.get("robot_params") or {}) | ({} if h_max is None else {"h_max": float(h_max)})
     urdf = meta.get("urdf")
     if urdf:
         return from_urdf(urdf["text"], tip_link=urdf.get("tip_link"), name=meta["robot"], **overrides)
