@@ -743,3 +743,9 @@ def test_urdf_dataset_bad_input_names_the_option(tmp_path, capsys):
         dataset.make_spec("panda", 4, 0, tip_link="tool")
     spec = dataset.make_spec(None, 4, 0, urdf=arm_urdf("from_text"), solver=FAKE)  # the XML text itself
     assert spec.robot == "from_text" and spec.robot_model().n == 3
+    # a (n, 3) parameter: recorded as nested tuples, so the spec stays hashable (the robot cache's key)
+    com = np.full((3, 3), 0.05)
+    spec = dataset.make_spec(None, 4, 0, urdf=arm_urdf(), robot_params={"com": com}, solver=FAKE)
+    assert hash(spec) and np.array_equal(spec.robot_model().com, com)
+    with pytest.raises(ValueError, match="robot_params must be a dict"):
+        dataset.make_spec("panda", 4, 0, robot_params=[("qdd_max", 5.0)])

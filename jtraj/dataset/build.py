@@ -515,7 +515,11 @@ def _robot_params(params, record: dict) -> tuple:
         robots.with_params(robots.from_metadata(record), **plain)
     except ValueError as exc:
         raise ValueError(f"robot_params: {exc}") from None
-    return tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in plain.items()))
+
+    def frozen(v):  # nested lists (a (n, 3) parameter) -> nested tuples
+        return tuple(frozen(x) for x in v) if isinstance(v, list) else v
+
+    return tuple(sorted((k, frozen(v)) for k, v in plain.items()))
 
 
 def _urdf_text(source, tip_link) -> tuple[str, str]:
