@@ -418,3 +418,24 @@ def test_views_of_a_partial_dataset_use_row_positions(data):
     assert traj.min() >= 0 and traj.max() < 20
     Xf, _, trajf, _, _ = mappings.view(data, "nefotc", goal="relative", phase=True)
     np.testing.assert_array_equal(X, Xf[trajf >= 20])
+
+
+def test_plan_default_rules_give_way_to_one_rule_where_it_validates_better(data):
+    """The plan mapping's default rules and the one-rule model are both trained, and the
+    one of lower validation RMSE is kept (the report's ``rules_selection``); order 1's
+    one rule is an affine map of the pair, which the synthetic set's trajectories (one
+    common goal, a linear controller) nearly are; an explicit ``n_rules`` trains only
+    that model."""
+    chosen = {}
+    for order in (0, 1):
+        model, rep, hist = mappings.train_mapping(data, "plan", order=order, epochs=3)
+        va = rep["rules_selection"]["validation_rmse"]
+        assert set(va) == {str(mappings.PLAN_RULES), "1"}
+        chosen[order] = rep["rules_selection"]["chosen"]
+        assert chosen[order] == (1 if va["1"] < va[str(mappings.PLAN_RULES)] else mappings.PLAN_RULES)
+        assert rep["n_rules"] == model.n_rules == chosen[order]
+        assert min(hist.val_rmse) == pytest.approx(min(va.values()), rel=1e-12)
+    # order 0's one rule is the mean trajectory, far from trajectories that follow their start
+    assert chosen == {0: mappings.PLAN_RULES, 1: 1}
+    _, rep, _ = mappings.train_mapping(data, "plan", n_rules=4, epochs=1)
+    assert "rules_selection" not in rep
