@@ -22,29 +22,29 @@ def run(args) -> int:
     if args.robot_param and args.urdf is None and args.name is None:
         raise ValueError("--robot-param needs a robot: a name or --urdf PATH")
     robot = urdf_robot(args)
-    if robot is not None:
-        _show(robot.name, with_robot_params(robot, args), robots.parameter_names(robot))
-        return 0
-    if args.name is not None and args.name not in robots.names():
-        raise ValueError(f"name must be one of {robots.names()} (or give --urdf PATH), got {args.name!r}")
-    for name in [args.name] if args.name else robots.names():
-        robot = robots.get(name)
-        if args.name:
-            _show(name, with_robot_params(robot, args), robots.parameter_names(name))
-        else:
+    if robot is None and args.name is None:
+        for name in robots.names():
+            robot = robots.get(name)
             print(f"{name}: n = {robot.n}, {type(robot).__name__}")
+        return 0
+    if robot is None:
+        if args.name not in robots.names():
+            raise ValueError(f"name must be one of {robots.names()} (or give --urdf PATH), got {args.name!r}")
+        robot = robots.get(args.name)
+    _show(args.name or robot.name, with_robot_params(robot, args))
     return 0
 
 
-def _show(name, robot, parameters):
+def _show(name, robot):
     import numpy as np
+
+    from jtraj import robots
 
     print(f"{name}: n = {robot.n}, {type(robot).__name__}")
     joints = getattr(robot, "joint_names", None)
     if joints:
         print("  joints  ", ", ".join(joints))
-    if parameters:
-        print("  parameters:", ", ".join(parameters))
+    print("  parameters:", ", ".join(robots.parameter_names(robot)))
     lim = robot.limits
     for f in ("q_min", "q_max", "qd_max", "qdd_max", "tau_max", "h_min", "h_max"):
         val = getattr(lim, f)

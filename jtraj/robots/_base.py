@@ -163,7 +163,6 @@ class Actuator(eqx.Module):
                         b_s=v(b_s, "b_s"), b_m=v(b_m, "b_m"))
 
 
-
 def yoshikawa(J: Array) -> Array:
     """Yoshikawa's manipulability of a (d, n) Jacobian: the product of its singular
     values, ``sqrt(det(J J^T))`` where d <= n and ``sqrt(det(J^T J))`` where the arm has
@@ -173,6 +172,7 @@ def yoshikawa(J: Array) -> Array:
     det = jnp.linalg.det(G)
     regular = det > 0
     return jnp.where(regular, jnp.sqrt(jnp.where(regular, det, 1.0)), 0.0)
+
 
 class Robot(eqx.Module):
     """Base class: a robot is its kinematics and its energies.
@@ -226,7 +226,8 @@ class Robot(eqx.Module):
         return jax.jacfwd(self.forward_kinematics)(q)
 
     def manipulability(self, q: Vec) -> Array:
-        """Yoshikawa manipulability sqrt(det(J J^T)); 0 at singular configurations."""
+        """Yoshikawa's manipulability of the task Jacobian (:func:`yoshikawa`); 0 at
+        singular configurations."""
         return yoshikawa(self.jacobian(q))
 
     # ----- Lagrangian dynamics ------------------------------------------------------
