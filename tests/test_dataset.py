@@ -427,7 +427,7 @@ def test_local_worker_processes_equal_this_process(tmp_path):
 def test_every_chunk_is_solved_on_one_cpu(tmp_path):
     """XLA's rounding depends on how many CPUs the solving process may use, so by default
     every chunk is solved in a process restricted to one, also a resumed run's single
-    last chunk (it used to be solved in this unpinned process, 1e-12 apart from the
+    last chunk (solved in the unpinned driver, it would land 1e-12 apart from the
     workers' with the real solver at N = 20). The stand-in solver reports the CPUs of the
     process that solved each pair as its ``iterations``."""
     spec = fake_spec(pairs=24, batch=8, solver=FAKE_CPUS)
@@ -553,7 +553,7 @@ def test_real_solver_end_to_end(tmp_path):
 def test_real_solver_resumed_last_chunk_equals_uninterrupted_run(tmp_path):
     """The issue's check (a run killed with one chunk left, then resumed) with the real
     solver at N = 20, where XLA's rounding depends on the CPUs of the solving process:
-    the resumed run's last chunk used to be solved in the unpinned driver, 1e-12 off."""
+    a last chunk solved in the unpinned driver would land 1e-12 off."""
     spec = dataset.make_spec("serial3", 16, 2, N=20, batch=8)
     dataset.build(spec, str(tmp_path / "a"), progress=False)
     dataset.build(spec, str(tmp_path / "b"), progress=False, max_chunks=1)
