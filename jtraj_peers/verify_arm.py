@@ -43,7 +43,8 @@ def verify(model, q_start, q_goal, v, h, *, tau_max, qd_max, qdd_max, q_min, q_m
     tau_max = np.broadcast_to(np.asarray(tau_max, float), (n,))
     lo, hi = (np.broadcast_to(np.asarray(b, float), (n,)) for b in (q_min, q_max))
     finite = np.isfinite(lo) & np.isfinite(hi)
-    mid, half = np.where(finite, (lo + hi) / 2, 0.0), np.where(finite, (hi - lo) / 2, np.inf)
+    lo_f, hi_f = np.where(finite, lo, 0.0), np.where(finite, hi, 0.0)  # (no inf - inf: continuous joints)
+    mid, half = (lo_f + hi_f) / 2, np.where(finite, (hi_f - lo_f) / 2, np.inf)
     goal_error = float(max(np.max(np.abs(q[-1] - np.asarray(q_goal, float))), np.max(np.abs(qd[-1]))))
     rel = dict(tau=_box(tau, tau_max), v=_box(v, qdd_max), qd=_box(qd[1:], qd_max),
                q=_box(q[1:] - mid, half),

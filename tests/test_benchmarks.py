@@ -52,3 +52,22 @@ def test_peer_starts_are_jtrajs_starting_points():
     (v, h), _ = bench_solver.peer_starts(q0, q1, 20, "same", {"guess": "cycloidal"})
     v_k, h_k = jtraj.initial_guess.cycloidal(jtraj.Problem(jtraj.robots.get("serial3"), q0[0], q1[0], N=20))
     np.testing.assert_allclose(h, np.asarray(h_k), rtol=1e-12)
+
+
+@pytest.mark.parametrize("label", ["so101", "baxter_left", "tiago_pro_left"])
+def test_urdf_arm_peer_model_is_jtrajs_arm(label):
+    """bench_urdf_arms' Pinocchio model of a file (every joint off the chain locked) and
+    jtraj's arm from the same file give the same efforts (1e-10 relative): a gripper
+    beyond the tip merged into the last body (SO-101), a second arm and a head off the
+    chain (Baxter), a prismatic torso and a wheeled base (TIAGo Pro)."""
+    pytest.importorskip("pinocchio")
+    import bench_urdf_arms as B
+
+    try:
+        path = B.urdf_path(label)
+    except FileNotFoundError:
+        pytest.skip("example-robot-data is not installed")
+    robot = B.jtraj_arm(label)
+    model = B.pinocchio_chain(path, robot.joint_names)
+    assert model.nv == robot.n and list(model.names)[1:] == list(robot.joint_names)
+    assert B.rnea_gap(robot, model, count=16) < 1e-10

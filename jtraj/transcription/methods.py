@@ -12,6 +12,11 @@ from .base import BIG, StageData, Transcription, box_rows
 from .recursion import integrate, jerk_inequalities, jump_rows, recursion_step
 
 
+#: the decoupled transcription scales a joint's accelerations by at most this many
+#: velocity ranges per longest period (``qd_max / h_max``; see :meth:`Decoupled.control_box`)
+ACCEL_SCALE_SWEEPS = 2.0
+
+
 def _symmetric_box(bound, size):
     """(scale, lo, hi) of ``|x| <= bound``, scaled by the bound (BIG where absent)."""
     if bound is None:
@@ -57,7 +62,21 @@ class Decoupled(_AccelerationDriven):
     name = "decoupled"
 
     def control_box(self, problem):
-        return _symmetric_box(problem.robot.limits.qdd_max, problem.robot.n)
+        """The accelerations' box ``|v| <= qdd_max``, each joint's accelerations scaled by
+        ``min(qdd_max, 2 qd_max / h_max)``: an acceleration of ``2 qd_max / h_max`` sweeps
+        the whole velocity range in one longest period, so that where ``qdd_max`` is
+        larger the velocity bound, not the acceleration bound, sets the scale of the
+        joint's motion. Scaled by ``qdd_max`` alone, such a joint (a slow prismatic torso:
+        0.035 m/s against the default 10 m/s^2 of a URDF arm) moves through unknowns an
+        order of magnitude smaller than the other joints', and the solver stalls away
+        from feasible points of problems IPOPT solves (``benchmarks/bench_urdf_arms.py``: TIAGo Pro's arm)."""
+        lim, n = problem.robot.limits, problem.robot.n
+        scale, lo, hi = _symmetric_box(lim.qdd_max, n)
+        if lim.qdd_max is None or lim.qd_max is None:
+            return scale, lo, hi
+        qdd_max = jnp.broadcast_to(jnp.asarray(lim.qdd_max, float), (n,))
+        scale = jnp.minimum(qdd_max, ACCEL_SCALE_SWEEPS * jnp.asarray(lim.qd_max, float) / lim.h_max)
+        return scale, -qdd_max / scale, qdd_max / scale
 
     def initial_controls(self, problem, v, h):
         return v
