@@ -12,8 +12,9 @@ from .base import BIG, StageData, Transcription, box_rows
 from .recursion import integrate, jerk_inequalities, jump_rows, recursion_step
 
 
-#: the decoupled transcription scales a joint's accelerations by at most this many
-#: velocity ranges per longest period (``qd_max / h_max``; see :meth:`Decoupled.control_box`)
+#: the decoupled transcription scales a joint's accelerations by at most
+#: ``ACCEL_SCALE_SWEEPS * qd_max / h_max``: 2, the acceleration that crosses the velocity
+#: box ``[-qd_max, qd_max]`` in one longest period (see :meth:`Decoupled.control_box`)
 ACCEL_SCALE_SWEEPS = 2.0
 
 
@@ -63,13 +64,15 @@ class Decoupled(_AccelerationDriven):
 
     def control_box(self, problem):
         """The accelerations' box ``|v| <= qdd_max``, each joint's accelerations scaled by
-        ``min(qdd_max, 2 qd_max / h_max)``: an acceleration of ``2 qd_max / h_max`` sweeps
-        the whole velocity range in one longest period, so that where ``qdd_max`` is
-        larger the velocity bound, not the acceleration bound, sets the scale of the
-        joint's motion. Scaled by ``qdd_max`` alone, such a joint (a slow prismatic torso:
-        0.035 m/s against the default 10 m/s^2 of a URDF arm) moves through unknowns an
-        order of magnitude smaller than the other joints', and the solver stalls away
-        from feasible points of problems IPOPT solves (``benchmarks/bench_urdf_arms.py``: TIAGo Pro's arm)."""
+        ``min(qdd_max, 2 qd_max / h_max)``: an acceleration of ``2 qd_max / h_max`` crosses
+        the whole velocity box in one longest period, so that where ``qdd_max`` is larger
+        the velocity bound, not the acceleration bound, sets the scale of the joint's
+        motion. Scaled by ``qdd_max`` alone, such a joint (a slow prismatic torso: 0.035
+        m/s against the default 10 m/s^2 of a URDF arm) moves through unknowns an order
+        of magnitude smaller than the other joints', and the solver stalls away from
+        feasible points of problems IPOPT solves (TIAGo Pro's arm in
+        ``benchmarks/bench_urdf_arms.py``; serial3 with a slow joint in
+        ``tests/test_solver.py``)."""
         lim, n = problem.robot.limits, problem.robot.n
         scale, lo, hi = _symmetric_box(lim.qdd_max, n)
         if lim.qdd_max is None or lim.qd_max is None:
