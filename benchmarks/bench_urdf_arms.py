@@ -232,7 +232,7 @@ def main(argv=None):
     print(f"N = {args.N}, weights time=1 energy=0.1, {args.pairs} pairs per arm (seed {args.seed}), "
           f"{workers} processes per side")
     print("| arm | n | rnea gap | jtraj verified (false) | IPOPT verified (false) | cost gap median / max |"
-          " wall per pair jtraj / IPOPT | speed | iterations jtraj / IPOPT |")
+          " wall per pair jtraj / IPOPT | ratio | Newton iterations jtraj / IPOPT (median) |")
     print("|---|---|---|---|---|---|---|---|---|")
     rows = []
     for label in labels:
