@@ -416,9 +416,10 @@ def test_robots_shows_a_urdf_arm_and_joint_names(tmp_path, capsys):
     out = capsys.readouterr().out
     assert out.startswith("arm3: n = 3, SpatialSerial") and "joints   shoulder, elbow, gripper" in out
     assert "tau_max  [40. 40. 40.]" in out
+    assert "qdd_max is jtraj's default 10; set your arm's with --robot-param qdd_max=" in out
     assert cli.main(["robots", "--urdf", str(urdf), "--tip-link", "tool", "--robot-param", "qdd_max=4,5"]) == 0
     out = capsys.readouterr().out
-    assert "n = 2" in out and "qdd_max  [4. 5.]" in out
+    assert "n = 2" in out and "qdd_max  [4. 5.]" in out and "jtraj's default" not in out
     args = cli.build_parser().parse_args(["solve", "--urdf", str(urdf), "--robot-param", "tau_max=7",
                                           "--start-q", "0,0,0", "--goal-q", "0.1,0.1,0.1"])
     from jtraj.commands.solve import build_problem

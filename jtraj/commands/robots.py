@@ -15,7 +15,7 @@ def configure(parser):
 
 def run(args) -> int:
     from jtraj import robots
-    from jtraj.commands import urdf_robot, with_robot_params
+    from jtraj.commands import robot_params, urdf_robot, with_robot_params
 
     if args.urdf is not None and args.name is not None:
         raise ValueError(f"give a built-in robot's name or --urdf, not both; got {args.name!r}")
@@ -32,6 +32,11 @@ def run(args) -> int:
             raise ValueError(f"name must be one of {robots.names()} (or give --urdf PATH), got {args.name!r}")
         robot = robots.get(args.name)
     _show(args.name or robot.name, with_robot_params(robot, args))
+    if args.urdf is not None and "qdd_max" not in robot_params(args):
+        from jtraj.robots.urdf import DEFAULT_QDD_MAX
+
+        print(f"  (a URDF has no acceleration bounds: qdd_max is jtraj's default {DEFAULT_QDD_MAX:g}; "
+              f"set your arm's with --robot-param qdd_max=...)")
     return 0
 
 
