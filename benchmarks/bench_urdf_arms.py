@@ -109,8 +109,7 @@ def rnea_gap(robot, model, seed: int = 0, count: int = 32) -> float:
     from jtraj_peers.casadi_rnea import pinocchio_configuration
 
     lim = _limits(robot)
-    lo = np.where(np.isfinite(lim["q_min"]), lim["q_min"], -np.pi)
-    hi = np.where(np.isfinite(lim["q_max"]), lim["q_max"], np.pi)
+    lo, hi = joint_range(robot)
     rng = np.random.default_rng(seed)
     q = rng.uniform(lo, hi, (count, robot.n))
     qd, qdd = (rng.uniform(-1, 1, (count, robot.n)) * lim[k] for k in ("qd_max", "qdd_max"))
@@ -129,11 +128,15 @@ def peer_spec(robot, model):
                         qdd_max=lim["qdd_max"], tau_max=lim["tau_max"], h_min=lim["h_min"], h_max=lim["h_max"])
 
 
-def arm_pairs(robot, pairs: int, seed: int):
+def joint_range(robot):
+    """The joints' position boxes (q_min, q_max), a continuous joint's as [-pi, pi]."""
     lim = _limits(robot)
-    lo = np.where(np.isfinite(lim["q_min"]), lim["q_min"], -np.pi)
-    hi = np.where(np.isfinite(lim["q_max"]), lim["q_max"], np.pi)
-    return panda_pairs(pairs, seed, lo, hi)
+    return (np.where(np.isfinite(lim["q_min"]), lim["q_min"], -np.pi),
+            np.where(np.isfinite(lim["q_max"]), lim["q_max"], np.pi))
+
+
+def arm_pairs(robot, pairs: int, seed: int):
+    return panda_pairs(pairs, seed, *joint_range(robot))
 
 
 def _solve_chunk(label, q0, q1, N):
