@@ -74,9 +74,8 @@ class Decoupled(_AccelerationDriven):
         ``benchmarks/bench_urdf_arms.py``; serial3 with a slow joint in
         ``tests/test_solver.py``)."""
         lim, n = problem.robot.limits, problem.robot.n
-        scale, lo, hi = _symmetric_box(lim.qdd_max, n)
         if lim.qdd_max is None or lim.qd_max is None:
-            return scale, lo, hi
+            return _symmetric_box(lim.qdd_max, n)
         qdd_max = jnp.broadcast_to(jnp.asarray(lim.qdd_max, float), (n,))
         scale = jnp.minimum(qdd_max, ACCEL_SCALE_SWEEPS * jnp.asarray(lim.qd_max, float) / lim.h_max)
         return scale, -qdd_max / scale, qdd_max / scale
