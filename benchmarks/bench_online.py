@@ -62,6 +62,7 @@ Timings are of this machine's CPU, under whatever else runs on it.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -261,10 +262,10 @@ def main(argv=None):
     test_ids = np.unique(traj[te])[: args.pairs]
     pairs = [("test", qs_all[i], qg_all[i]) for i in test_ids]
     ident = meta["identity"]["distribution"]
-    dist_kw = {k: ident[k] for k in ("space", "start_range", "step_range", "min_separation", "ik_method")}
+    dist = sampling.Distribution.from_record(ident)
     seed = int(meta["identity"]["seed"]) + 1000
     if len(pairs) < args.pairs:
-        fq0, fq1 = sampling.sample_pairs(robot, sampling.Distribution(**dist_kw), seed, 0, args.pairs - len(pairs))
+        fq0, fq1 = sampling.sample_pairs(robot, dist, seed, 0, args.pairs - len(pairs))
         pairs += [("fresh", a, b) for a, b in zip(fq0, fq1)]
     P = len(pairs)
     QS = np.array([p[1] for p in pairs])
@@ -273,7 +274,7 @@ def main(argv=None):
     print(f"{meta['robot']}, N = {N}, weights {wtext}; model {model.n_rules} rules; {P} held-out pairs "
           f"({out['pairs']['test_split']} of the test split)")
     if args.batch_only:
-        _batch(args, planner, model, robot, weights, sampling.Distribution(**dist_kw), seed, out)
+        _batch(args, planner, model, robot, weights, dist, seed, out)
         print(json.dumps(out))
         return out
 
@@ -325,10 +326,10 @@ def main(argv=None):
           f"the repair's choices {out['plans']['candidates']}")
 
     # coverage on pairs twice as far apart as the dataset's
-    wide = sampling.Distribution(**(dist_kw | {"step_range": 2 * float(dist_kw["step_range"])}))
+    wide = dataclasses.replace(dist, step_range=2 * dist.step_range)
     w0, w1 = sampling.sample_pairs(robot, wide, seed + 1, 0, 200)
     # pairs with a step beyond the training law's range on some joint
-    far = np.max(np.abs(w1 - w0), axis=1) > float(dist_kw["step_range"])
+    far = np.max(np.abs(w1 - w0), axis=1) > dist.step_range
     pw = planner.plan(w0, w1)
     ood_w = np.asarray(pw.ood)
     out["coverage"] = dict(wide_pairs=int(len(w0)), beyond_range=int(far.sum()),
@@ -337,7 +338,7 @@ def main(argv=None):
     print(f"coverage: of {len(w0)} pairs drawn with twice the step range, those with a step beyond the training "
           f"range flagged {ood_w[far].sum()}/{far.sum()}, the others {ood_w[~far].sum()}/{(~far).sum()}")
 
-    others = _batch(args, planner, model, robot, weights, sampling.Distribution(**dist_kw), seed, out)
+    others = _batch(args, planner, model, robot, weights, dist, seed, out)
     if verify is not None:  # feasibility of the other plans on the held-out pairs, re-verified
         for label, pl in others.items():
             pf = pl.plan(QS, QG)

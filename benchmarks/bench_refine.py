@@ -123,8 +123,7 @@ def main(argv=None):
     pairs = [("test", qs_all[i], qg_all[i]) for i in test_ids]
     if len(pairs) < args.pairs:
         ident = meta["identity"]["distribution"]
-        dist = sampling.Distribution(**{k: ident[k] for k in ("space", "start_range", "step_range",
-                                                               "min_separation", "ik_method")})
+        dist = sampling.Distribution.from_record(ident)
         seed = args.fresh_seed if args.fresh_seed is not None else int(meta["identity"]["seed"]) + 1000
         fq0, fq1 = sampling.sample_pairs(robot, dist, seed, 0, args.pairs - len(pairs))
         pairs += [("fresh", a, b) for a, b in zip(fq0, fq1)]

@@ -5,6 +5,7 @@ that storage and resume logic are tested in seconds; ``test_real_solver_end_to_e
 runs ``jtraj.solve_batch`` on 8 pairs.
 """
 
+import importlib
 import json
 import os
 import re
@@ -102,6 +103,37 @@ def test_sampling_keeps_starts_and_goals_inside_path_constraints():
     qs, qg = sampling.sample_pairs(s3, sampling.Distribution(), 3, 0, int(keep.sum()))
     np.testing.assert_array_equal(qs, a[keep])
     np.testing.assert_array_equal(qg, g[keep])
+
+
+def test_a_dataset_of_a_slow_joint_draws_pairs_it_can_move_in_time():
+    """serial3 with a first joint of 0.05 rad/s covers at most 0.2 rad in N h_max = 4 s:
+    most steps of the law (up to 0.8 rad) are infeasible on their face, and the dataset's
+    distribution redraws them; the pairs it keeps are ones jtraj.Problem accepts. Robots
+    whose every step fits keep the plain law and their identity."""
+    import jax
+
+    import jtraj
+
+    build = importlib.import_module("jtraj.dataset.build")
+    slow = build.make_spec("serial3", 64, 0, robot_params={"qd_max": [0.05, 3.0, 3.0]})
+    assert slow.distribution.max_move_time == pytest.approx(20 * float(slow.robot_model().limits.h_max))
+    assert slow.identity()["distribution"]["max_move_time"] == slow.distribution.max_move_time
+    assert sampling.Distribution.from_record(slow.identity()["distribution"]) == slow.distribution
+    robot = slow.robot_model()
+    plain = sampling.sample_pairs(robot, sampling.Distribution(), 0, 0, 64)
+    qs, qg = sampling.sample_pairs(robot, slow.distribution, 0, 0, 64)
+
+    def refused(q0, q1):  # what jtraj.Problem and solve_batch refuse, per pair
+        return np.asarray(jax.vmap(lambda a, b: jtraj.Problem(robot, a, b, N=20, validate=False)
+                                   .infeasible_on_its_face())(q0, q1))
+
+    assert refused(*plain).mean() > 0.5  # the plain law: mostly refused
+    assert not refused(qs, qg).any()
+    assert np.abs(qg - qs)[:, 0].max() <= 0.05 * 20 * float(robot.limits.h_max) + 1e-12
+    assert np.abs(qg - qs)[:, 0].max() > 0.1  # the slow joint still moves
+    default = build.make_spec("serial3", 64, 0)
+    assert default.distribution.max_move_time is None
+    assert "max_move_time" not in default.identity()["distribution"]
 
 
 @pytest.mark.slow  # ~20 s: compiles the vmapped IK

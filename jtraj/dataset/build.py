@@ -487,7 +487,13 @@ def make_spec(robot: str | None, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, 
     spec = Spec(robot=robot, pairs=pairs, seed=seed, N=N, weights=weights, batch=batch, distribution=dist,
                 options=opts, solver=solver, h_max=h_max, efforts=efforts, urdf=urdf, tip_link=tip_link,
                 robot_params=params)
-    sampling.check(spec.robot_model(), dist)
+    model = spec.robot_model()
+    sampling.check(model, dist)
+    T = N * float(model.limits.h_max)
+    if space == "joint" and sampling.longest_step_time(model, dist) > T:
+        # a step of the law can be infeasible on its face (jtraj.Problem would refuse it):
+        # such pairs are redrawn; robots whose every step fits keep their pairs and identity
+        spec = dataclasses.replace(spec, distribution=dataclasses.replace(dist, max_move_time=T))
     return spec
 
 

@@ -24,7 +24,13 @@ Distributions (``space``):
     With no joint box and no such constraints (``serial3``), rejection only removes a
     ball of radius 0.05 from the step cube, about 1e-4 of its volume. Goals are
     redrawn, not clipped into the joint box: on a small box such as ``parallel3``'s,
-    clipping would put about half of them exactly on its boundary.
+    clipping would put about half of them exactly on its boundary. Where
+    ``max_move_time`` is set, a pair is also redrawn when its rest-to-rest move needs
+    longer than that by the velocity and acceleration bounds
+    (:func:`jtraj.problem.minimum_time_bound`): a dataset sets it to ``N h_max``
+    (:func:`jtraj.dataset.make_spec`) where a step of the law could need longer, i.e.
+    for a joint whose velocity bound is small against ``step_range`` (a telescopic
+    torso at 0.035 m/s), whose steps would otherwise be mostly infeasible on their face.
 
 ``"task"``
     Task points uniform over the reachable workspace: ``p ~ U(box)`` where ``box`` is
@@ -62,6 +68,15 @@ class Distribution:
     step_range: float = 0.8
     min_separation: float = 0.05
     ik_method: str = "weighted"
+    #: seconds; None: no bound on the move's minimum time (see the module docstring)
+    max_move_time: float | None = None
+
+    @classmethod
+    def from_record(cls, record: dict) -> "Distribution":
+        """The distribution that :meth:`describe` wrote ``record`` of (a dataset's
+        ``identity["distribution"]``)."""
+        return cls(**{k: record[k] for k in ("space", "start_range", "step_range", "min_separation", "ik_method")},
+                   max_move_time=record.get("max_move_time"))
 
     def __post_init__(self):
         if self.space not in ("joint", "task"):
@@ -72,11 +87,18 @@ class Distribution:
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
         if not (math.isfinite(self.min_separation) and self.min_separation >= 0):
             raise ValueError(f"min_separation must be a finite number >= 0, got {self.min_separation!r}")
+        if self.max_move_time is not None and not (math.isfinite(self.max_move_time) and self.max_move_time > 0):
+            raise ValueError(f"max_move_time must be a finite number of seconds > 0 or None, got "
+                             f"{self.max_move_time!r}")
+        if self.max_move_time is not None and self.space != "joint":
+            raise ValueError("max_move_time applies to the joint-space law only")
         if self.space == "joint" and self.min_separation >= self.step_range * math.sqrt(3):
             raise ValueError(f"min_separation {self.min_separation} is too large for step_range {self.step_range}")
 
     def describe(self) -> dict:
         d = asdict(self)
+        if self.max_move_time is None:  # absent, so that the identities of datasets without it stay
+            del d["max_move_time"]
         d["block"] = BLOCK
         d["generator"] = "numpy.random.default_rng([seed, block]) (PCG64)"
         if self.space == "joint":
@@ -84,7 +106,11 @@ class Distribution:
                         "q_goal = q_start + U(-step_range, step_range)^n; redrawn unless q_goal is in the joint "
                         "box; "
                         "rejected if |q_goal - q_start|_2 < min_separation or if q_start or q_goal violates the "
-                        "workspace box or the robot's path constraints")
+                        "workspace box or the robot's path constraints"
+                        + ("" if self.max_move_time is None else
+                           f"; rejected if the rest-to-rest move needs more than max_move_time = "
+                           f"{self.max_move_time:.6g} s (N h_max) by the velocity and acceleration bounds "
+                           "(max_j max(|dq_j| / qd_max_j, 2 sqrt(|dq_j| / qdd_max_j)))"))
         else:
             d["law"] = ("p_start, p_goal ~ U(workspace box), kept when IK reaches them (uniform over the "
                         "reachable workspace); q_start = ik(p_start, q ~ joint-space start law); "
@@ -141,6 +167,26 @@ def _admissible_jit(robot, q):
     return jax.vmap(lambda x: admissible_configuration(robot, x))(q)
 
 
+def move_time(robot, dq):
+    """(B,) :func:`jtraj.problem.minimum_time_bound` of the rest-to-rest moves ``dq`` (B, n),
+    in NumPy."""
+    lim = robot.limits
+    dq = np.abs(np.asarray(dq, float))
+    T = np.zeros(dq.shape[0])
+    if lim.qd_max is not None:
+        T = np.maximum(T, np.max(dq / np.asarray(lim.qd_max, float), axis=1))
+    if lim.qdd_max is not None:
+        T = np.maximum(T, np.max(2 * np.sqrt(dq / np.asarray(lim.qdd_max, float)), axis=1))
+    return T
+
+
+def longest_step_time(robot, dist: Distribution) -> float:
+    """The longest :func:`move_time` of a step the joint-space law can draw (each joint's
+    step up to ``step_range`` and the width of its joint box)."""
+    q_min, q_max = _joint_box(robot)
+    return float(move_time(robot, np.minimum(dist.step_range, q_max - q_min)[None])[0])
+
+
 def _block_joint(robot, dist, seed, b):
     rng = np.random.default_rng([seed, b])
     n = robot.n
@@ -152,13 +198,16 @@ def _block_joint(robot, dist, seed, b):
         a = lo + (hi - lo) * u[:, 0]
         g = a + dist.step_range * (2 * u[:, 1] - 1)
         ok = (np.linalg.norm(g - a, axis=1) >= dist.min_separation) & admissible(robot, a) & admissible(robot, g)
+        if dist.max_move_time is not None:
+            ok &= move_time(robot, g - a) <= dist.max_move_time
         qs.append(a[ok])
         qg.append(g[ok])
         count += int(ok.sum())
         if count >= BLOCK:
             return np.concatenate(qs)[:BLOCK], np.concatenate(qg)[:BLOCK]
     raise ValueError("could not draw pairs with the requested minimum separation inside the robot's joint box, "
-                     "workspace box and path constraints")
+                     "workspace box and path constraints"
+                     + ("" if dist.max_move_time is None else f" that move within {dist.max_move_time:g} s"))
 
 
 _WORKSPACE_CACHE: dict = {}
