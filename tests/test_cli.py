@@ -204,8 +204,17 @@ def test_gradcheck_command(monkeypatch, tmp_path, capsys):
         assert d["passed"] is (expected == 0) and d["robots"][1]["cost_fd"] is None  # NaN -> null
 
 
+    # --robot-param: the checked robot carries the parameters
+    status = "ok"
+    assert cli.main(["gradcheck", "--robot", "serial3", "--robot-param", "masses=3,2,1", "--N", "4"]) == 0
+    capsys.readouterr()
+    assert calls["robot"].name == "serial3" and np.allclose(calls["robot"].masses, (3, 2, 1))
+
+
 @pytest.mark.parametrize("argv, needle", [
     (["--robot", "nope"], "--robot"),
+    (["--robot-param", "qdd_max=5"], "--robot-param needs one robot"),
+    (["--robot", "serial3", "--robot-param", "nope=5"], "--robot-param"),
     (["--robot", "serial3", "--N", "1"], "--N"),
     (["--robot", "serial3", "--points", "0"], "--points"),
     (["--robot", "serial3", "--fd-step", "-1"], "--fd-step"),

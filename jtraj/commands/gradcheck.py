@@ -9,16 +9,18 @@ available yet are listed as skipped.
     jtraj gradcheck --robot all
     jtraj gradcheck --robot serial3 --N 20 --points 5 --json gradcheck.json
     jtraj gradcheck --urdf arm.urdf --tip-link tool0
+    jtraj gradcheck --robot panda --robot-param masses=3,3,3,3,1.5,1.5,0.5
 """
 
 HELP = "check autodiff gradients against the discrete adjoint and finite differences"
 
 
 def configure(parser):
-    from jtraj.commands import add_urdf_arguments
+    from jtraj.commands import add_robot_param_argument, add_urdf_arguments
 
     parser.add_argument("--robot", default=None, help="a robot name (see `jtraj robots`) or 'all' (default)")
     add_urdf_arguments(parser, "check the serial arm of a URDF file instead of --robot")
+    add_robot_param_argument(parser)
     parser.add_argument("--N", type=int, default=10, help="number of intervals (default 10)")
     parser.add_argument("--points", type=int, default=3, help="random points per robot (default 3)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -37,7 +39,7 @@ def run(args) -> int:
     from jtraj import robots
     from jtraj.problem import Weights
 
-    from jtraj.commands import check_output_file, urdf_robot
+    from jtraj.commands import check_output_file, urdf_robot, with_robot_params
 
     check_output_file(args.json, "--json")
     if args.robot is not None and args.urdf is not None:
@@ -45,6 +47,10 @@ def run(args) -> int:
     robot = urdf_robot(args) or args.robot or "all"
     if isinstance(robot, str) and robot != "all" and robot not in robots.names():
         raise ValueError(f"--robot must be 'all' or one of {robots.names()}, got {robot!r}")
+    if args.robot_param:
+        if robot == "all":
+            raise ValueError("--robot-param needs one robot: --robot NAME or --urdf PATH")
+        robot = with_robot_params(robots.get(robot) if isinstance(robot, str) else robot, args)
     if args.N < 2:
         raise ValueError(f"--N must be >= 2, got {args.N}")
     if args.points < 1:
