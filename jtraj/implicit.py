@@ -152,6 +152,14 @@ REFINE = AugmentedLagrangian(tol_feasibility=1e-10, tol_optimality=1e-10, max_it
 #: 0.04 s; the same refined optima to 1e-12 in cost but one, within 2e-5)
 REFINE_IP = IPM(tol=1e-9, mu_init=1e-8, bound_push=1e-8, dual_tol=1e-9, compl_tol=1e-9, tol_optimality=1e-9,
                 tol_feasibility=1e-10)
+#: the refinement's second interior-point stage, from the first's certified point: the
+#: same method to tolerances 1e-11. Where it converges, its point is the refined optimum
+#: and the AL stage does not run: on a 7-joint arm that stage takes thousands of
+#: iterations (the Panda: 1,790 to 2,340, 4 to 6 s) for derivatives no closer to
+#: differences of re-solves. Where it does not, its last iterate can have walked to a
+#: neighbouring optimum, and the AL stage starts from the first stage's point instead
+REFINE_IP_TIGHT = IPM(tol=1e-11, mu_init=1e-10, bound_push=1e-10, dual_tol=1e-11, compl_tol=1e-11,
+                      tol_optimality=1e-11, tol_feasibility=1e-11, max_iter=300)
 
 #: the linear solve of the derivatives through jtraj.solve / solve_batch: None (the
 #: transcription's default: "stagewise" for the decoupled one, "dense" otherwise),
@@ -535,42 +543,53 @@ def _refine_options(problem: Problem, transcription: str):
 
     al = resolve_method(to_options(REFINE), transcription, problem.robot, problem.jerk)
     if not interior_point_applies(problem, transcription):
-        return None, al
-    return resolve_method(to_options(REFINE_IP), transcription, problem.robot, problem.jerk), al
+        return None, None, al
+    return tuple(resolve_method(to_options(m), transcription, problem.robot, problem.jerk)
+                 for m in (REFINE_IP, REFINE_IP_TIGHT)) + (al,)
+
+
+def _ip_stage(problem: Problem, tr: Transcription, opts, at, need):
+    """The interior-point iterations alone, warm-started at ``at`` where ``need``: ``((u,
+    h), solved)``, the point where it is certified (active bounds snapped on), else its
+    last iterate, else ``at`` where it did not run or its iterate is not finite."""
+    from .solver.core import prepare, run_ip
+
+    nlp, state, _ = prepare(problem, opts, tr, at, True)
+    state = state._replace(done=state.done | ~need)
+    method, ip = run_ip(nlp, state, opts)
+    solved = ip.done & ~ip.failed
+    z = jnp.where(solved, method.postprocess(nlp, ip, state).z, ip.z)
+    ran = ~state.done & jnp.all(jnp.isfinite(z))
+    return nlp.layout.unpack(jnp.where(ran, z, state.z)), ran & solved
 
 
 def refine(problem: Problem, tr: Transcription, at, need):
     """The optimum refined where the traced bool ``need`` says so, warm-started at
-    ``at`` = (u, h): :data:`REFINE_IP` (the interior-point iterations alone, where the
-    method applies) and then :data:`REFINE` (the AL loop) from its point. Returns
-    ``(u, h)``: the AL stage's point where it converged (a converged optimum to 1e-10),
-    ``at`` otherwise. Where ``need`` is False both stages start finished (no iteration;
-    under ``vmap`` such a lane waits for the others). Bounded
-    work: at most ``REFINE_IP.max_iter`` interior-point iterations, ``REFINE.max_iter``
-    Newton iterations of the AL loop and one restart."""
+    ``at`` = (u, h). Where the interior-point method applies: :data:`REFINE_IP`, then
+    :data:`REFINE_IP_TIGHT` from its point where it is certified; the second stage's
+    point is the result where it is certified. Otherwise :data:`REFINE` (the AL loop)
+    from the first stage's point (its last iterate where it is not certified: near the
+    optimum, the small barrier parameter keeps it there), or from ``at`` where the
+    interior-point method does not apply. Returns ``(u, h)``: the refined point, ``at``
+    where no stage converged. Where ``need`` is False every stage starts finished (no
+    iteration; under ``vmap`` such a lane waits for the others). Bounded work: at most
+    ``REFINE_IP.max_iter + REFINE_IP_TIGHT.max_iter`` interior-point iterations,
+    ``REFINE.max_iter`` Newton iterations of the AL loop and one restart."""
     from .solver import loop
     from .solver.al import ALMethod
-    from .solver.core import finish, prepare, run_ip
+    from .solver.core import finish, prepare
 
-    ip_opts, opts = _refine_options(problem, tr.name)
-    start = at
+    ip_opts, tight_opts, opts = _refine_options(problem, tr.name)
+    start, tight, done = at, at, jnp.zeros((), bool)
     if ip_opts is not None:
-        nlp, state, _ = prepare(problem, ip_opts, tr, at, True)
-        state = state._replace(done=state.done | ~need)
-        method, ip = run_ip(nlp, state, ip_opts)
-        # its point where it is certified (active bounds snapped on), else its last iterate
-        # (near the optimum: the small barrier parameter keeps it there), which the AL stage
-        # finishes either way
-        solved = ip.done & ~ip.failed
-        z1 = jnp.where(solved, method.postprocess(nlp, ip, state).z, ip.z)
-        z1 = jnp.where(~state.done & jnp.all(jnp.isfinite(z1)), z1, state.z)
-        start = nlp.layout.unpack(z1)
+        start, solved = _ip_stage(problem, tr, ip_opts, at, need)
+        tight, done = _ip_stage(problem, tr, tight_opts, start, need & solved)
     nlp, state, valid = prepare(problem, opts, tr, start, True)
-    state = state._replace(done=state.done | ~need)
+    state = state._replace(done=state.done | ~need | done)
     al = ALMethod(opts)
     ref = finish(nlp, al.postprocess(nlp, loop.run(al, nlp, state), state), opts, valid)
-    ok = need & (ref.status == 0)
-    return tuple(jnp.where(ok, a, b) for a, b in zip(_point(tr, ref), at))
+    ok = need & ~done & (ref.status == 0)
+    return tuple(jnp.where(done, t, jnp.where(ok, a, b)) for t, a, b in zip(tight, _point(tr, ref), at))
 
 
 def _concrete(x):
