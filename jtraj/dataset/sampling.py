@@ -169,7 +169,8 @@ def _admissible_jit(robot, q):
 
 def move_time(robot, dq):
     """(B,) :func:`jtraj.problem.minimum_time_bound` of the rest-to-rest moves ``dq`` (B, n),
-    in NumPy."""
+    in NumPy: float64 whatever JAX's precision setting, so that which pairs a dataset
+    keeps does not depend on it."""
     lim = robot.limits
     dq = np.abs(np.asarray(dq, float))
     T = np.zeros(dq.shape[0])
