@@ -609,7 +609,8 @@ def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
     same optimum to the refinement's tolerance. With concrete primal values (a derivative
     outside ``jit``) the decision is taken on the host and the refinement's compiled
     program runs on the samples that need it, one at a time; inside
-    ``jit`` or ``vmap`` it is a ``lax.cond`` on the traced flag."""
+    ``jit`` or ``vmap`` the refinement's program runs with the traced flag, iterating only
+    where it is set."""
     tr = Transcription(cfg.transcription)
     at = _point(tr, sol)
 
@@ -625,12 +626,15 @@ def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
         return dsol, valid
     if flags is not None and not any_traced((dyn, sol)):  # on the host: re-solve what needs it
         at = _refine_host(cfg, dyn, at, flags, batch)
-    else:  # inside a trace: one bounded refinement program, skipped where nothing needs it
+    else:  # inside a trace: one bounded refinement program whose stages start finished where
+        # nothing needs it. Not a lax.cond on any(need): under an outer vmap its predicate is
+        # batched, the cond becomes a select over operands all broadcast along the batch, and
+        # the constants the interior-point iterations close over reach their custom_vmap rule
+        # batched, which JAX refuses
         def run(d, a, n):
             return refine(eqx.combine(d, cfg.static), tr, a, n)
 
-        batched = (lambda: jax.vmap(run)(dyn, at, need)) if batch else (lambda: run(dyn, at, need))
-        at = jax.lax.cond(jnp.any(need), batched, lambda: at)
+        at = jax.vmap(run)(dyn, at, need) if batch else run(dyn, at, need)
     dsol, valid = tangent(at)
     # a stage-wise solve that still fails its self-check at a converged point (an iteration on
     # the multipliers that does not converge in MAX_ITER steps): with concrete values, the
