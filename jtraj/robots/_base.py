@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .. import _linalg
 from .._checks import as_vector, check_state
 
 Vec = Float[Array, "n"]
@@ -169,7 +170,7 @@ def yoshikawa(J: Array) -> Array:
     fewer joints than task coordinates (``J J^T`` is singular everywhere there); 0 at a
     singularity, with a zero gradient there (not the NaN of ``sqrt`` at 0)."""
     G = J @ J.T if J.shape[-2] <= J.shape[-1] else J.T @ J
-    det = jnp.linalg.det(G)
+    det = _linalg.det(G)
     regular = det > 0
     return jnp.where(regular, jnp.sqrt(jnp.where(regular, det, 1.0)), 0.0)
 
@@ -341,4 +342,4 @@ def _inverse_dynamics(robot: Robot, q: Vec, qd: Vec, qdd: Vec) -> Vec:
 @eqx.filter_jit
 def _forward_dynamics(robot: Robot, q: Vec, qd: Vec, tau: Vec) -> Vec:
     Q = robot.actuator_to_generalized(q, tau)
-    return jnp.linalg.solve(robot.mass_matrix(q), Q - robot.bias(q, qd))
+    return _linalg.solve(robot.mass_matrix(q), Q - robot.bias(q, qd))

@@ -76,6 +76,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from .. import _linalg
 from ._base import Limits, Robot, Vec
 
 
@@ -169,7 +170,7 @@ class GoughStewart(Robot):
 
     def _scaled_det(self, q: Vec) -> Array:
         s = jnp.concatenate([jnp.ones(3), jnp.full(3, 1.0 / self.platform_radius)])
-        return jnp.linalg.det(self.actuator_jacobian(q) * s[None, :])
+        return _linalg.det(self.actuator_jacobian(q) * s[None, :])
 
     def manipulability(self, q: Vec) -> Array:
         """``|det(J D)| / |det(J(q_0) D)|``: 1 at home, 0 at a singularity (see the module
@@ -237,7 +238,7 @@ class GoughStewart(Robot):
     # ----- actuation ------------------------------------------------------------------
     def generalized_to_actuator(self, q: Vec, Q: Vec) -> Vec:
         """Leg forces from generalised forces: solve ``J^T tau = Q`` [N]."""
-        return jnp.linalg.solve(self.actuator_jacobian(q).T, Q)
+        return _linalg.solve(self.actuator_jacobian(q).T, Q)
 
     def actuator_to_generalized(self, q: Vec, tau: Vec) -> Vec:
         """Generalised forces of the leg forces by virtual work: ``Q = J^T tau``."""

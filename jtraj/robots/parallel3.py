@@ -54,6 +54,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from .. import _linalg
 from ._base import Limits, Robot, Vec
 
 
@@ -128,7 +129,7 @@ class Parallel3(Robot):
         """Manipulability of the actuator-to-C map ``qd = pinv(J_a) theta_d``:
         ``1 / sqrt(det(J_a^T J_a))`` (dp/dq is the identity here)."""
         Ja = self.actuator_jacobian(q)
-        return 1.0 / jnp.sqrt(jnp.linalg.det(Ja.T @ Ja))
+        return 1.0 / jnp.sqrt(_linalg.det(Ja.T @ Ja))
 
     def path_constraints(self, q: Vec) -> Array:
         """Leg-singularity margins as normalised inequalities g <= 0, (6,):
@@ -157,7 +158,7 @@ class Parallel3(Robot):
     def generalized_to_actuator(self, q: Vec, Q: Vec) -> Vec:
         """Minimum-norm actuator torques (3,) with ``J_a^T tau = Q``."""
         Ja = self.actuator_jacobian(q)
-        return Ja @ jnp.linalg.solve(Ja.T @ Ja, Q)
+        return Ja @ _linalg.solve(Ja.T @ Ja, Q)
 
     def actuator_to_generalized(self, q: Vec, tau: Vec) -> Vec:
         """Generalised force of actuator torques by virtual work: ``J_a^T tau``."""

@@ -79,6 +79,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from .. import _linalg
 from ._base import Limits, Robot, Vec
 
 
@@ -161,7 +162,7 @@ class PKM2(Robot):
         ``sqrt(det(J_a^{-1} J_a^{-T})) = 1 / |det J_a|``; tends to 0 at type-1
         singularities (the task Jacobian dp/dq is the identity, so the base-class
         measure would carry no information)."""
-        return 1.0 / jnp.abs(jnp.linalg.det(self.actuator_jacobian(q)))
+        return 1.0 / jnp.abs(_linalg.det(self.actuator_jacobian(q)))
 
     def singularities(self, q: Vec) -> PKMSingularities:
         """Type-1/2/3 singularity measures at q (see :class:`PKMSingularities`)."""
@@ -199,7 +200,7 @@ class PKM2(Robot):
     # ----- actuation ------------------------------------------------------------------
     def generalized_to_actuator(self, q: Vec, Q: Vec) -> Vec:
         """Slider forces from generalised forces: solve ``J_a^T tau = Q``."""
-        return jnp.linalg.solve(self.actuator_jacobian(q).T, Q)
+        return _linalg.solve(self.actuator_jacobian(q).T, Q)
 
     def actuator_to_generalized(self, q: Vec, tau: Vec) -> Vec:
         """Generalised forces of slider forces by virtual work: ``Q = J_a^T tau``."""

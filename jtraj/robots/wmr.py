@@ -51,6 +51,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from .. import _linalg
 from ._base import Limits, Robot, Vec
 
 
@@ -128,7 +129,7 @@ class WMR(Robot):
     def generalized_to_actuator(self, q: Vec, Q: Vec) -> Vec:
         """Wheel torques of the split ``Q = E tau + A^T lambda`` (2,)."""
         EA = jnp.concatenate([self.input_matrix(q), self.constraint_matrix(q).T], axis=1)
-        return jnp.linalg.solve(EA, Q)[:2]
+        return _linalg.solve(EA, Q)[:2]
 
     def actuator_to_generalized(self, q: Vec, tau: Vec) -> Vec:
         """``E(q) tau`` (the constraint force is added in :meth:`forward_dynamics`)."""
@@ -145,7 +146,7 @@ class WMR(Robot):
         rhs = jnp.concatenate([self.actuator_to_generalized(q, tau) - self.bias(q, qd),
                                (qd[2] * v)[None]])
         K = jnp.block([[M, -A.T], [A, jnp.zeros((1, 1))]])
-        sol = jnp.linalg.solve(K, rhs)
+        sol = _linalg.solve(K, rhs)
         return sol[:3], sol[3:]
 
     def forward_dynamics(self, q: Vec, qd: Vec, tau: Vec) -> Vec:

@@ -1,0 +1,104 @@
+"""jtraj._linalg.solve and det against NumPy (LAPACK), their derivatives against
+jnp.linalg's and central differences, and the programs of the robots that use them: no
+LAPACK custom call left in the stage Hessians of the Gough-Stewart platform."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jtraj import _linalg
+from jtraj.robots import get as get_robot
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 6, 8, 10])
+def test_solve_and_det_match_numpy(n):
+    """Random (well conditioned in the mean) batches of every order up to SMALL_MAX and
+    one above it (the jnp.linalg fallback): solutions within 1e-11 relative to the
+    condition-scaled norm, determinants within 1e-12 relative."""
+    rng = np.random.default_rng(n)
+    A = rng.normal(size=(7, n, n)) + 2 * np.eye(n)
+    b, B = rng.normal(size=(7, n)), rng.normal(size=(7, n, 3))
+    x = np.linalg.solve(A, b[..., None])[..., 0]
+    scale = np.linalg.cond(A)[:, None] * np.abs(x).max(-1, keepdims=True)
+    assert np.all(np.abs(np.asarray(jax.jit(_linalg.solve)(A, b)) - x) <= 1e-14 * scale * n)
+    X = np.linalg.solve(A, B)
+    assert np.allclose(np.asarray(_linalg.solve(A, B)), X, rtol=1e-11, atol=1e-11 * np.abs(X).max())
+    np.testing.assert_allclose(np.asarray(_linalg.det(A)), np.linalg.det(A), rtol=1e-12)
+
+
+def test_pivoting_reorders_rows():
+    """A matrix whose leading entry is zero (elimination without row exchanges divides by
+    it) and a permutation matrix of sign -1: exact results."""
+    A = np.array([[0.0, 2.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, 3.0]])
+    np.testing.assert_allclose(np.asarray(_linalg.solve(A, np.array([3.0, 1.0, 3.0]))), [1.0, 1.0, 1.0], rtol=1e-15)
+    assert float(_linalg.det(A)) == pytest.approx(-6.0, rel=1e-15)
+    P = np.eye(4)[[2, 0, 3, 1]]
+    assert float(_linalg.det(P)) == np.linalg.det(P)
+
+
+def test_singular_matrix():
+    """A zero determinant (no NaN from the zero pivot) and, as LAPACK's solve, a
+    non-finite solution."""
+    S = np.array([[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [1.0, 0.0, 1.0]])
+    assert float(_linalg.det(S)) == 0.0
+    assert not np.all(np.isfinite(np.asarray(_linalg.solve(S, np.ones(3)))))
+
+
+def test_derivatives_match_jnp_linalg_and_differences():
+    """First and second derivatives in A and b equal those of jnp.linalg (its custom JVP
+    rules) to 1e-10 relative, and the gradient of det its central differences to 1e-7."""
+    rng = np.random.default_rng(1)
+    A, b = rng.normal(size=(5, 5)) + 3 * np.eye(5), rng.normal(size=5)
+
+    def pair(fn_solve, fn_det):
+        return lambda A, b: jnp.sum(jnp.sin(fn_solve(A, b))) + fn_det(A) ** 2
+
+    ours, ref = pair(_linalg.solve, _linalg.det), pair(jnp.linalg.solve, jnp.linalg.det)
+    for d in (jax.grad, jax.hessian):
+        for arg in (0, 1):
+            got, want = d(ours, argnums=arg)(A, b), d(ref, argnums=arg)(A, b)
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-10, atol=1e-10 * np.abs(want).max())
+    g = np.asarray(jax.grad(lambda A: _linalg.det(A))(A))
+    eps, fd = 1e-6, np.zeros_like(A)
+    for i in range(5):
+        for j in range(5):
+            E = np.zeros_like(A)
+            E[i, j] = eps
+            fd[i, j] = (np.linalg.det(A + E) - np.linalg.det(A - E)) / (2 * eps)
+    np.testing.assert_allclose(g, fd, rtol=1e-7, atol=1e-7 * np.abs(fd).max())
+
+
+def test_bad_shapes_are_rejected():
+    with pytest.raises(ValueError, match="square"):
+        _linalg.solve(np.ones((2, 3)), np.ones(2))
+    with pytest.raises(ValueError, match="square"):
+        _linalg.det(np.ones(3))
+
+
+def test_gough_stewart_stage_hessian_has_no_lapack_call():
+    """The second derivatives of the platform's leg forces and manipulability (what the
+    interior-point method's stage Hessians differentiate), vmapped over lanes and samples
+    as in a batch solve, compile to a program without LAPACK custom calls (jaxlib's CPU
+    kernels are what can stop such a program for good, see jtraj._linalg), and equal
+    those through jnp.linalg."""
+    robot = get_robot("gough_stewart")
+    home = np.array([0.0, 0.0, robot.z_home, 0.0, 0.0, 0.0])
+    rng = np.random.default_rng(2)
+    q = home + 0.05 * rng.normal(size=(4, 3, 6))
+
+    def term(q):
+        Q = jnp.arange(1.0, 7.0) + q
+        return jnp.sum(robot.generalized_to_actuator(q, Q) ** 2) + robot.manipulability(q)
+
+    def reference(q):
+        Q = jnp.arange(1.0, 7.0) + q
+        J = robot.actuator_jacobian(q)
+        s = jnp.concatenate([jnp.ones(3), jnp.full(3, 1.0 / robot.platform_radius)])
+        scaled = lambda q: jnp.linalg.det(robot.actuator_jacobian(q) * s[None, :])  # noqa: E731
+        return jnp.sum(jnp.linalg.solve(J.T, Q) ** 2) + jnp.abs(scaled(q)) / jnp.abs(scaled(jnp.asarray(home)))
+
+    H = jax.jit(jax.vmap(jax.vmap(jax.hessian(term))))
+    assert "lapack" not in H.lower(q).as_text()
+    ref = jax.vmap(jax.vmap(jax.hessian(reference)))(q)
+    np.testing.assert_allclose(np.asarray(H(q)), np.asarray(ref), rtol=1e-9, atol=1e-9 * float(jnp.abs(ref).max()))
