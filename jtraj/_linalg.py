@@ -16,14 +16,16 @@ Here the factorisation is written out in ``jnp`` operations for a static order `
 :data:`SMALL_MAX`: LU with partial pivoting (LAPACK's ``getrf`` without blocking: the
 same pivots and, up to rounding, the same factors), row exchanges as selects rather
 than gathers, so that the elimination fuses with its neighbours into XLA loops. No
-custom call remains, and autodiff goes through the elimination itself (the derivative
-of the pivoted factors; the pivot choice is piecewise constant). Larger orders fall
+custom call remains. A solve's derivatives are solves with the same matrix (a custom
+JVP, as ``jnp.linalg.solve`` has); a determinant's go through the elimination (the
+pivot choice is piecewise constant), which keeps them finite at a singular matrix. Larger orders fall
 back to ``jnp.linalg``. A singular matrix gives a zero determinant and, as LAPACK's
 solve does, non-finite solutions.
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 #: the largest order eliminated here; beyond it ``jnp.linalg`` (LAPACK on a CPU)
@@ -52,22 +54,40 @@ def _lu(A):
 
 
 def _solve_lu(LU, perm, b):
-    """The solution of ``A x = b`` (b: (n,) or (n, k)) from :func:`_lu` of A."""
+    """The solution of ``A x = b`` (b: (n,) or (n, k)) from :func:`_lu` of A, by
+    column-oriented substitutions (one vector update per column)."""
     n = LU.shape[-1]
     rows = jnp.arange(n)
+    col = lambda k, keep: jnp.where(keep, LU[:, k], 0).reshape((n,) + (1,) * (b.ndim - 1))  # noqa: E731
     y = jnp.sum(jnp.where((perm[:, None] == rows[None, :]).reshape((n, n) + (1,) * (b.ndim - 1)), b[None], 0),
-                axis=1)
-    x = [None] * n
-    for i in range(n):  # L y = P b
-        x[i] = y[i] - sum((LU[i, j] * x[j] for j in range(i)), jnp.zeros_like(y[i]))
-    for i in reversed(range(n)):  # U x = y
-        x[i] = (x[i] - sum((LU[i, j] * x[j] for j in range(i + 1, n)), jnp.zeros_like(y[i]))) / LU[i, i]
-    return jnp.stack(x)
+                axis=1)  # P b
+    for k in range(n - 1):  # L y = P b (L unit lower)
+        y = y - col(k, rows > k) * y[k:k + 1]
+    for k in reversed(range(n)):  # U x = y, x overwriting y
+        xk = y[k:k + 1] / LU[k, k]
+        y = jnp.where((rows == k).reshape(col(k, True).shape), xk, y - col(k, rows < k) * xk)
+    return y
 
 
 def _check(A):
     if A.ndim < 2 or A.shape[-1] != A.shape[-2]:
         raise ValueError(f"A must be square in its last two axes, got shape {A.shape}")
+
+
+@jax.custom_jvp
+def _solve_one(A, b):
+    LU, perm, _ = _lu(A)
+    return _solve_lu(LU, perm, b)
+
+
+@_solve_one.defjvp
+def _solve_one_jvp(primals, tangents):
+    # d x = A^-1 (d b - d A x): a solve with the same matrix, whose factorisation XLA
+    # computes once (the same operations on the same operands), rather than the
+    # derivative of the elimination (n^3 per tangent instead of n^2)
+    (A, b), (dA, db) = primals, tangents
+    x = _solve_one(A, b)
+    return x, _solve_one(A, db - dA @ x)
 
 
 def solve(A, b):
@@ -81,8 +101,7 @@ def solve(A, b):
     def one(A, b):
         if A.shape[-1] > SMALL_MAX:
             return jnp.linalg.solve(A, b)
-        LU, perm, _ = _lu(A.astype(dtype))
-        return _solve_lu(LU, perm, b.astype(dtype))
+        return _solve_one(A.astype(dtype), b.astype(dtype))
 
     return jnp.vectorize(one, signature=signature)(A, b)
 
