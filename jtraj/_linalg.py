@@ -91,8 +91,10 @@ def _solve_one_jvp(primals, tangents):
 
 
 def solve(A, b):
-    """``jnp.linalg.solve(A, b)`` for small ``A`` (see the module docstring): A (..., n, n),
-    b (..., n) or (..., n, k) with the same leading axes."""
+    """The solution x of ``A x = b`` by LU with partial pivoting in ``jnp`` operations: no
+    LAPACK call for orders n <= 8 (``jnp.linalg.solve`` beyond). A: (..., n, n); b:
+    (..., n) or (..., n, k) with the same leading axes. Derivatives: solves with the same
+    matrix. A singular A gives non-finite entries, as LAPACK's solve does."""
     A, b = jnp.asarray(A), jnp.asarray(b)
     _check(A)
     signature = "(n,n),(n)->(n)" if b.ndim == A.ndim - 1 else "(n,n),(n,k)->(n,k)"
@@ -107,7 +109,9 @@ def solve(A, b):
 
 
 def det(A):
-    """``jnp.linalg.det(A)`` for small ``A`` (see the module docstring): A (..., n, n)."""
+    """The determinant of A (..., n, n) by LU with partial pivoting in ``jnp`` operations:
+    no LAPACK call for orders n <= 8 (``jnp.linalg.det`` beyond). Derivatives through the
+    elimination, finite at a singular matrix (where the determinant is 0)."""
     A = jnp.asarray(A)
     _check(A)
     if A.shape[-1] > SMALL_MAX:

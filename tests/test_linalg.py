@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from jtraj import _linalg
+from jtraj.robots import small_det, small_solve
 from jtraj.robots import get as get_robot
 
 
@@ -67,6 +68,11 @@ def test_derivatives_match_jnp_linalg_and_differences():
             E[i, j] = eps
             fd[i, j] = (np.linalg.det(A + E) - np.linalg.det(A - E)) / (2 * eps)
     np.testing.assert_allclose(g, fd, rtol=1e-7, atol=1e-7 * np.abs(fd).max())
+
+
+def test_public_names():
+    """jtraj.robots exports the two functions for robots of a user's own."""
+    assert small_solve is _linalg.solve and small_det is _linalg.det
 
 
 def test_bad_shapes_are_rejected():

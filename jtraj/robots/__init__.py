@@ -11,6 +11,8 @@ import importlib
 from typing import Callable
 
 
+from .._linalg import det as small_det
+from .._linalg import solve as small_solve
 from ._base import Actuator, Friction, Limits, Robot
 from ._params import own_parameter_names, with_params
 from .serial import SerialPlanar, serial_planar
@@ -79,4 +81,5 @@ def from_metadata(meta: dict) -> Robot:
 
 
 __all__ = ["Actuator", "Friction", "Limits", "Robot", "SerialPlanar", "SpatialSerial", "from_metadata", "from_urdf",
-           "get", "names", "parameter_names", "serial_planar", "spatial_serial", "with_params"]
+           "get", "names", "parameter_names", "serial_planar", "small_det", "small_solve", "spatial_serial",
+           "with_params"]
