@@ -3,6 +3,7 @@
 efforts from Pinocchio's RNEA (jtraj_peers/verify.py), bounds and goal checked
 with stated tolerances."""
 
+import dataclasses
 import json
 
 import jax
@@ -822,22 +823,36 @@ def test_position_and_velocity_constraints_of_parallel_robots_enter_the_violatio
 
 
 def test_planner_of_a_robot_with_lapack_calls_runs_its_chunks_on_one_thread():
-    # parallel3's dynamics solve a 2 x 2 system (jnp.linalg.solve: LAPACK on a CPU), which
-    # jaxlib's CPU kernels do not survive on two threads at once over large batches (the
-    # process hangs): the planner finds the call in its program and runs the chunks one
-    # after the other, with the plans of one call; a planner without such calls keeps
-    # its threads. Its plans report the path constraints (re-computed here).
+    # a robot of a user's own whose dynamics solve with jnp.linalg (LAPACK on a CPU; the
+    # built-in robots use jtraj.robots.small_solve), here parallel3 with its minimum-norm
+    # torques through jnp.linalg.solve: jaxlib's CPU kernels do not survive on two threads
+    # at once over large batches (the process hangs), so the planner finds the call in its
+    # program and runs the chunks one after the other, with the plans of one call; a
+    # planner without such calls keeps its threads. Its plans report the path constraints
+    # (re-computed here).
     from jtraj import mappings
     from jtraj.online import Planner, _holds_custom_call
+    from jtraj.robots.parallel3 import Parallel3
+
+    class LapackParallel3(Parallel3):
+        def generalized_to_actuator(self, q, Q):
+            Ja = self.actuator_jacobian(q)
+            return Ja @ jnp.linalg.solve(Ja.T @ Ja, Q)
 
     f = jax.jit(lambda A: jax.vmap(jnp.linalg.solve)(A, A[:, 0]))
     assert _holds_custom_call(f, np.ones((4, 2, 2)) + np.eye(2), ("lapack_",))
     assert not _holds_custom_call(jax.jit(jnp.sin), np.ones(3), ("lapack_",))
     data = mappings.synthetic_dataset(P=10, N=6, seed=0, robot="parallel3")
     model = mappings.train_mapping(data, "plan", n_rules=2, epochs=2)[0]
-    rb = robots.get("parallel3", h_max=1.0)
-    planner = Planner(model, rb, weights=W)
+    base = robots.get("parallel3", h_max=1.0)
+    rb = LapackParallel3.__new__(LapackParallel3)
+    for field in dataclasses.fields(base):
+        object.__setattr__(rb, field.name, getattr(base, field.name))
     qs, qg = data["q_start"], data["q_goal"]
+    plain = Planner(model, base, weights=W)
+    plain.plan(qs[:4], qg[:4])
+    assert plain._serial is False  # the built-in parallel3 holds no LAPACK call
+    planner = Planner(model, rb, weights=W)
     planner.chunk, planner.threads = 4, 2
     first = planner.plan(qs[:4], qg[:4])  # one call
     chunked = planner.plan(qs, qg)  # three calls of the same program
