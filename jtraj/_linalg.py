@@ -18,9 +18,9 @@ same pivots and, up to rounding, the same factors), row exchanges as selects rat
 than gathers, so that the elimination fuses with its neighbours into XLA loops. No
 custom call remains. A solve's derivatives are solves with the same matrix (a custom
 JVP, as ``jnp.linalg.solve`` has); a determinant's go through the elimination (the
-pivot choice is piecewise constant), which keeps them finite at a singular matrix. Larger orders fall
-back to ``jnp.linalg``. A singular matrix gives a zero determinant and, as LAPACK's
-solve does, non-finite solutions.
+pivot choice is piecewise constant), which keeps them finite at a singular matrix.
+Larger orders fall back to ``jnp.linalg``. A singular matrix gives a zero determinant
+and, as LAPACK's solve does, non-finite solutions.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ def _lu(A):
         is_p, is_k = (rows == p)[:, None], (rows == k)[:, None]
         row_k, row_p = A[k], jnp.sum(jnp.where(is_p, A, 0), axis=0)
         A = jnp.where(is_k, row_p, jnp.where(is_p, row_k, A))
-        perm = jnp.where(rows == k, jnp.sum(jnp.where(rows == p, perm, 0)), jnp.where(rows == p, perm[k], perm))
+        perm = jnp.where(rows == k, perm[p], jnp.where(rows == p, perm[k], perm))
         sign = jnp.where(p != k, -sign, sign)
         pivot = A[k, k]
         # (a zero pivot: the column below it is zero too, and so are the multipliers)
