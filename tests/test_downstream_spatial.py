@@ -106,8 +106,9 @@ def test_gough_stewart_dataset_train_query(space, tmp_path):
         assert q.shape == (6, 6)
         assert np.all(q >= np.asarray(gs.limits.q_min) - 1e-9) and np.all(q <= np.asarray(gs.limits.q_max) + 1e-9)
     model = tmp_path / "plan.anfis"
+    # (6 pairs leave 4 training samples after the validation split: 2 rules)
     assert main(["train", "--data", str(data), "--mapping", "plan", "--out", str(model), "--epochs", "5",
-                 "--no-progress"]) == 0
+                 "--rules", "2", "--no-progress"]) == 0
     out = tmp_path / "q.json"
     assert main(["query", "--model", str(model), "--start", ",".join(map(str, GS_START)),
                  "--goal", ",".join(map(str, GS_GOAL)), "--refine", "--json", str(out)]) == 0
