@@ -12,13 +12,21 @@ about four runs in five; on 12 lanes it finished). :meth:`Planner.plan
 <jtraj.online.Planner.plan>` guards its calls against the same kernels run on two threads
 at once (``jtraj.online.SERIAL_CUSTOM_CALLS``).
 
-Here the factorisation is written out in ``jnp`` operations for a static order ``n <=``
-:data:`SMALL_MAX`: LU with partial pivoting (LAPACK's ``getrf`` without blocking: the
-same pivots and, up to rounding, the same factors), row exchanges as selects rather
-than gathers, so that the elimination fuses with its neighbours into XLA loops. No
-custom call remains. A solve's derivatives are solves with the same matrix (a custom
-JVP, as ``jnp.linalg.solve`` has); a determinant's go through the elimination (the
-pivot choice is piecewise constant), which keeps them finite at a singular matrix.
+Here the eliminations are written out in ``jnp`` operations for a static order ``n <=``
+:data:`SMALL_MAX`, with LAPACK's partial pivoting (``getrf``'s pivots) and row exchanges
+as selects or products with permutation matrices rather than gathers, so that they fuse
+with their neighbours into XLA loops. No custom call remains.
+
+- A solve is Gauss-Jordan elimination of ``[A | b | I]``: the solution and the inverse
+  from one pass of n rank-one updates (about half the operations that an LU
+  factorisation and its two substitutions put in the program). Its derivatives are
+  products with that inverse, by a custom JVP (``d x = A^-1 (d b - d A x)``, ``d A^-1 =
+  -A^-1 d A A^-1``) that applies again at every order, so no derivative of the
+  elimination is ever formed.
+- A determinant is the product of the pivots of an LU factorisation, and its
+  derivatives go through the elimination (the pivot choice is piecewise constant),
+  which keeps them finite at a singular matrix.
+
 Larger orders fall back to ``jnp.linalg``. A singular matrix gives a zero determinant
 and, as LAPACK's solve does, non-finite solutions.
 """
@@ -53,20 +61,21 @@ def _lu(A):
     return A, perm, sign
 
 
-def _solve_lu(LU, perm, b):
-    """The solution of ``A x = b`` (b: (n,) or (n, k)) from :func:`_lu` of A, by
-    column-oriented substitutions (one vector update per column)."""
-    n = LU.shape[-1]
+def _gauss_jordan(A, B):
+    """``A^-1 B`` for B (n, k), by Gauss-Jordan elimination of ``[A | B]`` with partial
+    pivoting (the pivots of :func:`_lu`): per column, the row exchange as a product with
+    a permutation matrix, then one rank-one update of every other row."""
+    n = A.shape[-1]
     rows = jnp.arange(n)
-    col = lambda k, keep: jnp.where(keep, LU[:, k], 0).reshape((n,) + (1,) * (b.ndim - 1))  # noqa: E731
-    y = jnp.sum(jnp.where((perm[:, None] == rows[None, :]).reshape((n, n) + (1,) * (b.ndim - 1)), b[None], 0),
-                axis=1)  # P b
-    for k in range(n - 1):  # L y = P b (L unit lower)
-        y = y - col(k, rows > k) * y[k:k + 1]
-    for k in reversed(range(n)):  # U x = y, x overwriting y
-        xk = y[k:k + 1] / LU[k, k]
-        y = jnp.where((rows == k).reshape(col(k, True).shape), xk, y - col(k, rows < k) * xk)
-    return y
+    M = jnp.concatenate([A, B], axis=1)
+    for k in range(n):
+        p = jnp.argmax(jnp.where(rows >= k, jnp.abs(M[:, k]), -1))
+        r, c = rows[:, None], rows[None, :]
+        P = jnp.where(r == k, c == p, jnp.where(r == p, c == k, r == c)).astype(M.dtype)
+        M = P @ M
+        pivot_row = M[k] / M[k, k]
+        M = jnp.where(r == k, pivot_row[None, :], M - jnp.where(rows == k, 0, M[:, k])[:, None] * pivot_row[None, :])
+    return M[:, n:]
 
 
 def _check(A):
@@ -75,26 +84,33 @@ def _check(A):
 
 
 @jax.custom_jvp
+def _solve_inv(A, B):
+    """(A^-1 B, A^-1) for B (n, k), from one elimination of ``[A | B | I]``."""
+    n, k = B.shape
+    X = _gauss_jordan(A, jnp.concatenate([B, jnp.eye(n, dtype=A.dtype)], axis=1))
+    return X[:, :k], X[:, k:]
+
+
+@_solve_inv.defjvp
+def _solve_inv_jvp(primals, tangents):
+    # d (A^-1 B) = A^-1 (d B - d A A^-1 B), d A^-1 = -A^-1 d A A^-1: the tangents are
+    # products with A^-1, and so, by this rule again, are the derivatives of every order
+    (A, B), (dA, dB) = primals, tangents
+    x, X = _solve_inv(A, B)
+    return (x, X), (X @ (dB - dA @ x), -X @ dA @ X)
+
+
 def _solve_one(A, b):
-    LU, perm, _ = _lu(A)
-    return _solve_lu(LU, perm, b)
-
-
-@_solve_one.defjvp
-def _solve_one_jvp(primals, tangents):
-    # d x = A^-1 (d b - d A x): a solve with the same matrix, whose factorisation XLA
-    # computes once (the same operations on the same operands), rather than the
-    # derivative of the elimination (n^3 per tangent instead of n^2)
-    (A, b), (dA, db) = primals, tangents
-    x = _solve_one(A, b)
-    return x, _solve_one(A, db - dA @ x)
+    if b.ndim == 1:
+        return _solve_inv(A, b[:, None])[0][:, 0]
+    return _solve_inv(A, b)[0]
 
 
 def solve(A, b):
-    """The solution x of ``A x = b`` by LU with partial pivoting in ``jnp`` operations: no
-    LAPACK call for orders n <= 8 (``jnp.linalg.solve`` beyond). A: (..., n, n); b:
-    (..., n) or (..., n, k) with the same leading axes. Derivatives: solves with the same
-    matrix. A singular A gives non-finite entries, as LAPACK's solve does."""
+    """The solution x of ``A x = b`` by Gauss-Jordan elimination with partial pivoting in
+    ``jnp`` operations: no LAPACK call for orders n <= 8 (``jnp.linalg.solve`` beyond).
+    A: (..., n, n); b: (..., n) or (..., n, k) with the same leading axes. Derivatives:
+    products with the inverse of A. A singular A gives non-finite entries, as LAPACK's solve does."""
     A, b = jnp.asarray(A), jnp.asarray(b)
     _check(A)
     signature = "(n,n),(n)->(n)" if b.ndim == A.ndim - 1 else "(n,n),(n,k)->(n,k)"
