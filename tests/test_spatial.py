@@ -3,6 +3,7 @@ tip placement, frame Jacobian), the Lagrangian path against the Newton-Euler one
 from_urdf's validation of bad input."""
 
 import dataclasses
+import re
 
 import jax
 import jax.numpy as jnp
@@ -444,6 +445,44 @@ def test_missing_package_message(monkeypatch, tmp_path):
     monkeypatch.setenv("JTRAJ_ROBOT_DATA", str(tmp_path))
     with pytest.raises(ImportError, match=r"pip install 'jtraj\[robots\]'"):
         robots.get("panda")
+
+
+def test_limits_missing_or_zero_in_the_file_come_from_the_arguments(tmp_path, capsys):
+    """A file written for simulation only (example-robot-data's double pendulum writes
+    lower = upper = effort = velocity = 0) is refused with every joint's problem and
+    every limit to give in one message, in the command line's words there; given as
+    arguments (``limits=``, the overrides, ``--robot-param``), the limits replace the
+    file's and the arm loads with them."""
+    from jtraj import cli
+
+    zero = ARM.replace('effort="50" velocity="2"', 'effort="0" velocity="0"').replace(
+        '<limit lower="-2" upper="2" effort="30" velocity="2"/>', '<limit lower="0" upper="0" effort="0" velocity="0"/>')
+    with pytest.raises(ValueError) as info:
+        from_urdf(zero)
+    msg = str(info.value)
+    assert "'j1'" in msg and "'j2'" in msg and "lower < upper, got 0.0 and 0.0" in msg, msg
+    assert msg.endswith("(or limits=dict(q_min=..., q_max=..., qd_max=..., tau_max=...))"), msg
+    box = dict(q_min=(-3.0, -2.0, 0.0), q_max=(3.0, 2.0, 0.3))
+    a = from_urdf(zero, limits=box, qd_max=(1.5, 2.5, 0.5), tau_max=40.0)
+    np.testing.assert_array_equal(np.asarray(a.limits.qd_max), [1.5, 2.5, 0.5])
+    np.testing.assert_array_equal(np.asarray(a.limits.tau_max), [40.0, 40.0, 40.0])
+    np.testing.assert_array_equal(np.asarray(a.limits.q_max), box["q_max"])
+
+    from jtraj import dataset  # a dataset records the file and the limits, and loads the arm with them
+
+    spec = dataset.make_spec(None, 4, 0, urdf=zero, robot_params={**box, "qd_max": 1.5, "tau_max": 40.0})
+    np.testing.assert_array_equal(np.asarray(spec.robot_model().limits.qd_max), [1.5, 1.5, 1.5])
+
+    path = tmp_path / "zero.urdf"
+    path.write_text(zero)
+    assert cli.main(["robots", "--urdf", str(path), "--robot-param", "qd_max=1.5"]) == 2
+    err = capsys.readouterr().err
+    assert "(or --robot-param q_min=... --robot-param q_max=... --robot-param tau_max=...)" in err, err
+    given = ["--robot-param", "q_min=-3,-2,0", "--robot-param", "q_max=3,2,0.3", "--robot-param", "qd_max=1.5",
+             "--robot-param", "tau_max=40"]
+    assert cli.main(["robots", "--urdf", str(path), *given]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"qd_max +\[1\.5 1\.5 1\.5\]", out) and re.search(r"tau_max +\[40\. 40\. 40\.\]", out), out
 
 
 # ----- the command line and the plots -----------------------------------------------------

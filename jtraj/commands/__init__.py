@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 
 
 def check_input_file(path, option: str) -> None:
@@ -50,11 +51,21 @@ def urdf_robot(args):
     if args.urdf is None:
         return None
     from jtraj import robots
+    from jtraj.robots.urdf import URDF_LIMITS
 
+    # the file's limits give way to --robot-param's (a file may lack them or hold zeros)
+    limits = {k: v for k, v in robot_params(args).items() if k in URDF_LIMITS}
     try:
-        return robots.from_urdf(args.urdf, tip_link=args.tip_link)
+        return robots.from_urdf(args.urdf, tip_link=args.tip_link, limits=limits)
     except ValueError as exc:
-        raise ValueError(f"--urdf {args.urdf}: {exc}") from None
+        raise ValueError(f"--urdf {args.urdf}: {cli_limits_hint(str(exc))}") from None
+
+
+def cli_limits_hint(msg: str) -> str:
+    """A loader's message with its hint ``limits=dict(qd_max=..., ...)`` in the command
+    line's words (``--robot-param qd_max=...``)."""
+    return re.sub(r"limits=dict\(([^)]*)\)",
+                  lambda m: " ".join(f"--robot-param {k}=..." for k in re.findall(r"(\w+)=", m[1])), msg)
 
 
 def add_robot_param_argument(parser) -> None:

@@ -164,7 +164,7 @@ def run(args) -> int:
             batch = read_manifest(args.out)["identity"]["batch"]
         except (ValueError, KeyError):
             batch = None  # not a dataset (yet): the build reports what is wrong there
-    from jtraj.commands import robot_params, solve_function, solver_overrides
+    from jtraj.commands import cli_limits_hint, robot_params, solve_function, solver_overrides
 
     # the method recorded too: a dataset resumes only with the same method
     options = solver_overrides(args)
@@ -181,6 +181,7 @@ def run(args) -> int:
         if msg.startswith(("urdf: ", "tip_link", "robot_params: ")):  # the messages name the options
             msg = (msg.replace("urdf: ", "--urdf: ", 1).replace("robot_params: ", "--robot-param: ", 1)
                    .replace("tip_link=", "--tip-link").replace("tip_link", "--tip-link").replace("h_max=", "--h-max"))
+            msg = cli_limits_hint(msg)
             raise ValueError(msg) from None
         raise
     stats = dataset.build(spec, args.out, ray=args.ray, workers=getattr(args, "workers", None),

@@ -427,7 +427,7 @@ def make_spec(robot: str | None, pairs, seed, *, N=20, weights=DEFAULT_WEIGHTS, 
         if robot is not None:
             raise ValueError(f"give robot (a built-in robot's name) or urdf (a URDF file), not both; got robot "
                              f"{robot!r}")
-        urdf, robot = _urdf_text(urdf, tip_link)
+        urdf, robot = _urdf_text(urdf, tip_link, robot_params)
     elif tip_link is not None:
         raise ValueError("tip_link needs urdf (it names a link of a URDF arm)")
     elif not isinstance(robot, str) or robot not in robots.names():
@@ -517,8 +517,8 @@ def _robot_params(params, record: dict) -> tuple:
         plain = {k: np.asarray(v, dtype=float).tolist() for k, v in params.items()}
     except (TypeError, ValueError):
         raise ValueError(f"robot_params: values must be numbers or sequences of numbers, got {params!r}") from None
-    try:
-        robots.with_params(robots.from_metadata(record), **plain)
+    try:  # (a URDF arm's limits among them replace the file's: jtraj.robots.from_urdf)
+        robots.from_metadata(record | {"robot_params": plain})
     except ValueError as exc:
         raise ValueError(f"robot_params: {exc}") from None
 
@@ -528,10 +528,12 @@ def _robot_params(params, record: dict) -> tuple:
     return tuple(sorted((k, frozen(v)) for k, v in plain.items()))
 
 
-def _urdf_text(source, tip_link) -> tuple[str, str]:
+def _urdf_text(source, tip_link, params=None) -> tuple[str, str]:
     """(the XML text, the arm's name) of a URDF file or text that
-    :func:`jtraj.robots.from_urdf` loads (``ValueError`` naming ``urdf`` or ``tip_link``)."""
+    :func:`jtraj.robots.from_urdf` loads with the limits among ``params`` (``robot_params``)
+    in place of the file's (``ValueError`` naming ``urdf`` or ``tip_link``)."""
     from jtraj import robots
+    from jtraj.robots.urdf import URDF_LIMITS
 
     if tip_link is not None and not isinstance(tip_link, str):
         raise ValueError(f"tip_link must be a link's name, got {tip_link!r}")
@@ -549,7 +551,8 @@ def _urdf_text(source, tip_link) -> tuple[str, str]:
     else:
         raise ValueError(f"urdf must be a URDF file's path or its XML text, got {type(source).__name__}")
     try:
-        arm = robots.from_urdf(text, tip_link=tip_link)
+        limits = {k: v for k, v in params.items() if k in URDF_LIMITS} if isinstance(params, dict) else {}
+        arm = robots.from_urdf(text, tip_link=tip_link, limits=limits)
     except ValueError as exc:
         raise ValueError(str(exc) if str(exc).startswith("tip_link") else f"urdf: {exc}") from None
     return text, arm.name

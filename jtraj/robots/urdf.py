@@ -24,7 +24,10 @@ branches from the base) do not enter the dynamics of a fixed-base arm.
 Limits: ``<limit lower upper>`` gives the joint box (none for continuous joints),
 ``velocity`` the bound on ``|qd|`` and ``effort`` the bound on ``|tau|``. URDF has no
 acceleration or jerk limits: they are arguments (:data:`DEFAULT_QDD_MAX`, no jerk bound
-by default).
+by default). A limit given as an argument (``limits=`` or one of :data:`URDF_LIMITS` among
+the overrides, as ``jtraj ... --robot-param qd_max=2`` passes it) replaces the file's,
+which may then be missing or zero (files that describe a model for simulation only, such
+as example-robot-data's double pendulum, write ``effort="0" velocity="0"``).
 """
 
 from __future__ import annotations
@@ -222,6 +225,11 @@ def _lock_value(joint, joints):
 
 
 # ----- the chain -------------------------------------------------------------------------
+#: the limits a URDF file gives (``<limit lower upper velocity effort>``), which
+#: :func:`from_urdf` takes from its overrides in their place
+URDF_LIMITS = ("q_min", "q_max", "qd_max", "tau_max")
+
+
 def from_urdf(source, *, base_link: str | None = None, tip_link: str | None = None,
               gravity=(0.0, 0.0, -9.81), limits: dict | None = None, qdd_max=DEFAULT_QDD_MAX,
               qddd_max=None, h_min: float = 0.005, h_max: float = 0.1, name: str | None = None,
@@ -243,7 +251,8 @@ def from_urdf(source, *, base_link: str | None = None, tip_link: str | None = No
         h_min, h_max: sampling-period bounds [s].
         name: label of the robot (default: the URDF's robot name).
         **overrides: parameters replaced after loading through
-            :func:`jtraj.robots.with_params` (e.g. ``masses=...``).
+            :func:`jtraj.robots.with_params` (e.g. ``masses=...``); those of
+            :data:`URDF_LIMITS` replace the file's limits, as ``limits`` does.
 
     Raises:
         ValueError: naming the element and what is expected, for a missing file or
@@ -363,6 +372,7 @@ def from_urdf(source, *, base_link: str | None = None, tip_link: str | None = No
             raise ValueError(f"<joint name={chain[k].name!r}>: not a serial chain")
     tip_R, tip_t = pose[tip]
 
+    limits = {k: overrides.pop(k) for k in URDF_LIMITS if k in overrides} | dict(limits or {})
     lim = _limits(chain, n, limits, qdd_max, qddd_max, h_min, h_max)
     robot = spatial_serial(
         np.stack([p[0] for p in placements]), np.stack([p[1] for p in placements]),
@@ -401,20 +411,28 @@ def _limits(chain, n, limits, qdd_max, qddd_max, h_min, h_max):
     hi = np.array([np.inf if j.upper is None else j.upper for j in chain])
     vel = [j.velocity for j in chain]
     eff = [j.effort for j in chain]
+    box = {"q_min", "q_max"} <= set(over)
+    problems, needed = [], set()  # every missing or unusable limit, reported together
     for j in chain:
-        what = f"<joint name={j.name!r}> ({j.type})"
-        if j.type != "continuous" and (j.lower is None or j.upper is None) and not {"q_min", "q_max"} <= set(over):
-            raise ValueError(f"{what}: expected <limit lower=... upper=...> (or limits=dict(q_min=..., q_max=...))")
-        if j.velocity is None and "qd_max" not in over:
-            raise ValueError(f"{what}: expected <limit velocity=...> (or limits=dict(qd_max=...))")
-        if j.effort is None and "tau_max" not in over:
-            raise ValueError(f"{what}: expected <limit effort=...> (or limits=dict(tau_max=...))")
-        if j.velocity is not None and not j.velocity > 0 and "qd_max" not in over:
-            raise ValueError(f"{what}: <limit velocity> must be > 0, got {j.velocity}")
-        if j.effort is not None and not j.effort > 0 and "tau_max" not in over:
-            raise ValueError(f"{what}: <limit effort> must be > 0, got {j.effort}")
-        if j.lower is not None and j.upper is not None and not j.lower < j.upper and "q_min" not in over:
-            raise ValueError(f"{what}: <limit> must have lower < upper, got {j.lower} and {j.upper}")
+        checks = [
+            (j.type != "continuous" and (j.lower is None or j.upper is None) and not box,
+             "expected <limit lower=... upper=...>", ("q_min", "q_max")),
+            (j.lower is not None and j.upper is not None and not j.lower < j.upper and not box,
+             f"<limit> must have lower < upper, got {j.lower} and {j.upper}", ("q_min", "q_max")),
+            (j.velocity is None and "qd_max" not in over, "expected <limit velocity=...>", ("qd_max",)),
+            (j.velocity is not None and not j.velocity > 0 and "qd_max" not in over,
+             f"<limit velocity> must be > 0, got {j.velocity}", ("qd_max",)),
+            (j.effort is None and "tau_max" not in over, "expected <limit effort=...>", ("tau_max",)),
+            (j.effort is not None and not j.effort > 0 and "tau_max" not in over,
+             f"<limit effort> must be > 0, got {j.effort}", ("tau_max",)),
+        ]
+        texts = [text for bad, text, names in checks if bad]
+        needed.update(name for bad, _, names in checks if bad for name in names)
+        if texts:
+            problems.append(f"<joint name={j.name!r}> ({j.type}): {', '.join(texts)}")
+    if problems:
+        given = ", ".join(f"{k}=..." for k in URDF_LIMITS if k in needed)
+        raise ValueError(f"{'; '.join(problems)} (or limits=dict({given}))")
     kw = dict(q_min=lo, q_max=hi, qd_max=None if None in vel else np.array(vel),
               tau_max=None if None in eff else np.array(eff), qdd_max=qdd_max, qddd_max=qddd_max,
               h_min=h_min, h_max=h_max)
