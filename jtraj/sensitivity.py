@@ -179,6 +179,10 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
     if not isinstance(wrt, str) or wrt not in accepted:
         raise ValueError(f"unknown parameter {wrt!r} for robot {problem.robot.name!r}; "
                          f"sensitivity accepts one of {accepted}")
+    # the parameter as a float array: a Python float (a scalar field such as a platform's
+    # mass) would be static to the solves and absent from the envelope's gradient
+    theta0 = jnp.asarray(_getter(wrt)(problem), dtype=float)
+    problem = _with_param(problem, wrt, theta0)
     if solution is not None and not bool(np.asarray(solution.converged)):
         raise ValueError(f"the given solution did not converge (status {Status(int(solution.status)).name}); "
                          "sensitivities need a converged KKT point")
@@ -189,7 +193,6 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
                          f"{Status(int(sol.status)).message}); sensitivities need a converged KKT point")
     # the optimum to the derivative's precision (the module doc): the refined solve, warm at
     # the first one's optimum, is the one differentiated
-    theta0 = jnp.asarray(_getter(wrt)(problem), dtype=float)
     warm = (tr.controls_of(sol), sol.h)
     if implicit.interior_point_applies(problem, tr.name):
         # the first stage of the derivative's refinement (jtraj.implicit.refine): interior-point
