@@ -61,6 +61,12 @@ def _lu(A):
     return A, perm, sign
 
 
+def _mm(a, b):
+    # full precision on every backend: a product with a permutation matrix must stay exact,
+    # where float32 matrix products may otherwise round their operands (TF32 on GPUs)
+    return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
+
+
 def _gauss_jordan(A, B):
     """``A^-1 B`` for B (n, k), by Gauss-Jordan elimination of ``[A | B]`` with partial
     pivoting (the pivots of :func:`_lu`): per column, the row exchange as a product with
@@ -72,7 +78,7 @@ def _gauss_jordan(A, B):
         p = jnp.argmax(jnp.where(rows >= k, jnp.abs(M[:, k]), -1))
         r, c = rows[:, None], rows[None, :]
         P = jnp.where(r == k, c == p, jnp.where(r == p, c == k, r == c)).astype(M.dtype)
-        M = P @ M
+        M = _mm(P, M)
         pivot_row = M[k] / M[k, k]
         M = jnp.where(r == k, pivot_row[None, :], M - jnp.where(rows == k, 0, M[:, k])[:, None] * pivot_row[None, :])
     return M[:, n:]
@@ -97,7 +103,7 @@ def _solve_inv_jvp(primals, tangents):
     # products with A^-1, and so, by this rule again, are the derivatives of every order
     (A, B), (dA, dB) = primals, tangents
     x, X = _solve_inv(A, B)
-    return (x, X), (X @ (dB - dA @ x), -X @ dA @ X)
+    return (x, X), (_mm(X, dB - _mm(dA, x)), -_mm(_mm(X, dA), X))
 
 
 def _solve_one(A, b):
@@ -110,7 +116,8 @@ def solve(A, b):
     """The solution x of ``A x = b`` by Gauss-Jordan elimination with partial pivoting in
     ``jnp`` operations: no LAPACK call for orders n <= 8 (``jnp.linalg.solve`` beyond).
     A: (..., n, n); b: (..., n) or (..., n, k) with the same leading axes. Derivatives:
-    products with the inverse of A. A singular A gives non-finite entries, as LAPACK's solve does."""
+    products with the inverse of A. A singular A gives non-finite entries, as LAPACK's
+    solve does."""
     A, b = jnp.asarray(A), jnp.asarray(b)
     _check(A)
     signature = "(n,n),(n)->(n)" if b.ndim == A.ndim - 1 else "(n,n),(n,k)->(n,k)"
