@@ -102,8 +102,9 @@ def solve_with_multipliers(problem: Problem, *, solver=None, transcription: str 
 
 
 def accepted_parameters(problem: Problem) -> list[str]:
-    """Parameter names :func:`sensitivity` accepts for this problem's robot: array
-    parameters of the robot and limit fields that are set (not None)."""
+    """Parameter names :func:`sensitivity` accepts for this problem's robot: numeric
+    parameters of the robot (arrays and scalars) and limit fields that are set (not
+    None), all finite."""
     robot = problem.robot
     limit_fields = {f.name for f in dataclasses.fields(Limits)}
     out = []
@@ -143,8 +144,9 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
 
     Args:
         problem: a :class:`jtraj.Problem`.
-        wrt: a robot parameter name: an array parameter of the robot (``"masses"``,
-            ``"lengths"``, ``"inertias"``, ...) or a limit field (``"tau_max"``, ...).
+        wrt: a robot parameter name: a numeric parameter of the robot, an array or a
+            scalar (``"masses"``, ``"lengths"``, ``"platform_mass"``,
+            ``"gravity_accel"``, ...), or a limit field (``"tau_max"``, ...).
         solution: optional converged :class:`jtraj.Solution` of ``problem`` (same
             transcription); it warm-starts the solve.
         solver: the solver of that solve: :class:`jtraj.Auto` (None: the default),
