@@ -9,14 +9,17 @@ and time of :func:`jtraj.solve` with the parameter substituted into the robot by
 system, weakly active constraints).
 
 The derivative is that of the active set at the optimum (:mod:`jtraj.implicit`), so it is
-as precise as the optimum: :func:`sensitivity` differentiates the solve by the
-augmented-Lagrangian method at tolerances 1e-10 (:data:`REFINE`), warm-started at the
-first solve's optimum, so that its derivatives are those of the optimum to that
-precision. (Where a converged optimum's active set does not give a valid derivative, the
-derivative rule itself refines it the same way: :func:`jtraj.implicit.refine`.)
+as precise as the optimum: :func:`sensitivity` refines the first solve's optimum as
+:func:`jtraj.implicit.refine` does and differentiates the last stage's solve, warm-started
+at the point before it. Where the interior-point method applies, the stages are
+:data:`jtraj.implicit.REFINE_IP` and :data:`jtraj.implicit.REFINE_IP_TIGHT` (tolerances
+1e-11); where the second does not converge, and elsewhere, the last stage is the
+augmented-Lagrangian method at tolerances 1e-10 (:data:`REFINE`). (Where a converged
+optimum's active set does not give a valid derivative, the derivative rule itself refines
+it the same way.)
 
-Parameters are the robot's array parameters (``masses``, ``lengths``, ``inertias``,
-``com``, ...) and its limit fields (``tau_max``, ``qd_max``, ``qdd_max``, ``h_min``,
+Parameters are the robot's numeric parameters, arrays and scalars (``masses``,
+``lengths``, ``inertias``, ``com``, ``gravity_accel``, ...) and its limit fields (``tau_max``, ``qd_max``, ``qdd_max``, ``h_min``,
 ``h_max``, ...); see :func:`jtraj.robots.parameter_names`. Use float64
 (``jax.config.update("jax_enable_x64", True)``).
 """
@@ -151,7 +154,7 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
             transcription); it warm-starts the solve.
         solver: the solver of that solve: :class:`jtraj.Auto` (None: the default),
             :class:`jtraj.IPM` or :class:`jtraj.AugmentedLagrangian`. Its optimum is
-            then refined by :data:`REFINE` (warm-started), and the derivatives are those
+            then refined (warm-started; the module doc), and the derivatives are those
             of the refined optimum.
         transcription: "decoupled" (default) or another transcription.
         details: also return the chain-rule cost derivative (``"cost_chain"``, through
@@ -195,22 +198,26 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
                          f"{Status(int(sol.status)).message}); sensitivities need a converged KKT point")
     # the optimum to the derivative's precision (the module doc): the refined solve, warm at
     # the first one's optimum, is the one differentiated
-    warm = (tr.controls_of(sol), sol.h)
+    warm, last, last_name = (tr.controls_of(sol), sol.h), REFINE, "REFINE: the AL method at tolerances 1e-10"
     if implicit.interior_point_applies(problem, tr.name):
-        # the first stage of the derivative's refinement (jtraj.implicit.refine): interior-point
-        # iterations at a small barrier parameter bring the AL method's start near the optimum
+        # the stages of jtraj.implicit.refine: interior-point iterations at a small barrier
+        # parameter, then the same method to 1e-11 from their point; the AL method (whose
+        # tolerance 1e-10 can take thousands of iterations) only where that one fails
         first = solve(problem, solver=implicit.REFINE_IP, transcription=tr.name, init=warm)
         if int(first.status) == Status.CONVERGED:
             warm = (tr.controls_of(first), first.h)
+            tight = solve(problem, solver=implicit.REFINE_IP_TIGHT, transcription=tr.name, init=warm)
+            if int(tight.status) == Status.CONVERGED:
+                last, last_name = implicit.REFINE_IP_TIGHT, "REFINE_IP_TIGHT: the interior-point method at 1e-11"
 
     def optimum(theta):
-        s = solve(_with_param(problem, wrt, theta), solver=REFINE, transcription=tr.name, init=warm)
+        s = solve(_with_param(problem, wrt, theta), solver=last, transcription=tr.name, init=warm)
         return {"cost": s.cost, "T": s.T}, s
 
     jac, sol = jax.jacrev(optimum, has_aux=True)(theta0)
     if not bool(sol.converged):
-        raise ValueError(f"the refinement of the optimum (REFINE: the AL method at tolerances 1e-10) did not "
-                         f"converge (status {Status(int(sol.status)).name}); sensitivities need a converged KKT point")
+        raise ValueError(f"the refinement of the optimum ({last_name}) did not converge (status "
+                         f"{Status(int(sol.status)).name}); sensitivities need a converged KKT point")
     if int(sol.status) == Status.CONVERGED_NO_DERIVATIVE:
         raise ValueError("the optimum's derivative is not valid (status CONVERGED_NO_DERIVATIVE: a degenerate "
                          "active set or a singular KKT system at the refined optimum)")

@@ -128,24 +128,27 @@ def test_scalar_parameter_held_as_a_python_float():
     """A robot parameter that is a Python float (serial3_vertical's gravity_accel; the
     Gough-Stewart platform's masses) has both derivatives, as numbers, equal to central
     differences of re-solves; the cost's is the envelope theorem's, which needs the
-    parameter as an array leaf of the problem."""
-    from jtraj.sensitivity import REFINE
+    parameter as an array leaf of the problem. On this problem the AL method at 1e-10
+    stops at its iteration limit from the first refinement stage's point; the second
+    interior-point stage (REFINE_IP_TIGHT) converges, and its solve is the one
+    differentiated."""
+    from jtraj.implicit import REFINE_IP, REFINE_IP_TIGHT
 
     robot = jtraj.robots.get("serial3_vertical")
     assert isinstance(robot.gravity_accel, float)
-    weights = jtraj.Weights(time=1.0, energy=1.0)
-    problem = jtraj.Problem(robot, START, GOAL, N=10, weights=weights)
+    problem = jtraj.Problem(robot, START, GOAL, N=10, weights=WEIGHTS)
     d = sensitivity(problem, "gravity_accel", details=True)
     assert d["cost"].shape == () and d["T"].shape == () and d["cost"].dtype == float
     np.testing.assert_allclose(d["cost"], d["cost_chain"], rtol=1e-4, atol=1e-9)
     base, g0 = d["solution"], robot.gravity_accel
     out = []
     for g in (g0 * (1 + 1e-3), g0 * (1 - 1e-3)):
-        s = jtraj.solve(jtraj.Problem(jtraj.robots.get("serial3_vertical", gravity_accel=g), START, GOAL, N=10,
-                                      weights=weights), solver=REFINE, init=(base.v, base.h))
+        p = jtraj.Problem(jtraj.robots.get("serial3_vertical", gravity_accel=g), START, GOAL, N=10, weights=WEIGHTS)
+        s = jtraj.solve(p, solver=REFINE_IP, init=(base.v, base.h))  # the two stages sensitivity() runs
+        s = jtraj.solve(p, solver=REFINE_IP_TIGHT, init=(s.v, s.h))
         assert bool(s.converged), s.status_message
         out.append((float(s.cost), float(s.T)))
     fd = (np.array(out[0]) - np.array(out[1])) / (2e-3 * g0)
     np.testing.assert_allclose(float(d["cost"]), fd[0], rtol=1e-5)
-    # (the re-solves' T carries about 5e-9 s of noise: 3e-7 in the differences, 0.3 % of dT*/dg)
-    np.testing.assert_allclose(float(d["T"]), fd[1], rtol=1e-2)
+    # (the re-solves' T carries about 5e-9 s of noise: 3e-7 in the differences)
+    np.testing.assert_allclose(float(d["T"]), fd[1], rtol=1e-2, atol=1e-6)
