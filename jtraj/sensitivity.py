@@ -20,8 +20,9 @@ it the same way.)
 
 Parameters are the robot's numeric parameters, arrays and scalars (``masses``,
 ``lengths``, ``inertias``, ``com``, ``gravity_accel``, ...) and its limit fields
-(``tau_max``, ``qd_max``, ``qdd_max``, ``h_min``, ``h_max``, ...); see :func:`jtraj.robots.parameter_names`. Use float64
-(``jax.config.update("jax_enable_x64", True)``).
+(``tau_max``, ``qd_max``, ``qdd_max``, ``h_min``, ``h_max``, ...); see
+:func:`jtraj.robots.parameter_names`. Use float64 (``jax.config.update("jax_enable_x64",
+True)``).
 """
 
 from __future__ import annotations
