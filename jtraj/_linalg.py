@@ -14,8 +14,7 @@ at once (``jtraj.online.SERIAL_CUSTOM_CALLS``).
 
 Here the eliminations are written out in ``jnp`` operations for a static order ``n <=``
 :data:`SMALL_MAX`, with LAPACK's partial pivoting (``getrf``'s pivots) and row exchanges
-as selects or products with permutation matrices rather than gathers, so that they fuse
-with their neighbours into XLA loops. No custom call remains.
+as selects rather than gathers, so that they fuse with their neighbours into XLA loops. No custom call remains.
 
 - A solve is Gauss-Jordan elimination of ``[A | b | I]``: the solution and the inverse
   from one pass of n rank-one updates (about half the operations that an LU
@@ -40,47 +39,47 @@ import jax.numpy as jnp
 SMALL_MAX = 8
 
 
+def _swap_rows(M, k, p):
+    """M with rows k and p (traced) exchanged, by selects (exact, and fusible)."""
+    rows = jnp.arange(M.shape[0])
+    is_p, is_k = (rows == p)[:, None], (rows == k)[:, None]
+    return jnp.where(is_k, jnp.sum(jnp.where(is_p, M, 0), axis=0), jnp.where(is_p, M[k], M))
+
+
 def _lu(A):
     """(packed factors (n, n): unit-lower L below the diagonal and U on and above it,
-    the row permutation (n,), its sign) of one square matrix."""
+    the sign of the row permutation) of one square matrix."""
     n = A.shape[-1]
-    rows = jnp.arange(n)
-    perm = rows
     sign = jnp.ones((), A.dtype)
     for k in range(n - 1):
         p = k + jnp.argmax(jnp.abs(A[k:, k]))
-        is_p, is_k = (rows == p)[:, None], (rows == k)[:, None]
-        row_k, row_p = A[k], jnp.sum(jnp.where(is_p, A, 0), axis=0)
-        A = jnp.where(is_k, row_p, jnp.where(is_p, row_k, A))
-        perm = jnp.where(rows == k, perm[p], jnp.where(rows == p, perm[k], perm))
+        A = _swap_rows(A, k, p)
         sign = jnp.where(p != k, -sign, sign)
         pivot = A[k, k]
         # (a zero pivot: the column below it is zero too, and so are the multipliers)
         f = A[k + 1:, k] / jnp.where(pivot == 0, 1, pivot)
         A = A.at[k + 1:, k + 1:].add(-f[:, None] * A[k, k + 1:][None, :]).at[k + 1:, k].set(f)
-    return A, perm, sign
+    return A, sign
 
 
 def _mm(a, b):
-    # full precision on every backend: a product with a permutation matrix must stay exact,
-    # where float32 matrix products may otherwise round their operands (TF32 on GPUs)
+    # full precision on every backend (float32 products may round their operands, as
+    # TF32 on GPUs does), so that derivatives are as accurate as the elimination
     return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
 
 
 def _gauss_jordan(A, B):
     """``A^-1 B`` for B (n, k), by Gauss-Jordan elimination of ``[A | B]`` with partial
-    pivoting (the pivots of :func:`_lu`): per column, the row exchange as a product with
-    a permutation matrix, then one rank-one update of every other row."""
+    pivoting (the pivots of :func:`_lu`): per column, the row exchange, then one rank-one
+    update of every other row."""
     n = A.shape[-1]
     rows = jnp.arange(n)
     M = jnp.concatenate([A, B], axis=1)
     for k in range(n):
-        p = jnp.argmax(jnp.where(rows >= k, jnp.abs(M[:, k]), -1))
-        r, c = rows[:, None], rows[None, :]
-        P = jnp.where(r == k, c == p, jnp.where(r == p, c == k, r == c)).astype(M.dtype)
-        M = _mm(P, M)
+        M = _swap_rows(M, k, k + jnp.argmax(jnp.abs(M[k:, k])))
         pivot_row = M[k] / M[k, k]
-        M = jnp.where(r == k, pivot_row[None, :], M - jnp.where(rows == k, 0, M[:, k])[:, None] * pivot_row[None, :])
+        M = jnp.where((rows == k)[:, None], pivot_row[None, :],
+                      M - jnp.where(rows == k, 0, M[:, k])[:, None] * pivot_row[None, :])
     return M[:, n:]
 
 
@@ -141,7 +140,7 @@ def det(A):
         return jnp.linalg.det(A)
 
     def one(A):
-        LU, _, sign = _lu(A)
+        LU, sign = _lu(A)
         return sign * jnp.prod(jnp.diagonal(LU))
 
     return jnp.vectorize(one, signature="(n,n)->()")(A)
