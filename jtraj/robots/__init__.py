@@ -50,7 +50,7 @@ def _factory(name: str) -> Callable[[], Robot]:
 
 def parameter_names(robot: Robot | str) -> list[str]:
     """Names :func:`with_params` accepts for ``robot`` (a robot or a built-in name): its
-    array parameters and the fields of its :class:`Limits`."""
+    numeric parameters and the fields of its :class:`Limits`."""
     if isinstance(robot, str):
         robot = _factory(robot)()
     return own_parameter_names(robot)

@@ -19,7 +19,7 @@ _POSITIVE = {"lengths", "masses", "leg_mass", "slider_mass", "platform_mass", "l
 
 
 def own_parameter_names(robot: Robot) -> list[str]:
-    """Names :func:`with_params` accepts for ``robot``: its array parameters and the
+    """Names :func:`with_params` accepts for ``robot``: its numeric parameters and the
     fields of its :class:`Limits`."""
     own = [f.name for f in dataclasses.fields(robot)
            if f.name not in ("limits", "friction", "actuator")
@@ -30,8 +30,11 @@ def own_parameter_names(robot: Robot) -> list[str]:
 def with_params(robot: Robot, **overrides) -> Robot:
     """A validated copy of ``robot`` with some parameters replaced.
 
-    Keys are array parameters of the robot (e.g. ``masses``) or limit fields (e.g.
-    ``tau_max``). Values must have the shape of the parameter they replace.
+    Keys are numeric parameters of the robot (e.g. ``masses``, ``gravity_accel``) or
+    limit fields (e.g. ``tau_max``). Values must have the shape of the parameter they
+    replace. Every value set is stored as an array, scalars as 0-d arrays: a leaf that
+    ``jit`` traces, so that robots differing only in these values share compiled
+    programs (a Python float field would be static to them).
     """
     allowed = own_parameter_names(robot)
     limit_fields = {f.name for f in dataclasses.fields(Limits)}
@@ -70,7 +73,7 @@ def with_params(robot: Robot, **overrides) -> Robot:
         if key in limit_fields:
             limit_changes[key] = arr
         else:
-            own_changes[key] = jnp.asarray(arr) if np.ndim(current) else float(arr)
+            own_changes[key] = jnp.asarray(arr)
     if limit_changes:
         merged = {f.name: getattr(robot.limits, f.name) for f in dataclasses.fields(Limits)}
         merged.update(limit_changes)
