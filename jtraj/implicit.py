@@ -607,10 +607,10 @@ def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
     indefinite, the stage-wise solve's self-check fails), the optimum is refined
     (:func:`refine`) and the derivative taken at the refined point: the derivative of the
     same optimum to the refinement's tolerance. With concrete primal values (a derivative
-    outside ``jit``) the decision is taken on the host and the refinement's compiled
-    program runs on the samples that need it, one at a time; inside
-    ``jit`` or ``vmap`` the refinement's program runs with the traced flag, iterating only
-    where it is set."""
+    outside ``jit``) the decision is taken on the host and the refinement's stages run on
+    the samples that need it, one at a time, by the staged solver's programs
+    (:func:`_refine_staged`); inside ``jit`` or ``vmap`` the refinement is one program
+    that runs with the traced flag, iterating only where it is set."""
     tr = Transcription(cfg.transcription)
     at = _point(tr, sol)
 
@@ -651,19 +651,44 @@ def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
     return jax.tree.map(pick, dense, dsol), valid | use
 
 
-@eqx.filter_jit  # keyed by the problem's structure
-def _refine_program(static, transcription: str, dyn, at):
-    return refine(eqx.combine(dyn, static), Transcription(transcription), at, jnp.bool_(True))
+def _refine_staged(problem: Problem, tr: Transcription, at):
+    """:func:`refine` of one problem with concrete values, its stages run by the staged
+    solver's programs (:mod:`jtraj.solver.staged`), the ones ordinary solves of the
+    problem run, compiled once for both: :data:`REFINE_IP` from ``at`` by the
+    interior-point program, then :data:`REFINE_IP_TIGHT` from its point where it
+    converged; where the second stage does not converge (or the method does not apply),
+    :data:`REFINE` by the augmented-Lagrangian program from the first stage's point (its
+    last iterate where it is finite), else from ``at``. Returns the refined ``(u, h)``,
+    ``at`` where no stage converged."""
+    from .solver import staged
+    from .solver.results import Status
+
+    ip_opts, tight_opts, al_opts = _refine_options(problem, tr.name)
+    warm, guess = np.bool_(True), np.bool_(False)
+    start = at
+    if ip_opts is not None:
+        first = staged._solve_ip_jit(problem, ip_opts, tr.name, at, warm, guess)[0]
+        point = _point(tr, first)
+        if all(np.all(np.isfinite(np.asarray(a))) for a in point):
+            start = point
+        if int(first.status) == Status.CONVERGED:
+            tight = staged._solve_ip_jit(problem, tight_opts, tr.name, point, warm, guess)[0]
+            if int(tight.status) == Status.CONVERGED:
+                return _point(tr, tight)
+    last = staged._solve_al_jit(problem, al_opts, tr.name, start, warm, guess, None)
+    return _point(tr, last) if int(last.status) == Status.CONVERGED else at
 
 
 def _refine_host(cfg: _Config, dyn, at, flags, batch: bool):
-    """:func:`refine` with concrete values: each flagged problem refined by one compiled
-    program (the one a trace runs, for one problem), warm-started at its point."""
+    """:func:`refine` with concrete values (:func:`_refine_staged`): each flagged problem
+    refined on its own, warm-started at its point."""
+    tr = Transcription(cfg.transcription)
     if not batch:
-        return _refine_program(cfg.static, cfg.transcription, dyn, at)
+        return _refine_staged(eqx.combine(dyn, cfg.static), tr, at)
     u, h = (np.array(a) for a in at)
     for i in np.flatnonzero(flags):
-        ui, hi = _refine_program(cfg.static, cfg.transcription, jax.tree.map(lambda x: x[i], dyn), (u[i], h[i]))
+        one = eqx.combine(jax.tree.map(lambda x: x[i], dyn), cfg.static)
+        ui, hi = _refine_staged(one, tr, (jnp.asarray(u[i]), jnp.asarray(h[i])))
         u[i], h[i] = np.asarray(ui), np.asarray(hi)
     return jnp.asarray(u), jnp.asarray(h)
 

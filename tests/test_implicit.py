@@ -675,3 +675,24 @@ def test_refinement_of_a_default_optimum_matches_tight_re_solves(monkeypatch):
             d.append((vals[0] - vals[1]) / (2 * step))
         fd.append((16 * d[1] - d[0]) / 15)
     np.testing.assert_allclose(np.asarray(g), fd, rtol=1e-6, atol=1e-9 * max(abs(x) for x in fd))
+
+
+@pytest.mark.slow  # the traced refinement's program (about a minute) besides the default solver's
+def test_refinement_on_the_host_equals_the_traced_refinement():
+    """The refinement with concrete values (its stages run by the staged solver's
+    programs, ``_refine_staged``) reaches the point the traced refinement (``refine``, one
+    program: what a derivative inside ``jit`` runs) reaches from the same returned
+    optimum, to 1e-8 of the largest entry."""
+    from jtraj.transcription import Transcription
+
+    tr = Transcription("decoupled")
+    p = jtraj.Problem(ROBOT, REFINE_START, REFINE_GOAL, N=20, weights=jtraj.Weights(**WEIGHTS))
+    sol = jtraj.solve(p)
+    assert bool(sol.converged), sol.status_message
+    at = (tr.controls_of(sol), sol.h)
+    host = implicit._refine_staged(p, tr, at)
+    traced = eqx.filter_jit(lambda q, a: implicit.refine(q, tr, a, jnp.bool_(True)))(p, at)
+    for a, b, start in zip(host, traced, at):
+        a, b = np.asarray(a), np.asarray(b)
+        assert np.all(np.isfinite(a)) and np.max(np.abs(a - np.asarray(start))) > 1e-9  # it moved
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-8 * np.max(np.abs(b)))
