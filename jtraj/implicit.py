@@ -664,18 +664,17 @@ def _refine_staged(problem: Problem, tr: Transcription, at):
     from .solver.results import Status
 
     ip_opts, tight_opts, al_opts = _refine_options(problem, tr.name)
-    warm, guess = np.bool_(True), np.bool_(False)
     start = at
     if ip_opts is not None:
-        first = staged._solve_ip_jit(problem, ip_opts, tr.name, at, warm, guess)[0]
+        first = staged.warm_ip(problem, ip_opts, tr.name, at)
         point = _point(tr, first)
         if all(np.all(np.isfinite(np.asarray(a))) for a in point):
             start = point
         if int(first.status) == Status.CONVERGED:
-            tight = staged._solve_ip_jit(problem, tight_opts, tr.name, point, warm, guess)[0]
+            tight = staged.warm_ip(problem, tight_opts, tr.name, point)
             if int(tight.status) == Status.CONVERGED:
                 return _point(tr, tight)
-    last = staged._solve_al_jit(problem, al_opts, tr.name, start, warm, guess, None)
+    last = staged.warm_al(problem, al_opts, tr.name, start)
     return _point(tr, last) if int(last.status) == Status.CONVERGED else at
 
 

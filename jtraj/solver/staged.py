@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import numpy as np
 
 from ..transcription import Transcription
 from . import ipm, loop
@@ -72,3 +73,15 @@ def solve(problem, opts, transcription: str, init, warm, guess) -> Solution:
         if bool(decided):
             return sol
     return _solve_al_jit(problem, opts, transcription, init, warm, guess, ip_iterations)
+
+
+def warm_ip(problem, opts, transcription: str, init) -> Solution:
+    """The interior-point program alone (no AL finish), warm-started at ``init`` = (u, h):
+    its Solution, CONVERGED where it decided an optimum (a refinement's stage, see
+    :func:`jtraj.implicit.refine`)."""
+    return _solve_ip_jit(problem, opts, transcription, init, np.bool_(True), np.bool_(False))[0]
+
+
+def warm_al(problem, opts, transcription: str, init) -> Solution:
+    """The augmented-Lagrangian program warm-started at ``init`` = (u, h): its Solution."""
+    return _solve_al_jit(problem, opts, transcription, init, np.bool_(True), np.bool_(False), None)
