@@ -83,7 +83,7 @@ def test_gough_stewart_resample_gradcheck_sensitivity():
     m0, dm = float(gs.platform_mass), 1e-3 * float(gs.platform_mass)
 
     def cost(m):
-        r = robots.with_params(gs, platform_mass=jnp.asarray(m))  # an array: one program for both
+        r = robots.with_params(gs, platform_mass=m)  # (stored as an array: one program for both)
         p = jtraj.Problem(r, GS_START, GS_GOAL, N=12, weights=W)
         s = jtraj.solve(p, init=(sol.v, sol.h))
         for stage in (REFINE_IP, REFINE_IP_TIGHT):
