@@ -121,7 +121,7 @@ from .solver.methods import IPM, AugmentedLagrangian
 from .transcription import Transcription
 
 __all__ = ["ACT_TOL", "BOUND_TOL", "NOISE", "REFINE", "REFINE_IP", "WEAK", "WEAK_MIN", "implicit_tangent",
-           "interior_point_applies", "refine", "valid_derivatives"]
+           "interior_point_applies", "refine", "refinement_stage", "valid_derivatives"]
 
 #: inequalities with ``c_i > -ACT_TOL`` (normalised units) are candidates for the active set
 ACT_TOL = 1e-3
@@ -651,19 +651,19 @@ def _refined_tangent(cfg: _Config, dyn, ddyn, sol, batch: bool):
     return jax.tree.map(pick, dense, dsol), valid | use
 
 
-def _refine_staged(problem: Problem, tr: Transcription, at):
-    """:func:`refine` of one problem with concrete values, its stages run by the staged
-    solver's programs (:mod:`jtraj.solver.staged`), the ones ordinary solves of the
-    problem run, compiled once for both: :data:`REFINE_IP` from ``at`` by the
-    interior-point program, then :data:`REFINE_IP_TIGHT` from its point where it
-    converged; where the second stage does not converge (or the method does not apply),
-    :data:`REFINE` by the augmented-Lagrangian program from the first stage's point (its
-    last iterate where it is finite), else from ``at``. Returns the refined ``(u, h)``,
-    ``at`` where no stage converged."""
+def refinement_stage(problem: Problem, transcription: str, at):
+    """The last stage of :func:`refine` for one concrete problem, the stages run by the
+    staged solver's programs (those of ordinary solves): ``(solver, start, solution)``.
+    Where the interior-point method applies, :data:`REFINE_IP` runs from ``at``, then
+    :data:`REFINE_IP_TIGHT` from its point where it converged; where that converges too,
+    it is the last stage: ``(REFINE_IP_TIGHT, its start, its Solution)``.
+    Otherwise the last stage is :data:`REFINE` from the first stage's point (its last
+    iterate where it is finite), else from ``at``, not yet run: ``(REFINE, start, None)``."""
     from .solver import staged
     from .solver.results import Status
 
-    ip_opts, tight_opts, al_opts = _refine_options(problem, tr.name)
+    tr = Transcription(transcription)
+    ip_opts, tight_opts, _ = _refine_options(problem, tr.name)
     start = at
     if ip_opts is not None:
         first = staged.warm_ip(problem, ip_opts, tr.name, at)
@@ -673,14 +673,24 @@ def _refine_staged(problem: Problem, tr: Transcription, at):
         if int(first.status) == Status.CONVERGED:
             tight = staged.warm_ip(problem, tight_opts, tr.name, point)
             if int(tight.status) == Status.CONVERGED:
-                return _point(tr, tight)
-    last = staged.warm_al(problem, al_opts, tr.name, start)
+                return REFINE_IP_TIGHT, point, tight
+    return REFINE, start, None
+
+
+def _refine_staged(problem: Problem, tr: Transcription, at):
+    """:func:`refine` of one concrete problem (:func:`refinement_stage`, then the staged AL
+    program where that stage is :data:`REFINE`): the refined ``(u, h)``, else ``at``."""
+    from .solver import staged
+    from .solver.results import Status
+
+    _, start, last = refinement_stage(problem, tr.name, at)
+    if last is None:
+        last = staged.warm_al(problem, _refine_options(problem, tr.name)[2], tr.name, start)
     return _point(tr, last) if int(last.status) == Status.CONVERGED else at
 
 
 def _refine_host(cfg: _Config, dyn, at, flags, batch: bool):
-    """:func:`refine` with concrete values (:func:`_refine_staged`): each flagged problem
-    refined on its own, warm-started at its point."""
+    """:func:`refine` with concrete values: each flagged problem by :func:`_refine_staged`."""
     tr = Transcription(cfg.transcription)
     if not batch:
         return _refine_staged(eqx.combine(dyn, cfg.static), tr, at)

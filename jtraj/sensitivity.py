@@ -198,18 +198,12 @@ def sensitivity(problem: Problem, wrt: str = "masses", *, solution=None, solver=
         raise ValueError(f"the solve did not converge (status {Status(int(sol.status)).name}: "
                          f"{Status(int(sol.status)).message}); sensitivities need a converged KKT point")
     # the optimum to the derivative's precision (the module doc): the refined solve, warm at
-    # the first one's optimum, is the one differentiated
-    warm, last, last_name = (tr.controls_of(sol), sol.h), REFINE, "REFINE: the AL method at tolerances 1e-10"
-    if implicit.interior_point_applies(problem, tr.name):
-        # the stages of jtraj.implicit.refine: interior-point iterations at a small barrier
-        # parameter, then the same method to 1e-11 from their point; the AL method (whose
-        # tolerance 1e-10 can take thousands of iterations) only where that one fails
-        first = solve(problem, solver=implicit.REFINE_IP, transcription=tr.name, init=warm)
-        if int(first.status) == Status.CONVERGED:
-            warm = (tr.controls_of(first), first.h)
-            tight = solve(problem, solver=implicit.REFINE_IP_TIGHT, transcription=tr.name, init=warm)
-            if int(tight.status) == Status.CONVERGED:
-                last, last_name = implicit.REFINE_IP_TIGHT, "REFINE_IP_TIGHT: the interior-point method at 1e-11"
+    # the first one's optimum, is the one differentiated (the stages of
+    # jtraj.implicit.refine; the AL method, whose tolerance 1e-10 can take thousands of
+    # iterations, only where the interior-point stages do not apply or do not converge)
+    last, warm, _ = implicit.refinement_stage(problem, tr.name, (tr.controls_of(sol), sol.h))
+    last_name = ("REFINE_IP_TIGHT: the interior-point method at 1e-11" if last is implicit.REFINE_IP_TIGHT
+                 else "REFINE: the AL method at tolerances 1e-10")
 
     def optimum(theta):
         s = solve(_with_param(problem, wrt, theta), solver=last, transcription=tr.name, init=warm)
