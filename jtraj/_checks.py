@@ -53,6 +53,20 @@ def as_vector(x: Any, name: str, n: int | None = None, *, positive: bool = False
     return x
 
 
+def as_array(x: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """A concrete ``x`` as a finite float NumPy array of ``shape`` (``ValueError`` naming
+    ``name`` otherwise)."""
+    try:
+        arr = np.asarray(x, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{name} must be an array of numbers with shape {shape}, got {x!r}") from err
+    if arr.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got shape {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name} must be finite (no NaN or inf), got {arr.tolist()}")
+    return arr
+
+
 def check_state(x: Any, name: str, n: int) -> jax.Array:
     """Validate a joint-space vector of length ``n`` (or a batch ``(..., n)``)."""
     if is_concrete(x):

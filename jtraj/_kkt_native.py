@@ -248,19 +248,23 @@ def without():
     return _flag("off")
 
 
-def _pending_or_built(n: int) -> bool:
-    n = int(n)
+def _kernel(n: int):
+    """True where the kernel for ``n`` joints is built, False where it cannot be (or is
+    not for this backend), else its build's future (started by :func:`prefetch` if need
+    be)."""
     if n in _state["libs"]:
         return True
     if n not in JOINTS or n in _state["failed"] or _family()[0] is None:
         return False
     prefetch(n)
-    fut = _state["futures"].get(n)
-    if fut is None:
-        return False
-    if fut.done():
-        return available(n)
-    return True
+    return _state["futures"].get(n, False)
+
+
+def _pending_or_built(n: int) -> bool:
+    fut = _kernel(int(n))
+    if isinstance(fut, bool):
+        return fut
+    return available(n) if fut.done() else True
 
 
 def _usable(n: int) -> bool:
@@ -272,12 +276,9 @@ def available(n: int) -> bool:
     """Whether the kernel for ``n`` joints is built and registered: builds it (or waits
     for :func:`prefetch`'s build) on the first call."""
     n = int(n)
-    if n in _state["libs"]:
-        return True
-    if n not in JOINTS or n in _state["failed"] or _family()[0] is None:
-        return False
-    prefetch(n)
-    fut = _state["futures"].get(n)
+    fut = _kernel(n)
+    if isinstance(fut, bool):
+        return fut
     try:
         fut.result()
         return True

@@ -48,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._checks import is_concrete
+from .._checks import as_array, is_concrete
 from ._base import Robot
 
 SUCCESS, NOT_CONVERGED, JOINT_LIMITS, NONFINITE = 0, 1, 2, 3
@@ -72,15 +72,7 @@ class IKResult(NamedTuple):
 
 def check_array(x, name: str, shape: tuple[int, ...]):
     if is_concrete(x):
-        try:
-            arr = np.asarray(x, dtype=float)
-        except (TypeError, ValueError) as err:
-            raise ValueError(f"{name} must be an array of numbers with shape {shape}, got {x!r}") from err
-        if arr.shape != shape:
-            raise ValueError(f"{name} must have shape {shape}, got shape {arr.shape}")
-        if not np.isfinite(arr).all():
-            raise ValueError(f"{name} must be finite (no NaN or inf), got {arr.tolist()}")
-        return jnp.asarray(arr)
+        return jnp.asarray(as_array(x, name, shape))
     x = jnp.asarray(x)
     if x.shape != shape:
         raise ValueError(f"{name} must have shape {shape}, got shape {x.shape}")

@@ -51,6 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from .._checks import as_array
 from .._math import sincos, small_matmul
 from ._base import Actuator, Friction, Limits, Robot, Vec, yoshikawa
 
@@ -459,16 +460,7 @@ def spatial_serial(joint_rotation, joint_translation, axes, joint_types, masses,
             raise ValueError(f"joint_types[{i}] must be one of {JOINT_TYPES}, got {t!r}")
 
     def arr(x, name, shape, default=None):
-        x = default if x is None else x
-        try:
-            a = np.asarray(x, dtype=float)
-        except (TypeError, ValueError) as err:
-            raise ValueError(f"{name} must be numeric with shape {shape}, got {x!r}") from err
-        if a.shape != shape:
-            raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
-        if not np.isfinite(a).all():
-            raise ValueError(f"{name} must be finite")
-        return a
+        return as_array(default if x is None else x, name, shape)
 
     Rj = arr(joint_rotation, "joint_rotation", (n, 3, 3))
     tj = arr(joint_translation, "joint_translation", (n, 3))
