@@ -24,8 +24,8 @@ def test_solve_and_det_match_numpy(n):
     scale = np.linalg.cond(A)[:, None] * np.abs(x).max(-1, keepdims=True)
     assert np.all(np.abs(np.asarray(jax.jit(_linalg.solve)(A, b)) - x) <= 1e-14 * scale * n)
     X = np.linalg.solve(A, B)
-    assert np.allclose(np.asarray(_linalg.solve(A, B)), X, rtol=1e-11, atol=1e-11 * np.abs(X).max())
-    np.testing.assert_allclose(np.asarray(_linalg.det(A)), np.linalg.det(A), rtol=1e-12)
+    assert np.allclose(np.asarray(jax.jit(_linalg.solve)(A, B)), X, rtol=1e-11, atol=1e-11 * np.abs(X).max())
+    np.testing.assert_allclose(np.asarray(jax.jit(_linalg.det)(A)), np.linalg.det(A), rtol=1e-12)
 
 
 @pytest.mark.parametrize("n", [2, 3, 6])
@@ -50,19 +50,20 @@ def test_solve_residual_is_an_lu_solves_on_ill_conditioned_matrices(n):
 def test_pivoting_reorders_rows():
     """A matrix whose leading entry is zero (elimination without row exchanges divides by
     it) and a permutation matrix of sign -1: exact results."""
+    solve, det = jax.jit(_linalg.solve), jax.jit(_linalg.det)
     A = np.array([[0.0, 2.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, 3.0]])
-    np.testing.assert_allclose(np.asarray(_linalg.solve(A, np.array([3.0, 1.0, 3.0]))), [1.0, 1.0, 1.0], rtol=1e-15)
-    assert float(_linalg.det(A)) == pytest.approx(-6.0, rel=1e-15)
+    np.testing.assert_allclose(np.asarray(solve(A, np.array([3.0, 1.0, 3.0]))), [1.0, 1.0, 1.0], rtol=1e-15)
+    assert float(det(A)) == pytest.approx(-6.0, rel=1e-15)
     P = np.eye(4)[[2, 0, 3, 1]]
-    assert float(_linalg.det(P)) == np.linalg.det(P)
+    assert float(det(P)) == np.linalg.det(P)
 
 
 def test_singular_matrix():
     """A zero determinant (no NaN from the zero pivot) and, as LAPACK's solve, a
     non-finite solution."""
     S = np.array([[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [1.0, 0.0, 1.0]])
-    assert float(_linalg.det(S)) == 0.0
-    assert not np.all(np.isfinite(np.asarray(_linalg.solve(S, np.ones(3)))))
+    assert float(jax.jit(_linalg.det)(S)) == 0.0
+    assert not np.all(np.isfinite(np.asarray(jax.jit(_linalg.solve)(S, np.ones(3)))))
 
 
 def test_derivatives_match_jnp_linalg_and_differences():
@@ -76,8 +77,8 @@ def test_derivatives_match_jnp_linalg_and_differences():
 
     ours, ref = pair(_linalg.solve, _linalg.det), pair(jnp.linalg.solve, jnp.linalg.det)
     for d in (jax.grad, jax.hessian):
-        for arg in (0, 1):
-            got, want = d(ours, argnums=arg)(A, b), d(ref, argnums=arg)(A, b)
+        for arg in (0, 1):  # (jitted: op by op, the unrolled elimination's derivatives take minutes)
+            got, want = jax.jit(d(ours, argnums=arg))(A, b), jax.jit(d(ref, argnums=arg))(A, b)
             np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-10, atol=1e-10 * np.abs(want).max())
     g = np.asarray(jax.grad(lambda A: _linalg.det(A))(A))
     eps, fd = 1e-6, np.zeros_like(A)
@@ -102,10 +103,10 @@ def test_higher_and_mixed_derivatives_of_solve_match_jnp_linalg():
     for d in (lambda g: jax.jacfwd(jax.jacrev(jax.grad(g, 1), 1), 1),
               lambda g: jax.jacfwd(jax.hessian(g, 1), 0),
               lambda g: jax.grad(g, (0, 1))):
-        got, want = d(f(_linalg.solve))(A, b), d(f(jnp.linalg.solve))(A, b)
+        got, want = jax.jit(d(f(_linalg.solve)))(A, b), jax.jit(d(f(jnp.linalg.solve)))(A, b)
         for x, y in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
             np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-9, atol=1e-9 * np.abs(y).max())
-    got, want = jax.grad(f(_linalg.solve), (0, 1))(A, B), jax.grad(f(jnp.linalg.solve), (0, 1))(A, B)
+    got, want = (jax.jit(jax.grad(f(solve), (0, 1)))(A, B) for solve in (_linalg.solve, jnp.linalg.solve))
     for x, y in zip(got, want):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-9, atol=1e-9 * np.abs(y).max())
 
@@ -146,5 +147,5 @@ def test_gough_stewart_stage_hessian_has_no_lapack_call():
 
     H = jax.jit(jax.vmap(jax.vmap(jax.hessian(term))))
     assert "lapack" not in H.lower(q).as_text()
-    ref = jax.vmap(jax.vmap(jax.hessian(reference)))(q)
+    ref = jax.jit(jax.vmap(jax.vmap(jax.hessian(reference))))(q)
     np.testing.assert_allclose(np.asarray(H(q)), np.asarray(ref), rtol=1e-9, atol=1e-9 * float(jnp.abs(ref).max()))
