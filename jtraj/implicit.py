@@ -120,8 +120,8 @@ from .problem import Problem
 from .solver.methods import IPM, AugmentedLagrangian
 from .transcription import Transcription
 
-__all__ = ["ACT_TOL", "BOUND_TOL", "NOISE", "REFINE", "REFINE_IP", "WEAK", "WEAK_MIN", "implicit_tangent",
-           "interior_point_applies", "refine", "refinement_stage", "valid_derivatives"]
+__all__ = ["ACT_TOL", "BOUND_TOL", "NOISE", "REFINE", "REFINE_IP", "REFINE_IP_TIGHT", "WEAK", "WEAK_MIN",
+           "implicit_tangent", "interior_point_applies", "refine", "refinement_stage", "valid_derivatives"]
 
 #: inequalities with ``c_i > -ACT_TOL`` (normalised units) are candidates for the active set
 ACT_TOL = 1e-3
