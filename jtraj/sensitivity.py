@@ -11,10 +11,11 @@ system, weakly active constraints).
 The derivative is that of the active set at the optimum (:mod:`jtraj.implicit`), so it is
 as precise as the optimum: :func:`sensitivity` refines the first solve's optimum as
 :func:`jtraj.implicit.refine` does (:func:`jtraj.implicit.refinement_stage`) and
-differentiates the last stage's solve, warm-started at the point before it. Where the interior-point method applies, the stages are
-:data:`jtraj.implicit.REFINE_IP` and :data:`jtraj.implicit.REFINE_IP_TIGHT` (tolerances
-1e-11); where the second does not converge, and elsewhere, the last stage is the
-augmented-Lagrangian method at tolerances 1e-10 (:data:`REFINE`). (Where a converged
+differentiates the last stage's solve, warm-started at the point before it. Where the
+interior-point method applies, the stages are :data:`jtraj.implicit.REFINE_IP` and
+:data:`jtraj.implicit.REFINE_IP_TIGHT` (tolerances 1e-11); where the second does not
+converge, and elsewhere, the last stage is the augmented-Lagrangian method at tolerances
+1e-10 (:data:`REFINE`). (Where a converged
 optimum's active set does not give a valid derivative, the derivative rule itself refines
 it the same way.)
 
