@@ -125,6 +125,21 @@ def test_native_kernels_optimisation_level_from_the_environment(monkeypatch):
             _kkt_native._flags(3)
 
 
+def test_native_kernel_off_the_cpu_is_unavailable_without_a_build_or_a_warning(monkeypatch, recwarn):
+    """On another backend no build starts (the kernel is a CPU custom call): ``available``
+    and the deferred check answer False, record no failure and warn nothing."""
+    from jtraj import _kkt_native
+
+    if _kkt_native.identity() is None:
+        pytest.skip(_kkt_native.status())
+    monkeypatch.setattr(_kkt_native, "_state", {"libs": {}, "futures": {}, "failed": {}, "compiling": set(),
+                                                "family": _kkt_native._state["family"]})
+    monkeypatch.setattr(_kkt_native.jax, "default_backend", lambda: "gpu")
+    assert not _kkt_native.available(3) and not _kkt_native._pending_or_built(3)
+    assert _kkt_native._state["futures"] == {} and _kkt_native._state["failed"] == {}
+    assert not [w for w in recwarn if "native KKT kernel" in str(w.message)]
+
+
 def test_native_kkt_kernel_equals_the_riccati_solve_in_xla():
     """The native KKT kernel (:mod:`jtraj._kkt_native`, what the solver uses on a CPU in
     float64) against :func:`jtraj.lq.kkt_directions`: one problem and a batch of three
