@@ -77,7 +77,7 @@ def test_derivatives_match_jnp_linalg_and_differences():
 
     ours, ref = pair(_linalg.solve, _linalg.det), pair(jnp.linalg.solve, jnp.linalg.det)
     for d in (jax.grad, jax.hessian):
-        for arg in (0, 1):  # (jitted: op by op, the unrolled elimination's derivatives take minutes)
+        for arg in (0, 1):  # (jitted: op by op, each derivative of the unrolled elimination takes tens of seconds)
             got, want = jax.jit(d(ours, argnums=arg))(A, b), jax.jit(d(ref, argnums=arg))(A, b)
             np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-10, atol=1e-10 * np.abs(want).max())
     g = np.asarray(jax.grad(lambda A: _linalg.det(A))(A))
