@@ -15,9 +15,8 @@ differentiates the last stage's solve, warm-started at the point before it. Wher
 interior-point method applies, the stages are :data:`jtraj.implicit.REFINE_IP` and
 :data:`jtraj.implicit.REFINE_IP_TIGHT` (tolerances 1e-11); where the second does not
 converge, and elsewhere, the last stage is the augmented-Lagrangian method at tolerances
-1e-10 (:data:`REFINE`). (Where a converged
-optimum's active set does not give a valid derivative, the derivative rule itself refines
-it the same way.)
+1e-10 (:data:`REFINE`). (Where a converged optimum's active set does not give a valid
+derivative, the derivative rule itself refines it the same way.)
 
 Parameters are the robot's numeric parameters, arrays and scalars (``masses``,
 ``lengths``, ``inertias``, ``com``, ``gravity_accel``, ...) and its limit fields
