@@ -19,8 +19,10 @@ state (reached to rounding, at rest) and a time scaling that restores the veloci
 acceleration, effort and jerk bounds at the lowest cost of the scaled plans, compared
 with switching profiles on the same periods (the shape of effort-bounded optima) and a
 synchronised trapezoidal velocity profile (the shape of velocity- and
-acceleration-bounded optima), all inside the same jitted call. ``correct=False``
-returns the raw prediction.
+acceleration-bounded optima), all inside the same jitted call; where the robot has
+path constraints (a parallel robot's leg-singularity margins), each candidate's path is
+first bent back inside them and the boxes on positions, which the time scaling leaves
+unchanged. ``correct=False`` returns the raw prediction.
 
 The efforts come from the robot's inverse dynamics, and :class:`Plan` reports:
 
@@ -235,6 +237,12 @@ class Planner:
     law (N = 40) it is the cheapest candidate for 978, and the held-out plans' median cost
     gap is 1.3 % with it against 3.1 % without; on serial3 it wins 225 of 4096 and costs
     about a fifth of the batch's throughput (``trapezoid=False`` leaves it out).
+    ``positions``: bend the candidates' paths inside the position constraints
+    (:func:`jtraj.repair.position_step`; default: where the robot has path constraints,
+    as a parallel robot's leg-singularity margins). On 4,096 fresh parallel3 pairs of a
+    300-pair dataset's law it raises the feasible plans from 96.3 % to 98.5 %; the rest
+    need more time than ``N h_max`` allows along the candidates' paths (half of the 16
+    examined are infeasible for the exact solver too).
 
     Coverage (``coverage_distance``, ``coverage_box``, ``ood``; :mod:`jtraj.coverage`):
     with the training pairs in the model's metadata (models from
@@ -247,7 +255,7 @@ class Planner:
 
     def __init__(self, model, robot=None, *, periods=None, weights=None, correct: bool = True,
                  effort: bool = False, switch: bool = True, projection: bool = True, trapezoid: bool | None = None,
-                 tol: float = 1e-6, goal_tol: float = 1e-6):
+                 positions: bool | None = None, tol: float = 1e-6, goal_tol: float = 1e-6):
         from jtraj import robots
 
         model = _load(model)
@@ -275,8 +283,9 @@ class Planner:
         for name, x in (("correct", correct), ("effort", effort), ("switch", switch), ("projection", projection)):
             if not isinstance(x, bool):
                 raise ValueError(f"{name} must be True or False, got {x!r}")
-        if trapezoid is not None and not isinstance(trapezoid, bool):
-            raise ValueError(f"trapezoid must be None, True or False, got {trapezoid!r}")
+        for name, x in (("trapezoid", trapezoid), ("positions", positions)):
+            if x is not None and not isinstance(x, bool):
+                raise ValueError(f"{name} must be None, True or False, got {x!r}")
         for name, x in (("tol", tol), ("goal_tol", goal_tol)):
             if isinstance(x, bool) or not isinstance(x, (int, float)) or not np.isfinite(x) or x < 0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {x!r}")
@@ -319,7 +328,7 @@ class Planner:
                              f"other weights with Planner.query(..., refine=True, weights=...)")
         self.weights = weights
         self.tol, self.goal_tol, self.correct, self.effort = float(tol), float(goal_tol), correct, effort
-        self.switch, self.projection, self.trapezoid = switch, projection, trapezoid
+        self.switch, self.projection, self.trapezoid, self.positions = switch, projection, trapezoid, positions
         if correct and not (projection or switch or effort or trapezoid is not False):
             raise ValueError("projection, switch, effort and trapezoid are all False: the repair has no candidate")
         self._coverage()
@@ -395,7 +404,8 @@ class Planner:
         if getattr(rb, "newton_euler", None) == "world":
             rb = rb.replace(newton_euler="bodies")
         repair = (make_repair(rb, self.weights, effort=self.effort, switch=self.switch,
-                                  projection=self.projection, uniform_projection=False, trapezoid=self.trapezoid)
+                                  projection=self.projection, uniform_projection=False, trapezoid=self.trapezoid,
+                                  positions=self.positions)
                   if self.correct else None)
         weights, distance, radius = self.weights, self._distance, self.coverage_radius
 

@@ -140,6 +140,64 @@ def test_switch_profile_holds_opposite_accelerations_around_a_linear_switch_and_
 def test_homogeneity_test_tells_the_horizontal_arm_from_the_geared_vertical_one():
     assert is_homogeneous(robots.get("serial3"))
     assert not is_homogeneous(robots.get("serial3_vertical"))  # gravity and motor damping
+    # parallel3 has neither: the test states lie in its joint box, since outside it the
+    # legs do not reach the common point and the efforts are not defined
+    p3 = robots.get("parallel3")
+    assert not np.any(np.isfinite(np.asarray(p3.inverse_dynamics(jnp.array([0.9, -0.9]), jnp.zeros(2), jnp.ones(2)))))
+    assert is_homogeneous(p3) and is_quadratic_in_rate(p3)
+
+
+def _p3_rows(p3, q):
+    """parallel3's position rows in NumPy: the joint box relative to its width, then the
+    legs' folded and stretched margins (its module doc), for q (..., 2)."""
+    lo, hi = np.asarray(p3.limits.q_min), np.asarray(p3.limits.q_max)
+    s = np.linalg.norm(q[..., None, :] - np.asarray(p3.base), axis=-1) / (2 * float(p3.link_length))
+    return np.concatenate([(lo - q) / (hi - lo), (q - hi) / (hi - lo), 1 - s / float(p3.rho_min),
+                           s / float(p3.rho_max) - 1], axis=-1)
+
+
+def test_position_step_bends_paths_around_parallel3s_leg_singularities():
+    # straight-line trapezoids between pairs of the dataset law: those whose samples
+    # cross a leg's singularity margin (a leg folded near its base point) are bent inside
+    # every position row, with the goal state kept; the others come back unchanged.
+    # Positions from a NumPy recursion, rows in NumPy.
+    from jtraj.dataset.sampling import Distribution, sample_pairs
+    from jtraj.repair import position_step
+
+    p3 = robots.get("parallel3")
+    lim, N = p3.limits, 20
+    qs, qg = sample_pairs(p3, Distribution(), 2, 0, 2048)
+
+    @jax.jit
+    @jax.vmap
+    def step(q0, q1):
+        z = jnp.zeros_like(q0)
+        v, h = trapezoid_profile(q0, q1, N, lim.qd_max, lim.qdd_max)
+        v = goal_projection(q0, z, q1, z, v, h)
+        return v, position_step(p3, q0, z, q1, z, v, h), h
+
+    v0, v1, h = (np.asarray(x) for x in step(jnp.asarray(qs), jnp.asarray(qg)))
+
+    def recursion(v, h, q0):
+        q, qd = [q0], [np.zeros(2)]
+        for k in range(N):
+            q.append(q[-1] + h[k] * qd[-1] + 0.5 * h[k] ** 2 * v[k])
+            qd.append(qd[-1] + h[k] * v[k])
+        return np.array(q), np.array(qd)
+
+    before, after = [], []
+    for i in range(len(qs)):
+        q, _ = recursion(v0[i], h[i], qs[i])
+        before.append(np.max(_p3_rows(p3, q)))
+        q, qd = recursion(v1[i], h[i], qs[i])
+        after.append(np.max(_p3_rows(p3, q)))
+        np.testing.assert_allclose(q[-1], qg[i], atol=1e-10)
+        np.testing.assert_allclose(qd[-1], 0.0, atol=1e-10)
+    before, after = np.array(before), np.array(after)
+    crossing = before > 0
+    assert 40 <= crossing.sum() <= 120  # about 4 % of the pairs
+    np.testing.assert_array_equal(v1[~crossing], v0[~crossing])
+    assert np.mean(after[crossing] <= 0) >= 0.9  # 96 % of 4,096 pairs' crossings
 
 
 @pytest.fixture(scope="module")
