@@ -379,7 +379,7 @@ def position_rows(robot, q):
     return jnp.concatenate(parts) if parts else None
 
 
-def has_position_rows(robot) -> bool:
+def _has_position_rows(robot) -> bool:
     """Whether :func:`position_rows` has any row for ``robot``."""
     lim = robot.limits
     return lim.q_min is not None or lim.workspace is not None or getattr(robot, "path_constraints", None) is not None
@@ -394,7 +394,7 @@ def _box_rows(x, lo, hi):
 def position_excess(robot, q):
     """Largest excess of the positions q (N+1, n) over :func:`position_rows` (0 when
     within), or None where the robot has no constraints on positions."""
-    if not has_position_rows(robot):
+    if not _has_position_rows(robot):
         return None
     return jnp.maximum(jnp.max(jax.vmap(lambda x: position_rows(robot, x))(q)), 0.0)
 
@@ -412,10 +412,9 @@ def position_step(robot, q0, qd0, q_goal, qd_goal, v, h, steps: int = POSITION_S
     linear in ``dv`` for fixed periods (module doc): one (N + 2)-square system shared by
     the joints. ``rho`` is ``weight`` relative to the two terms' mean curvatures. The
     ends are left alone (a problem's start and goal meet the constraints), and so is a
-    plan whose samples all meet the rows already. A plan's
-    positions stay put under the time scaling, so the step comes before it; where the
-    constraints cannot be met near the path (or the steps do not suffice), the plan's
-    reported violation says so."""
+    plan whose samples all meet the rows already. A plan's positions stay put under the
+    time scaling, so the step comes before it; where the constraints cannot be met near
+    the path (or the steps do not suffice), the plan's reported violation says so."""
     N = h.shape[0]
     rows = jax.vmap(lambda x: position_rows(robot, x))
     jac = jax.vmap(jax.jacfwd(lambda x: position_rows(robot, x)))
@@ -434,8 +433,9 @@ def position_step(robot, q0, qd0, q_goal, qd_goal, v, h, steps: int = POSITION_S
         a = (r > 0).astype(h.dtype)
         Ga = G * a[..., None]
         R = r.shape[1]
-        # least-norm d with G_a d = -r_a (the inactive rows' equations made trivial)
-        P = Ga @ jnp.swapaxes(Ga, 1, 2) + jnp.eye(R, dtype=h.dtype)[None] * (1 - a + 1e-12)[:, None, :]
+        # least-norm d with G_a d = -r_a (the inactive rows' equations made trivial; a
+        # small shift keeps dependent active rows, two bounds meeting, solvable)
+        P = Ga @ jnp.swapaxes(Ga, 1, 2) + jnp.eye(R, dtype=h.dtype)[None] * (1 - a + 1e-9)[:, None, :]
         d = -jnp.einsum("kr,krn->kn", jax.vmap(_spd_solve)(P, (r * a)[..., None])[..., 0], Ga)
         w = jnp.where(inner & jnp.any(r > 0, axis=1), rho, 0.0)
         # min sum_k h_k |dv_k|^2 + w_k |C_k dv - d_k|^2 subject to A dv = 0: with H = diag(h) + C^T W C,
