@@ -665,6 +665,8 @@ def test_planner_refuses_bad_input(planner_and_data):
         Planner(planner.model, projection=None)
     with pytest.raises(ValueError, match="trapezoid must be"):
         Planner(planner.model, trapezoid="yes")
+    with pytest.raises(ValueError, match="positions must be"):
+        Planner(planner.model, positions=1)
     with pytest.raises(ValueError, match="no candidate"):
         Planner(planner.model, projection=False, switch=False, trapezoid=False)
 
