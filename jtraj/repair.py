@@ -431,7 +431,7 @@ def position_step(robot, q0, qd0, q_goal, qd_goal, v, h, steps: int = POSITION_S
         q = rollout(q0, qd0, v, h)[0]
         r, G = rows(q) + margin, jac(q)  # (N+1, R), (N+1, R, n)
         a = (r > 0).astype(h.dtype)
-        Ga = G * a[..., None]
+        Ga = jnp.where(r[..., None] > 0, G, 0.0)  # (a select: an inactive row's non-finite gradient stays out)
         R = r.shape[1]
         # least-norm d with G_a d = -r_a (the inactive rows' equations made trivial; a
         # small shift keeps dependent active rows, two bounds meeting, solvable)
