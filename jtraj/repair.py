@@ -430,14 +430,15 @@ def position_step(robot, q0, qd0, q_goal, qd_goal, v, h, steps: int = POSITION_S
     for _ in range(steps):
         q = rollout(q0, qd0, v, h)[0]
         r, G = rows(q) + margin, jac(q)  # (N+1, R), (N+1, R, n)
-        a = (r > 0).astype(h.dtype)
-        Ga = jnp.where(r[..., None] > 0, G, 0.0)  # (a select: an inactive row's non-finite gradient stays out)
-        R = r.shape[1]
-        # least-norm d with G_a d = -r_a (the inactive rows' equations made trivial; a
-        # small shift keeps dependent active rows, two bounds meeting, solvable)
-        P = Ga @ jnp.swapaxes(Ga, 1, 2) + jnp.eye(R, dtype=h.dtype)[None] * (1 - a + 1e-9)[:, None, :]
-        d = -jnp.einsum("kr,krn->kn", jax.vmap(_spd_solve)(P, (r * a)[..., None])[..., 0], Ga)
-        w = jnp.where(inner & jnp.any(r > 0, axis=1), rho, 0.0)
+        active = r > 0
+        Ga = jnp.where(active[..., None], G, 0.0)  # (a select: an inactive row's non-finite gradient stays out)
+        # least-norm d with G_a d = -r_a, as -(e I + G_a^T G_a)^-1 G_a^T r_a (n x n rather than
+        # one row each; the small shift e keeps dependent or too few active rows solvable)
+        P = jnp.swapaxes(Ga, 1, 2) @ Ga
+        n = P.shape[-1]
+        P = P + (1e-9 * (1 + jnp.trace(P, axis1=1, axis2=2)))[:, None, None] * jnp.eye(n, dtype=h.dtype)[None]
+        d = -jax.vmap(_spd_solve)(P, jnp.einsum("krn,kr->kn", Ga, jnp.where(active, r, 0.0))[..., None])[..., 0]
+        w = jnp.where(inner & jnp.any(active, axis=1), rho, 0.0)
         # min sum_k h_k |dv_k|^2 + w_k |C_k dv - d_k|^2 subject to A dv = 0: with H = diag(h) + C^T W C,
         # dv = X - Y (A Y)^-1 A X for X = H^-1 C^T W d, Y = H^-1 A^T
         XY = _spd_solve(jnp.diag(h) + (C.T * w[None]) @ C, jnp.concatenate([(C.T * w[None]) @ d, A.T], axis=1))
