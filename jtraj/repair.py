@@ -432,8 +432,9 @@ def position_step(robot, q0, qd0, q_goal, qd_goal, v, h, steps: int = POSITION_S
         r, G = rows(q) + margin, jac(q)  # (N+1, R), (N+1, R, n)
         active = r > 0
         Ga = jnp.where(active[..., None], G, 0.0)  # (a select: an inactive row's non-finite gradient stays out)
-        # least-norm d with G_a d = -r_a, as -(e I + G_a^T G_a)^-1 G_a^T r_a (n x n rather than
-        # one row each; the small shift e keeps dependent or too few active rows solvable)
+        # least-norm d with G_a d = -r_a, as -(e I + G_a^T G_a)^-1 G_a^T r_a: an n x n system per
+        # sample whatever the number of rows (the small shift e keeps dependent rows, or fewer
+        # active rows than joints, solvable)
         P = jnp.swapaxes(Ga, 1, 2) @ Ga
         n = P.shape[-1]
         P = P + (1e-9 * (1 + jnp.trace(P, axis1=1, axis2=2)))[:, None, None] * jnp.eye(n, dtype=h.dtype)[None]
