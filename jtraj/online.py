@@ -76,6 +76,10 @@ BOX_MARGIN = 0.05
 #: batched program's arrays of a few hundred plans stay in cache, and the calls run on
 #: :data:`THREADS` threads at once
 CHUNK = 256
+#: where the repair bends paths (:func:`jtraj.repair.position_step`), :meth:`Planner.plan`
+#: runs a batch without the step and the plans it flags again with it, in calls of this
+#: many pairs (on parallel3 about 4 % of a batch)
+BEND_CHUNK = 16
 #: threads :meth:`Planner.plan` runs a chunked batch's calls on (XLA releases the GIL)
 THREADS = min(os.cpu_count() or 1, 8)
 #: custom calls that one program must not run on two threads at once: jaxlib's CPU LAPACK
@@ -124,6 +128,9 @@ class Plan(NamedTuple):
     #: the repair's chosen candidate, an index into ``Planner.candidates`` (-1 without
     #: the repair)
     candidate: jax.Array
+    #: whether the repair's position step bent a candidate's path back inside the
+    #: position constraints (:func:`jtraj.repair.position_step`)
+    bent: jax.Array
     coverage_distance: jax.Array
     coverage_box: jax.Array
     ood: jax.Array
@@ -182,6 +189,7 @@ def _packed(core, n: int):
             out[i] = out[i].astype(d)
         return Plan(*out)
 
+    unpack.columns = {name: (a, b) for name, (a, b, _, _) in zip(Plan._fields, fields)}
     # (the single plan as _plan compiles it, with the same options: the same program, bit for bit)
     return _options_jit(flat), _options_jit(flat_batch), unpack
 
@@ -338,7 +346,15 @@ class Planner:
         self._plan_batch = _options_jit(jax.vmap(core))
         # what plan() runs: one output buffer, NumPy arrays on the host
         self._flat, self._flat_batch, self._unpack = _packed(core, self.n)
+        # a batch's programs: where the repair bends paths, the first runs it without the
+        # position step and flags the plans that need it, the second runs those again with
+        # it (under vmap the step's branch is a select, which every plan would pay for)
+        self._bend_batch = None
+        if correct and (getattr(robot, "path_constraints", None) is not None if positions is None else positions):
+            self._bend_batch = self._flat_batch
+            self._flat_batch = _packed(self._core("flag"), self.n)[1]
         self.chunk, self.threads, self._pool = CHUNK, THREADS, None
+        self.bend_chunk = BEND_CHUNK
         self._serial = None  # whether the programs hold a SERIAL_CUSTOM_CALLS call (_is_serial)
         self._lock = threading.Lock()
 
@@ -394,7 +410,9 @@ class Planner:
             return jnp.concatenate([q, qN[None]]), jnp.concatenate([qd, qdN[None]]), v, h
         return predict
 
-    def _core(self):
+    def _core(self, positions=None):
+        """``core(q_start, q_goal) -> Plan``; ``positions`` as :func:`jtraj.repair.make_repair`'s
+        (default: the planner's)."""
         from .repair import cost_of, make_repair, rollout, terminal_rows, violation_parts
 
         # a spatial arm's efforts over the repair's samples in the body-frame Newton-Euler
@@ -405,7 +423,7 @@ class Planner:
             rb = rb.replace(newton_euler="bodies")
         repair = (make_repair(rb, self.weights, effort=self.effort, switch=self.switch,
                                   projection=self.projection, uniform_projection=False, trapezoid=self.trapezoid,
-                                  positions=self.positions)
+                                  positions=self.positions if positions is None else positions)
                   if self.correct else None)
         weights, distance, radius = self.weights, self._distance, self.coverage_radius
 
@@ -421,14 +439,15 @@ class Planner:
             if repair is None:
                 tau = jax.vmap(rb.inverse_dynamics)(q[:-1], qd[:-1], v)
                 cost, s, pick = cost_of(rb, weights, q, qd, tau, h), jnp.ones(()), jnp.asarray(-1)
+                bent = jnp.zeros((), bool)
             else:
                 z = jnp.zeros_like(qs)
                 r = repair(qs, z, qg, z, v, h)
-                q, qd, v, h, tau, cost, s, pick = r.q, r.qd, r.v, r.h, r.tau, r.cost, r.scale, r.candidate
+                q, qd, v, h, tau, cost, s, pick, bent = r.q, r.qd, r.v, r.h, r.tau, r.cost, r.scale, r.candidate, r.bent
             parts = violation_parts(rb, q, qd, v, tau, h)
             d, box = distance(jnp.concatenate([qs, qg]))
             return Plan(q, qd, v, tau, h, jnp.sum(h), cost, jnp.max(jnp.stack(parts)), *parts,
-                        jnp.linalg.norm(q[-1] - qg), jnp.linalg.norm(qd[-1]), pred_err, s, pick, d, box,
+                        jnp.linalg.norm(q[-1] - qg), jnp.linalg.norm(qd[-1]), pred_err, s, pick, bent, d, box,
                         (d > radius) | (box > BOX_MARGIN))
         self.candidates = () if repair is None else repair.candidates
         return core
@@ -491,12 +510,12 @@ class Planner:
         """The packed plans of a (B, 2n) batch of starts and goals side by side (:meth:`plan`)."""
         B, C = x.shape[0], int(self.chunk)
         if B <= C:
-            return self._call(self._flat_batch, x)
+            return self._bend(x, self._call(self._flat_batch, x))
         pad = (-B) % C
         if pad:
             x = np.concatenate([x, np.repeat(x[:1], pad, axis=0)])
         parts = [x[i:i + C] for i in range(0, B + pad, C)]
-        run = lambda p: self._call(self._flat_batch, p)  # noqa: E731  (waits for the result)
+        run = lambda p: self._bend(p, self._call(self._flat_batch, p))  # noqa: E731  (waits for the result)
         if self.threads > 1 and not self._is_serial(self._flat_batch, parts[0]):
             if self._pool is None:
                 from concurrent.futures import ThreadPoolExecutor
@@ -506,6 +525,27 @@ class Planner:
         else:
             out = [run(p) for p in parts]
         return np.concatenate(out)[:B]
+
+    def _bend(self, x, values):
+        """The packed plans ``values`` of the pairs ``x`` (B, 2n), those flagged ``bent``
+        planned again with the position step (calls of ``self.bend_chunk`` pairs, the last
+        one padded): the plans of the single-plan program, which takes the step exactly
+        where it flags them."""
+        if self._bend_batch is None:
+            return values
+        a, _ = self._unpack.columns["bent"]
+        rows = np.flatnonzero(values[:, a] != 0)
+        if rows.size == 0:
+            return values
+        S = int(self.bend_chunk)
+        sub = x[rows]
+        pad = (-rows.size) % S
+        if pad:
+            sub = np.concatenate([sub, np.repeat(sub[:1], pad, axis=0)])
+        values = np.array(values)
+        values[rows] = np.concatenate([self._call(self._bend_batch, sub[i:i + S])
+                                       for i in range(0, sub.shape[0], S)])[:rows.size]
+        return values
 
     def check(self, q_start, q_goal) -> None:
         """``ValueError`` where ``q_start`` or ``q_goal`` is not what ``jtraj.Problem``
@@ -534,6 +574,7 @@ class Planner:
                   "goal_error", "goal_velocity", "predicted_goal_error", "scale"):
             out[k] = float(getattr(p, k))
         out["candidate"] = self.candidates[int(p.candidate)] if int(p.candidate) >= 0 else None
+        out["bent"] = bool(p.bent)
         out["coverage"] = dict(kind=self.coverage_kind, distance=float(p.coverage_distance),
                                radius=self.coverage_radius, outside_box=float(p.coverage_box),
                                out_of_distribution=bool(p.ood))

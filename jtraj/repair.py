@@ -103,6 +103,9 @@ class Repaired(NamedTuple):
     scale: jax.Array  # the time scaling s of the chosen candidate
     uniform: jax.Array  # whether the chosen candidate has uniform periods
     candidate: jax.Array  # the chosen candidate's index (make_repair's order)
+    #: whether a candidate's path left the position rows, so that :func:`position_step`
+    #: bent it (with ``positions="flag"``: would have bent it); False without the step
+    bent: jax.Array
 
 
 def _cumsum(x):
@@ -510,7 +513,12 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
     :attr:`Repaired.candidate`). Without the projected prediction, the prediction's
     accelerations serve only the effort steps (the switching profiles use its periods
     alone). ``positions`` (default: where the robot has path constraints) runs
-    :func:`position_step` on every candidate before its time scaling."""
+    :func:`position_step` on every candidate before its time scaling, where a
+    candidate's path leaves the position rows (:attr:`Repaired.bent`);
+    ``positions="flag"`` only reports whether it would have run: the repair is then
+    the one without the step, and equals the one with it wherever ``bent`` is False
+    (:class:`jtraj.online.Planner` runs a batch that way, and only the flagged plans
+    again with the step)."""
     lim = robot.limits
     if homogeneous is None:
         homogeneous = is_homogeneous(robot)
@@ -518,6 +526,8 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
         quadratic = not homogeneous and is_quadratic_in_rate(robot)
     if positions is None:
         positions = getattr(robot, "path_constraints", None) is not None
+    if positions not in (True, False, "flag"):
+        raise ValueError(f"make_repair: positions must be None, True, False or 'flag', got {positions!r}")
     ID = jax.vmap(robot.inverse_dynamics)
     h_min, h_max = lim.h_min, lim.h_max
     jerk = lim.qddd_max is not None  # (the scaling then keeps the acceleration jumps within their bounds)
@@ -735,12 +745,15 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
             ht = jnp.clip(ht, h_min, h_max)
             w = goal_projection(q0, qd0, q_goal, qd_goal, w, ht)
             vs, hs = jnp.concatenate([vs, w[None]]), jnp.concatenate([hs, ht[None]])
+        outside = jnp.zeros((), bool)
         if positions:  # every candidate's path bent inside the position constraints (its states anew)
             # (skipped where every candidate is inside: for a single plan a branch, under vmap a select)
-            step_all = jax.vmap(lambda w, hk: position_step(robot, q0, qd0, q_goal, qd_goal, w, hk))
             rows = jax.vmap(jax.vmap(lambda x: position_rows(robot, x)))
             outside = jnp.any(rows(jax.vmap(rollout, in_axes=(None, None, 0, 0))(q0, qd0, vs, hs)[0]) > 0)
-            vs, known = jax.lax.cond(outside, step_all, lambda w, hk: w, vs, hs), None
+            known = None  # (with "flag" too: the same arithmetic as the step's where it does not run)
+            if positions is True:
+                step_all = jax.vmap(lambda w, hk: position_step(robot, q0, qd0, q_goal, qd_goal, w, hk))
+                vs = jax.lax.cond(outside, step_all, lambda w, hk: w, vs, hs)
         done = 0 if known is None else known[0].shape[0]
         if quadratic:
             # every candidate's states; their efforts at any scaling from one polynomial each
@@ -787,7 +800,7 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
             # tests re-verify them), its cost measured on the scaled arrays
             qd, tau, v, h = qd / s, tau / s**2, v / s**2, h * s
             c = cost_of(robot, weights, q, qd, tau, h)
-        return Repaired(v, h, q, qd, tau, c, s, jnp.any(pick & uniform_flags), i)
+        return Repaired(v, h, q, qd, tau, c, s, jnp.any(pick & uniform_flags), i, outside)
 
     repair.candidates = tuple(names)
     return repair

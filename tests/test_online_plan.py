@@ -882,6 +882,47 @@ def test_position_and_velocity_constraints_of_parallel_robots_enter_the_violatio
     assert got[3] == pytest.approx(expected, rel=1e-12)
 
 
+def test_planner_batch_runs_the_position_step_only_on_the_plans_it_flags():
+    # a parallel3 batch runs the repair without the position step, flags the plans with
+    # a candidate's path across a position row, and plans those again with the step: the
+    # plans of the program that runs the step (a select) for every pair, bit for bit.
+    # Pairs whose straight line passes a base point within the folded margin are flagged
+    # (their trapezoid candidate crosses it); the single-plan program flags the same.
+    from jtraj import mappings
+    from jtraj.dataset.sampling import Distribution, sample_pairs
+    from jtraj.online import Planner
+
+    p3 = robots.get("parallel3")
+    qs, qg = sample_pairs(p3, Distribution(), 2, 0, 512)
+    t = np.clip(np.einsum("pbi,pi->pb", np.asarray(p3.base)[None] - qs[:, None], qg - qs)[..., None]
+                / np.sum((qg - qs) ** 2, axis=1)[:, None, None], 0, 1)
+    near = np.linalg.norm(qs[:, None] + t * (qg - qs)[:, None] - np.asarray(p3.base)[None], axis=-1).min(axis=1)
+    margin = float(p3.rho_min) * 2 * float(p3.link_length)
+    pick = np.r_[np.flatnonzero(near < 0.5 * margin)[:5], np.flatnonzero(near > 2 * margin)[:11]]
+    assert len(pick) == 16
+    qs, qg = qs[pick], qg[pick]
+    data = mappings.synthetic_dataset(P=10, N=6, seed=0, robot="parallel3")
+    model = mappings.train_mapping(data, "plan", n_rules=2, epochs=2)[0]
+    planner = Planner(model, p3, weights=W)
+    planner.chunk = planner.bend_chunk = 16  # (one compiled program with the step serves both)
+    p = planner.plan(qs, qg)
+    bent = np.asarray(p.bent)
+    assert bent[:5].all() and 0 < bent.sum() < 16
+    full = planner._unpack(np.asarray(planner._bend_batch(np.concatenate([qs, qg], axis=1))))
+    for name in p._fields:
+        np.testing.assert_array_equal(getattr(p, name), getattr(full, name), err_msg=name)
+    for i in (0, 15):
+        assert bool(planner.plan(qs[i], qg[i]).bent) == bool(bent[i])
+    # without the step nothing is flagged, and the flagged plans cost no less with it unless
+    # it made them feasible
+    off = Planner(model, p3, weights=W, positions=False)
+    off.chunk = 16
+    po = off.plan(qs, qg)
+    assert not np.asarray(po.bent).any() and off._bend_batch is None
+    np.testing.assert_array_equal(po.v[~bent], p.v[~bent])
+    assert np.all(np.asarray(p.q_violation)[bent] <= np.asarray(po.q_violation)[bent])
+
+
 def test_planner_of_a_robot_with_lapack_calls_runs_its_chunks_on_one_thread():
     # a robot of a user's own whose dynamics solve with jnp.linalg (LAPACK on a CPU; the
     # built-in robots use jtraj.robots.small_solve), here parallel3 with its minimum-norm
