@@ -28,8 +28,9 @@ Printed and written (``--json``):
   latencies; ``--batch-only`` runs the batch measurement alone);
 * feasibility (each plan re-verified independently, NumPy recursion and Pinocchio's
   RNEA: serial3 by ``jtraj_peers/verify.py``, the panda by ``jtraj_peers/verify_arm.py``
-  on example-robot-data's URDF; bounds within 1e-6 relative, goal within 1e-6; other
-  robots by the planner's own report), the goal error, the raw model's goal error;
+  on example-robot-data's URDF, parallel3 by ``jtraj_peers/verify_parallel3.py``; bounds
+  within 1e-6 relative, goal within 1e-6; other robots by the planner's own report), the
+  goal error, the raw model's goal error;
 * the cost gap ``(plan - optimum) / optimum`` to the exact solve from the cycloidal
   guess, where it converged; the same for the nearest training trajectory (inputs
   scaled as the coverage scales them) put through the same repair (a lookup baseline);
@@ -41,7 +42,7 @@ Printed and written (``--json``):
   the median over ``--batch-rounds`` rounds of the three planners interleaved), the
   process's CPU time per plan (the least of the 5 calls; on a machine shared with other
   jobs a steadier measure of the work than the wall time) and the
-  share of them feasible, with the default repair, with its least-effort candidates too
+  share of them feasible (the default planner's re-verified as above), with the default repair, with its least-effort candidates too
   (``effort=True``) and without the projected prediction (``projection=False``), the
   latter two's held-out plans re-verified and their cost gaps reported;
 * refinement, one compiled solve per pair and variant, compilation excluded (one untimed
@@ -119,7 +120,9 @@ def _verifier(robot, name, weights, tol):
     cost) of an independent re-verification of a plan, or ``(None, None)`` where the robot has
     none. serial3: :mod:`jtraj_peers.verify` (NumPy recursion, Pinocchio's RNEA of its own
     model); the panda: :mod:`jtraj_peers.verify_arm` (the same recursion, Pinocchio's RNEA of
-    example-robot-data's URDF), with jtraj's limits of the robot, its jerk bound included."""
+    example-robot-data's URDF), with jtraj's limits of the robot, its jerk bound included;
+    parallel3: :mod:`jtraj_peers.verify_parallel3` (NumPy leg kinematics, Pinocchio's RNEA of
+    each leg, the legs' singularity margins), with the robot's limits."""
     w = (float(weights.time), float(weights.energy), float(weights.kinetic))
     lim = robot.limits
     if name == "serial3":
@@ -139,6 +142,16 @@ def _verifier(robot, name, weights, tol):
         def run(qs, qg, v, h):
             return verify_arm.verify(model, qs, qg, np.asarray(v), np.asarray(h), **kw)
         label = "jtraj_peers.verify_arm (NumPy + Pinocchio, example-robot-data's URDF)"
+    elif name == "parallel3":
+        from jtraj_peers import verify_parallel3
+
+        kw = {k: np.asarray(getattr(lim, k), float) for k in ("tau_max", "qd_max", "qdd_max", "q_min", "q_max")}
+        kw.update(rho_min=float(robot.rho_min), rho_max=float(robot.rho_max), h_min=float(lim.h_min),
+                  h_max=float(lim.h_max), weights=w, tol=tol)
+
+        def run(qs, qg, v, h):
+            return verify_parallel3.verify(qs, qg, np.asarray(v), np.asarray(h), **kw)
+        label = "jtraj_peers.verify_parallel3 (NumPy leg kinematics + Pinocchio)"
     else:
         return None, None
 
@@ -160,7 +173,7 @@ def _chosen(planner, plans) -> dict:
     return {name: int(c) for name, c in zip(planner.candidates, counts)}
 
 
-def _batch(args, planner, model, robot, weights, dist, seed, out):
+def _batch(args, planner, model, robot, weights, dist, seed, out, verify=None):
     """Batch throughput: ``Planner.plan`` (NumPy in and out, chunked over threads) with the
     default repair, the one with the least-effort candidates too (``effort=True``) and the
     one without the projected prediction (``projection=False``), ``--batch-rounds``
@@ -193,17 +206,25 @@ def _batch(args, planner, model, robot, weights, dist, seed, out):
                                        plans_per_second=float(np.median(rates[label])),
                                        plans_per_second_rounds=rates[label],
                                        cpu_us_per_plan=float(np.median(cpus[label])), feasible=int(bf.sum()),
-                                       ood=int(np.asarray(pbb.ood).sum()), candidates=_chosen(pl, pbb))
+                                       ood=int(np.asarray(pbb.ood).sum()), bent=int(np.asarray(pbb.bent).sum()),
+                                       candidates=_chosen(pl, pbb))
         loads.append(os.getloadavg()[0])
     for label, pl in planners:
         b = out["batch"][label]
         print(f"batch of {args.batch} ({label}, Planner.plan in calls of {pl.chunk} on {pl.threads} threads): "
               f"{b['plans_per_second']:,.0f} plans/s (median of {args.batch_rounds} rounds; "
               f"{min(rates[label]):,.0f} to {max(rates[label]):,.0f}), {b['cpu_us_per_plan']:.2f} CPU us per plan, "
-              f"feasible {b['feasible']}/{args.batch} (own report), flagged out of distribution {b['ood']}; "
+              f"feasible {b['feasible']}/{args.batch} (own report), flagged out of distribution {b['ood']}, "
+              f"bent by the position step {b['bent']}; "
               f"the repair's choices {b['candidates']}", flush=True)
     out["batch"]["load_average_1min"] = os.getloadavg()[0]
     out["batch"]["load_average_1min_rounds"] = loads
+    if verify is not None:  # the default planner's batch, re-verified
+        pb = planner.plan(b0, b1)
+        ok = np.array([verify(b0[i], b1[i], pb.v[i], pb.h[i])["ok"] for i in range(args.batch)])
+        out["batch"]["default"]["verified_feasible"] = int(ok.sum())
+        print(f"batch of {args.batch} (default): re-verified feasible {ok.sum()}/{args.batch}; the planner's own "
+              f"report and the verifier disagree on {int(np.sum(ok != planner.feasible(pb)))}", flush=True)
     return others
 
 
@@ -338,7 +359,7 @@ def main(argv=None):
     print(f"coverage: of {len(w0)} pairs drawn with twice the step range, those with a step beyond the training "
           f"range flagged {ood_w[far].sum()}/{far.sum()}, the others {ood_w[~far].sum()}/{(~far).sum()}")
 
-    others = _batch(args, planner, model, robot, weights, dist, seed, out)
+    others = _batch(args, planner, model, robot, weights, dist, seed, out, verify)
     if verify is not None:  # feasibility of the other plans on the held-out pairs, re-verified
         for label, pl in others.items():
             pf = pl.plan(QS, QG)

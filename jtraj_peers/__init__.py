@@ -9,6 +9,8 @@ imports it). At the repository root, outside the wheel: pytest puts the root on
 * :mod:`.casadi_rnea` -- a CasADi RNEA from a Pinocchio model's numbers (spatial arms).
 * :mod:`.ipopt_arm` -- the decoupled NLP of any arm given as a CasADi function, in IPOPT.
 * :mod:`.verify_arm` -- NumPy + Pinocchio verifier of such an arm's trajectories.
+* :mod:`.verify_parallel3` -- NumPy + Pinocchio verifier of parallel3's trajectories (its
+  legs as 2R arms, the minimum-norm actuator torques, the legs' singularity margins).
 
 Names are imported lazily so that IPOPT workers do not load Pinocchio and vice versa.
 """

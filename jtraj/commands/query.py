@@ -121,7 +121,8 @@ def run(args) -> int:
     print(f"plan: T = {out['T']:.4f} s, cost {out['cost']:.6g}, feasible = {out['feasible']} (worst violation "
           f"{out['violation']:.3g}, goal error {out['goal_error']:.3g} rad"
           + (f", model's own goal error {out['predicted_goal_error']:.3g} rad, time scaling {out['scale']:.4g}, "
-             f"the repair's {out['candidate']} candidate" if out["corrected"] else "") + ")"
+             f"the repair's {out['candidate']} candidate"
+             + (", bent inside the position constraints" if out["bent"] else "") if out["corrected"] else "") + ")"
           + (f"; between the samples: efforts up to {out['effort_between_samples']:.4f} x tau_max"
              if "effort_between_samples" in out else ""))
     if cov["kind"] is None:
