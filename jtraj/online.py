@@ -529,8 +529,9 @@ class Planner:
     def _bend(self, x, values):
         """The packed plans ``values`` of the pairs ``x`` (B, 2n), those flagged ``bent``
         planned again with the position step (calls of ``self.bend_chunk`` pairs, the last
-        one padded): the plans of the single-plan program, which takes the step exactly
-        where it flags them."""
+        one padded): bit for bit the plans of the batch program that takes the step where
+        any candidate crosses a row (under ``vmap`` a select that every plan pays for), as
+        the single-plan program does."""
         if self._bend_batch is None:
             return values
         a, _ = self._unpack.columns["bent"]

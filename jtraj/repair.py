@@ -520,14 +520,14 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
     (:class:`jtraj.online.Planner` runs a batch that way, and only the flagged plans
     again with the step)."""
     lim = robot.limits
+    if positions is None:
+        positions = getattr(robot, "path_constraints", None) is not None
+    if not (positions is True or positions is False or (isinstance(positions, str) and positions == "flag")):
+        raise ValueError(f"make_repair: positions must be None, True, False or 'flag', got {positions!r}")
     if homogeneous is None:
         homogeneous = is_homogeneous(robot)
     if quadratic is None:
         quadratic = not homogeneous and is_quadratic_in_rate(robot)
-    if positions is None:
-        positions = getattr(robot, "path_constraints", None) is not None
-    if positions not in (True, False, "flag"):
-        raise ValueError(f"make_repair: positions must be None, True, False or 'flag', got {positions!r}")
     ID = jax.vmap(robot.inverse_dynamics)
     h_min, h_max = lim.h_min, lim.h_max
     jerk = lim.qddd_max is not None  # (the scaling then keeps the acceleration jumps within their bounds)

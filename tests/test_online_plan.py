@@ -731,6 +731,9 @@ def test_repair_candidates_are_named_and_an_empty_set_refused():
         "trapezoid",)
     with pytest.raises(ValueError, match="no candidates"):
         make_repair(rb, W, effort=False, switch=False, projection=False, uniform_projection=False, trapezoid=False)
+    for bad in (1, "on"):
+        with pytest.raises(ValueError, match="positions must be None, True, False or 'flag'"):
+            make_repair(rb, W, positions=bad)
 
 
 @pytest.mark.slow  # one more repair program
