@@ -485,13 +485,6 @@ def _or_zero(x, dtype):
     return jnp.zeros((), dtype) if x is None else x
 
 
-def q_excess(q, lim):
-    """Largest excess of the positions q (N+1, n) over the joint box, relative to its width
-    (1 where the box is infinite); the (n,) box broadcast to q's shape explicitly (under
-    rank promotion 'raise' too)."""
-    return jnp.maximum(jnp.max(jnp.stack(_box_rows(q, lim.q_min, lim.q_max))), 0.0)
-
-
 def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: bool | None = None,
                 grid: int = GRID, rho: float | None = None, effort: bool = True, switch: bool = True,
                 projection: bool = True, uniform_projection: bool = True, trapezoid: bool | None = None,

@@ -815,7 +815,7 @@ def test_repair_of_a_homogeneous_robot_with_a_joint_box():
     # plan's violation against NumPy's, under the tests' rank promotion 'raise'
     import equinox as eqx
 
-    from jtraj.repair import q_excess, violation
+    from jtraj.repair import position_excess, violation
 
     base = robots.get("serial3")
     assert is_homogeneous(base)
@@ -828,7 +828,7 @@ def test_repair_of_a_homogeneous_robot_with_a_joint_box():
     q = np.asarray(out.q)
     expected = np.max(np.maximum(np.maximum(lo - q, q - hi) / (hi - lo), 0.0))
     assert expected >= 0.1 / 3.4 - 1e-12  # the goal's first joint 0.1 past a box 3.4 wide
-    assert float(q_excess(out.q, rb.limits)) == pytest.approx(expected, rel=1e-13)
+    assert float(position_excess(rb, out.q)) == pytest.approx(expected, rel=1e-13)  # (no workspace box)
     assert float(violation(rb, out.q, out.qd, out.v, out.tau, out.h)) >= expected - 1e-15
 
 
