@@ -17,7 +17,7 @@ Printed and written (``--json``):
 * latency of one jitted plan (the repair and the coverage included; median and p99 over
   ``--repeat`` calls cycling through the pairs): ``Planner._flat``, the program
   ``Planner.plan`` runs (start and goal in one device array, the plan out as one), and
-  ``Planner._plan`` (two device arrays in, the Plan's twenty out); of the Python call
+  ``Planner._plan`` (two device arrays in, the Plan's fields out); of the Python call
   ``Planner.plan`` (input checks, NumPy in and out) and of the model alone. The same
   again in a child process with JAX's asynchronous CPU dispatch off
   (``jax_cpu_enable_async_dispatch=False``, set before JAX's first computation): with it
@@ -69,7 +69,11 @@ import os
 import sys
 import time
 
-import jax
+# the exact solves' optimised programs from their first (untimed) call: with a quick
+# program first (jtraj's default), a variant's first timed solve would compile them
+os.environ.setdefault("JTRAJ_QUICK_FIRST", "0")
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -312,7 +316,7 @@ def main(argv=None):
     out["latency"] = lat
     print(f"latency (us, median / p99; {'synchronous' if args.sync_dispatch else 'asynchronous'} dispatch): plan "
           f"jitted {lat['plan_jitted']['median_us']:.1f} / {lat['plan_jitted']['p99_us']:.1f} (min "
-          f"{lat['plan_jitted']['min_us']:.1f}; with the Plan's twenty outputs "
+          f"{lat['plan_jitted']['min_us']:.1f}; with the Plan's outputs "
           f"{lat['plan_jitted_fields']['median_us']:.1f}); model alone {lat['model_only']['median_us']:.1f}; "
           f"Planner.plan (checks included) {lat['plan_python_call']['median_us']:.1f}; load average "
           f"{lat['load_average_1min']:.1f} on {lat['cpus']} CPUs", flush=True)

@@ -159,7 +159,7 @@ def _packed(core, n: int):
     of the start and goal side by side (``(2n,)``, or ``(B, 2n)`` for a batch) returning
     the plan as one float array, and the host function rebuilding the :class:`Plan` of
     NumPy arrays from it. A jitted call pays for each buffer it takes and returns; a Plan
-    has twenty, which on a CPU cost more than a third of a single plan's time."""
+    has over twenty, which on a CPU cost more than a third of a single plan's time."""
     dtype = jnp.asarray(0.0).dtype
     spec = jax.ShapeDtypeStruct((n,), dtype)
     leaves = jax.tree.leaves(jax.eval_shape(core, spec, spec))
