@@ -430,7 +430,7 @@ def position_step(robot, q0, qd0, q_goal, qd_goal, v, h, steps: int = POSITION_S
     A = terminal_rows(h)
     inner = (jnp.arange(N + 1) > 0) & (jnp.arange(N + 1) < N)
     v_in, outside = v, jnp.any(rows(rollout(q0, qd0, v, h)[0]) > 0)
-    for _ in range(steps):
+    def step(_, v):  # (a loop, not unrolled: a robot's rows and their Jacobians compiled once)
         q = rollout(q0, qd0, v, h)[0]
         r, G = rows(q) + margin, jac(q)  # (N+1, R), (N+1, R, n)
         active = r > 0
@@ -447,8 +447,8 @@ def position_step(robot, q0, qd0, q_goal, qd_goal, v, h, steps: int = POSITION_S
         # dv = X - Y (A Y)^-1 A X for X = H^-1 C^T W d, Y = H^-1 A^T
         XY = _spd_solve(jnp.diag(h) + (C.T * w[None]) @ C, jnp.concatenate([(C.T * w[None]) @ d, A.T], axis=1))
         X, Y = XY[:, :-2], XY[:, -2:]
-        v = v + X - Y @ _inv2(A @ Y) @ (A @ X)
-    return jnp.where(outside, v, v_in)
+        return v + X - Y @ _inv2(A @ Y) @ (A @ X)
+    return jnp.where(outside, jax.lax.fori_loop(0, steps, step, v), v_in)
 
 
 def _spd_solve(A, B):
