@@ -95,6 +95,28 @@ def _tip_path(robot, q):
     return _np(jax.vmap(robot.forward_kinematics)(q))
 
 
+def _path_constraint_region(robot, points: int = 121):
+    """``(x, y, g)``: the largest of the robot's path constraints ``g(q) <= 0`` on a
+    ``points`` x ``points`` grid over its joint box (non-finite values, where the
+    mechanism does not assemble, as violated), for a robot of two coordinates whose tip
+    is its coordinates (the planar parallel robots); None for any other."""
+    import jax
+    import jax.numpy as jnp
+
+    path, lim = getattr(robot, "path_constraints", None), robot.limits
+    if path is None or robot.n != 2 or lim.q_min is None or lim.q_max is None:
+        return None
+    lo, hi = _np(lim.q_min), _np(lim.q_max)
+    if not np.all(np.isfinite(lo) & np.isfinite(hi)):
+        return None
+    x, y = np.meshgrid(np.linspace(lo[0], hi[0], points), np.linspace(lo[1], hi[1], points))
+    q = np.stack([x.ravel(), y.ravel()], axis=1)
+    if not np.allclose(_tip_path(robot, jnp.asarray(q)), q, rtol=0, atol=1e-12):
+        return None
+    g = _np(jax.vmap(lambda p: jnp.max(path(p)))(jnp.asarray(q))).reshape(x.shape)
+    return x, y, np.where(np.isfinite(g), g, 1.0)
+
+
 def _links(robot, q):
     """Polyline of the mechanism at q for drawing, or None when the robot has none."""
     f = getattr(robot, "joint_positions", None)
@@ -211,6 +233,10 @@ def plot_path(problem, solution, ax=None, *, guess: dict | None = None, instants
         lo, hi = _np(ws)
         ax.plot([lo[0], hi[0], hi[0], lo[0], lo[0]], [lo[1], lo[1], hi[1], hi[1], lo[1]], ":", color="0.4",
                 label="workspace")
+    region = _path_constraint_region(robot)
+    if region is not None and np.any(region[2] > 0):  # (parallel3's folded-leg discs, for one)
+        ax.contourf(*region, levels=[0.0, np.inf], colors=["0.85"], zorder=0)
+        ax.fill([], [], color="0.85", label="path constraints violated")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")

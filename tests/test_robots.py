@@ -398,6 +398,30 @@ def test_parallel3_closure_and_inverse_dynamics():
         assert abs(tau @ (Ja @ qd) - Q @ qd) < 1e-10 * np.abs(tau).max()
 
 
+def test_plot_path_shades_where_parallel3s_path_constraints_are_violated():
+    # the tip-path panel of a planar parallel robot shades the region of its joint box
+    # where a path constraint is violated: for parallel3 the discs around the base points
+    # (a leg folded) and the corners (a leg stretched), against NumPy's leg ratios
+    pytest.importorskip("matplotlib")
+    import types
+
+    from jtraj import Problem
+    from jtraj.plotting import _path_constraint_region, plot_path
+
+    robot = robots.get("parallel3")
+    x, y, g = _path_constraint_region(robot)
+    s = np.linalg.norm(np.stack([x, y], axis=-1)[..., None, :] - np.asarray(robot.base), axis=-1) / 1.2
+    outside = np.any((s < robot.rho_min) | (s > robot.rho_max), axis=-1)
+    assert 0.01 < outside.mean() < 0.2
+    np.testing.assert_array_equal(g > 0, outside)
+    assert _path_constraint_region(robots.get("serial3")) is None  # no path constraints
+    q0, q1 = np.array([-0.3, 0.2]), np.array([0.3, -0.3])
+    q = q0 + np.linspace(0, 1, 6)[:, None] * (q1 - q0)
+    sol = types.SimpleNamespace(q=q, qd=np.zeros_like(q), v=np.zeros((5, 2)), tau=np.zeros((5, 3)), h=np.full(5, 0.1))
+    ax = plot_path(Problem(robot, q0, q1, N=5, validate=False), sol).axes[0]
+    assert "path constraints violated" in [t.get_text() for t in ax.get_legend().get_texts()]
+
+
 # ----- wmr ----------------------------------------------------------------------------
 def test_wmr_reduced_equations():
     robot = robots.get("wmr")

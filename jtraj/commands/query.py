@@ -118,9 +118,13 @@ def run(args) -> int:
                         weights=weights, solver=solver, N=getattr(args, "N", None),
                         compare=not getattr(args, "no_compare", False))
     cov = out["coverage"]
+    from jtraj.plotting import coordinate_units
+
+    units = set(coordinate_units(planner.robot))
+    unit = units.pop() if len(units) == 1 else "(rad or m)"
     print(f"plan: T = {out['T']:.4f} s, cost {out['cost']:.6g}, feasible = {out['feasible']} (worst violation "
-          f"{out['violation']:.3g}, goal error {out['goal_error']:.3g} rad"
-          + (f", model's own goal error {out['predicted_goal_error']:.3g} rad, time scaling {out['scale']:.4g}, "
+          f"{out['violation']:.3g}, goal error {out['goal_error']:.3g} {unit}"
+          + (f", model's own goal error {out['predicted_goal_error']:.3g} {unit}, time scaling {out['scale']:.4g}, "
              f"the repair's {out['candidate']} candidate"
              + (", bent inside the position constraints" if out["bent"] else "") if out["corrected"] else "") + ")"
           + (f"; between the samples: efforts up to {out['effort_between_samples']:.4f} x tau_max"
