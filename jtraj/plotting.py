@@ -97,24 +97,32 @@ def _tip_path(robot, q):
 
 def _path_constraint_region(robot, points: int = 121):
     """``(x, y, g)``: the largest of the robot's path constraints ``g(q) <= 0`` on a
-    ``points`` x ``points`` grid over its joint box (non-finite values, where the
-    mechanism does not assemble, as violated), for a robot of two coordinates whose tip
-    is its coordinates (the planar parallel robots); None for any other."""
+    ``points`` x ``points`` grid over its workspace box (else, for two coordinates, its
+    joint box), non-finite values (where the mechanism does not assemble) counted as
+    violated; for a robot whose tip is its first two coordinates and whose constraints
+    do not depend on the others (the planar parallel robots, ``wmr``'s obstacles); None
+    for any other."""
     import jax
     import jax.numpy as jnp
 
-    path, lim = getattr(robot, "path_constraints", None), robot.limits
-    if path is None or robot.n != 2 or lim.q_min is None or lim.q_max is None:
+    path, lim, n = getattr(robot, "path_constraints", None), robot.limits, robot.n
+    box = lim.workspace if lim.workspace is not None else (
+        (lim.q_min, lim.q_max) if n == 2 and lim.q_min is not None and lim.q_max is not None else None)
+    if path is None or box is None:
         return None
-    lo, hi = _np(lim.q_min), _np(lim.q_max)
-    if not np.all(np.isfinite(lo) & np.isfinite(hi)):
+    lo, hi = _np(box[0]), _np(box[1])
+    if lo.shape != (2,) or not np.all(np.isfinite(lo) & np.isfinite(hi)):
         return None
     x, y = np.meshgrid(np.linspace(lo[0], hi[0], points), np.linspace(lo[1], hi[1], points))
-    q = np.stack([x.ravel(), y.ravel()], axis=1)
-    if not np.allclose(_tip_path(robot, jnp.asarray(q)), q, rtol=0, atol=1e-12):
+    xy = np.stack([x.ravel(), y.ravel()], axis=1)
+    q = np.concatenate([xy, np.zeros((xy.shape[0], n - 2))], axis=1)
+    if not np.allclose(_tip_path(robot, jnp.asarray(q)), xy, rtol=0, atol=1e-12):
         return None
-    g = _np(jax.vmap(lambda p: jnp.max(path(p)))(jnp.asarray(q))).reshape(x.shape)
-    return x, y, np.where(np.isfinite(g), g, 1.0)
+    worst = jax.vmap(lambda p: jnp.max(path(p)))
+    g = _np(worst(jnp.asarray(q)))
+    if n > 2 and not np.allclose(_np(worst(jnp.asarray(q + 0.5 * (np.arange(n) >= 2)))), g, equal_nan=True):
+        return None
+    return x, y, np.where(np.isfinite(g), g, 1.0).reshape(x.shape)
 
 
 def _links(robot, q):

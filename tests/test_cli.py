@@ -290,28 +290,46 @@ def test_query_bad_input_exits_2_and_writes_nothing(argv, needle, plan_model, tm
     assert not out.exists()
 
 
-def test_query_outside_the_joint_box_names_the_option(tmp_path):
-    """parallel3 has a joint box (+-0.5 rad): a start outside it is refused as jtraj solve
-    refuses it, and where the numbers fit the box once read as degrees the message says
-    --deg (as it does for any angle beyond 2 pi)."""
-    import jtraj
-    from jtraj.commands.solve import check_joint_values
+def test_joint_values_outside_the_joint_box_name_the_option_and_degrees_only_for_angles(tmp_path):
+    """A start or goal outside the joint box is refused as jtraj solve refuses it, naming
+    the option; where the angles fit the box once read as degrees, or lie beyond 2 pi,
+    the message says --deg. Lengths are not angles: parallel3's coordinates (m) get no
+    such hint, wmr's x and y of 23 m are not 'beyond 2 pi', and --deg converts wmr's
+    heading alone."""
+    import equinox as eqx
 
-    robot = jtraj.robots.get("parallel3")
-    np.testing.assert_array_equal(robot.limits.q_max, [0.5, 0.5])
-    inside = np.array([0.1, -0.2])
+    import jtraj
+    from jtraj.commands.solve import angular, check_joint_values, parse_vector
+
+    base = jtraj.robots.get("serial3")
+    robot = eqx.tree_at(lambda r: (r.limits.q_min, r.limits.q_max), base,
+                        (jnp.full(3, -1.0), jnp.full(3, 1.0)), is_leaf=lambda x: x is None)
+    inside = np.array([0.1, -0.2, 0.3])
     check_joint_values(robot, {"--start": inside, "--goal": inside}, deg=False)  # accepted
-    # numbers that fit the box once read as degrees: the message says --deg
-    with pytest.raises(ValueError, match=r"--goal = \[0.1, 1.0\] is outside the joint limits.*add --deg"):
-        check_joint_values(robot, {"--start": inside, "--goal": [0.1, 1.0]}, deg=False)
-    with pytest.raises(ValueError, match=r"--start = \[5.0, -5.0\] is outside the joint limits.*add --deg"):
-        check_joint_values(robot, {"--start": [5.0, -5.0], "--goal": inside}, deg=False)
+    # angles that fit the box once read as degrees: the message says --deg
+    with pytest.raises(ValueError, match=r"--goal = \[0.1, 5.0, 0.0\] is outside the joint limits.*add --deg"):
+        check_joint_values(robot, {"--start": inside, "--goal": [0.1, 5.0, 0.0]}, deg=False)
     # given with --deg (converted to radians by then): no hint
-    with pytest.raises(ValueError, match=r"--start = \[5.0, -5.0\] is outside the joint limits") as exc:
-        check_joint_values(robot, {"--start": [5.0, -5.0], "--goal": inside}, deg=True)
+    with pytest.raises(ValueError, match=r"--start = \[5.0, -5.0, 0.0\] is outside the joint limits") as exc:
+        check_joint_values(robot, {"--start": [5.0, -5.0, 0.0], "--goal": inside}, deg=True)
     assert "--deg" not in str(exc.value)
-    with pytest.raises(ValueError, match=r"--goal = \[0.0, 30.0\] has an angle beyond 2 pi.*add --deg"):
-        check_joint_values(robot, {"--start": inside, "--goal": [0.0, 30.0]}, deg=False)
+    with pytest.raises(ValueError, match=r"--goal = \[0.0, 30.0, 0.0\] has an angle beyond 2 pi.*add --deg"):
+        check_joint_values(robot, {"--start": inside, "--goal": [0.0, 30.0, 0.0]}, deg=False)
+    # parallel3's coordinates are lengths: refused without a word of degrees
+    p3 = jtraj.robots.get("parallel3")
+    assert not angular(p3).any()
+    for goal in ([0.1, 1.0], [0.0, 30.0]):
+        with pytest.raises(ValueError, match=r"--goal = .* is outside the joint limits") as exc:
+            check_joint_values(p3, {"--start": [0.1, -0.2], "--goal": goal}, deg=False)
+        assert "--deg" not in str(exc.value)
+    # wmr: x and y in metres, the heading in radians
+    wmr = jtraj.robots.get("wmr")
+    np.testing.assert_array_equal(angular(wmr), [False, False, True])
+    check_joint_values(wmr, {"--start-q": [3.0, 3.0, 0.0], "--goal-q": [23.0, 23.0, 0.5]}, deg=False)
+    with pytest.raises(ValueError, match=r"has an angle beyond 2 pi.*add --deg"):
+        check_joint_values(wmr, {"--start-q": [3.0, 3.0, 0.0], "--goal-q": [23.0, 23.0, 30.0]}, deg=False)
+    np.testing.assert_allclose(parse_vector("23,23,30", "--goal-q", 3, deg=True, angles=angular(wmr)),
+                               [23.0, 23.0, np.pi / 6], rtol=1e-15)
 
 
 def test_query_writes_strict_json_and_reads_degrees(plan_model, tmp_path, capsys):

@@ -398,10 +398,11 @@ def test_parallel3_closure_and_inverse_dynamics():
         assert abs(tau @ (Ja @ qd) - Q @ qd) < 1e-10 * np.abs(tau).max()
 
 
-def test_plot_path_shades_where_parallel3s_path_constraints_are_violated():
-    # the tip-path panel of a planar parallel robot shades the region of its joint box
-    # where a path constraint is violated: for parallel3 the discs around the base points
-    # (a leg folded) and the corners (a leg stretched), against NumPy's leg ratios
+def test_plot_path_shades_where_path_constraints_are_violated():
+    # the tip-path panel of a robot whose tip is its first two coordinates shades the
+    # region of its workspace where a path constraint is violated: for parallel3 the discs
+    # around the base points (a leg folded) and the corners (a leg stretched), against
+    # NumPy's leg ratios; for wmr its obstacles
     pytest.importorskip("matplotlib")
     import types
 
@@ -415,6 +416,12 @@ def test_plot_path_shades_where_parallel3s_path_constraints_are_violated():
     assert 0.01 < outside.mean() < 0.2
     np.testing.assert_array_equal(g > 0, outside)
     assert _path_constraint_region(robots.get("serial3")) is None  # no path constraints
+    # wmr: its obstacles, grown by the body's radius, over its workspace
+    wmr = robots.get("wmr")
+    x, y, g = _path_constraint_region(wmr)
+    ob = np.asarray(wmr.obstacles)
+    d = np.linalg.norm(np.stack([x, y], axis=-1)[..., None, :] - ob[:, :2], axis=-1)
+    np.testing.assert_array_equal(g > 0, np.any(d < ob[:, 2] + float(wmr.body_radius), axis=-1))
     q0, q1 = np.array([-0.3, 0.2]), np.array([0.3, -0.3])
     q = q0 + np.linspace(0, 1, 6)[:, None] * (q1 - q0)
     sol = types.SimpleNamespace(q=q, qd=np.zeros_like(q), v=np.zeros((5, 2)), tau=np.zeros((5, 3)), h=np.full(5, 0.1))

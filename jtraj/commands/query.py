@@ -41,7 +41,7 @@ def configure(parser):
     parser.add_argument("--start", required=True, metavar="Q1,Q2,...",
                         help="start joint positions (rad, or deg with --deg), e.g. '0,0.52,0.52'")
     parser.add_argument("--goal", required=True, metavar="Q1,Q2,...", help="goal joint positions")
-    parser.add_argument("--deg", action="store_true", help="--start and --goal are in degrees")
+    parser.add_argument("--deg", action="store_true", help="the angles of --start and --goal are in degrees (lengths stay in m)")
     parser.add_argument("--refine", action="store_true", help="warm-start the exact solver from the plan")
     parser.add_argument("--N", type=int, default=None,
                         help="with --refine: sampling intervals of the refined problem (default the model's N)")
@@ -66,13 +66,13 @@ def configure(parser):
 
 
 def _vector(text, name, robot, deg):
-    from jtraj.commands.solve import parse_vector
+    from jtraj.commands.solve import angular, parse_vector
 
     if not isinstance(text, str):  # a sequence of numbers (a Python caller's args)
         text = ",".join(str(float(x)) for x in text)
     # (spaces separate as well as commas)
     return parse_vector(",".join(text.replace(",", " ").split()), name, robot.n, deg=deg,
-                        joints=getattr(robot, "joint_names", None))
+                        joints=getattr(robot, "joint_names", None), angles=angular(robot))
 
 
 def run(args) -> int:

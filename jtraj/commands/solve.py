@@ -42,7 +42,7 @@ def configure(parser):
     goal = parser.add_mutually_exclusive_group()
     goal.add_argument("--goal-q", metavar="Q1,Q2,...", help="goal configuration (rad, or deg with --deg)")
     goal.add_argument("--goal-xy", metavar="X,Y", help="goal task point [m] (X,Y,Z for spatial arms; inverse kinematics)")
-    parser.add_argument("--deg", action="store_true", help="--start-q / --goal-q are in degrees")
+    parser.add_argument("--deg", action="store_true", help="the angles of --start-q / --goal-q are in degrees (lengths stay in m)")
     parser.add_argument("--N", type=int, default=20, help="number of sampling intervals (default 20)")
     parser.add_argument("--weights", default="time=1,energy=1",
                         help="cost weights, keys time, energy, kinetic, singularity (default 'time=1,energy=1')")
@@ -71,8 +71,21 @@ def configure(parser):
     parser.add_argument("--plot", metavar="PATH", help="write the figures (PNG, PDF, SVG by extension)")
 
 
-def parse_vector(text, name, n=None, *, deg=False, joints=None):
-    """'a,b,c' -> float array, ValueError naming ``name`` on malformed or non-finite input."""
+def angular(robot):
+    """(n,) bool: which coordinates are angles (rad), the others lengths (m)
+    (:func:`jtraj.plotting.coordinate_units`): ``--deg`` converts the angles alone, and
+    only they are checked for values beyond 2 pi (``wmr``'s x and y are metres)."""
+    import numpy as np
+
+    from jtraj.plotting import coordinate_units
+
+    return np.array([u == "rad" for u in coordinate_units(robot)])
+
+
+def parse_vector(text, name, n=None, *, deg=False, joints=None, angles=None):
+    """'a,b,c' -> float array, ValueError naming ``name`` on malformed or non-finite input;
+    with ``deg``, the entries where ``angles`` (a bool mask; default all) is True converted
+    from degrees to radians."""
     import math
 
     import numpy as np
@@ -90,7 +103,7 @@ def parse_vector(text, name, n=None, *, deg=False, joints=None):
         names = f" ({', '.join(joints)})" if joints else ""
         raise ValueError(f"{name} must have {n} values for this robot{names}, got {len(vals)} ({text!r})")
     arr = np.asarray(vals, dtype=float)
-    return np.deg2rad(arr) if deg else arr
+    return np.where(True if angles is None else angles, np.deg2rad(arr), arr) if deg else arr
 
 
 def check_joint_values(robot, values: dict, deg: bool) -> None:
@@ -106,9 +119,10 @@ def check_joint_values(robot, values: dict, deg: bool) -> None:
 
     given = {k: np.asarray(v, float) for k, v in values.items() if v is not None}
     hint = "; if these are degrees, add --deg"
+    rad = angular(robot)
     if not deg:
         for name, q in given.items():
-            if np.max(np.abs(q)) > 2 * np.pi:
+            if np.any(rad) and np.max(np.abs(q[rad])) > 2 * np.pi:
                 raise ValueError(f"{name} = {q.tolist()} has an angle beyond 2 pi: radians are expected{hint}")
     try:
         check_configurations(robot, given)
@@ -116,7 +130,7 @@ def check_joint_values(robot, values: dict, deg: bool) -> None:
         msg = str(exc)
         if not deg:
             try:
-                check_configurations(robot, {k: np.deg2rad(q) for k, q in given.items()})
+                check_configurations(robot, {k: np.where(rad, np.deg2rad(q), q) for k, q in given.items()})
             except ValueError:
                 pass
             else:
@@ -187,8 +201,8 @@ def build_problem(args):
         raise ValueError(f"--via-tol must be a finite number > 0, got {args.via_tol}")
     d = int(np.asarray(robot.forward_kinematics(np.zeros(n))).shape[0])
     joints = getattr(robot, "joint_names", None)
-    q_start = parse_vector(args.start_q, "--start-q", n, deg=args.deg, joints=joints)
-    q_goal = parse_vector(args.goal_q, "--goal-q", n, deg=args.deg, joints=joints)
+    q_start = parse_vector(args.start_q, "--start-q", n, deg=args.deg, joints=joints, angles=angular(robot))
+    q_goal = parse_vector(args.goal_q, "--goal-q", n, deg=args.deg, joints=joints, angles=angular(robot))
     p_start = parse_vector(args.start_xy, "--start-xy", d)
     p_goal = parse_vector(args.goal_xy, "--goal-xy", d)
     vias = [ViaPoint(point=parse_vector(v, "--via", d), tol=args.via_tol) for v in args.via]
