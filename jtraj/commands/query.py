@@ -39,9 +39,11 @@ def configure(parser):
     parser.add_argument("--periods", help="with a nefotc --model: a model file from `jtraj train --mapping nefumop` "
                                           "on the same dataset (closed-loop planning)")
     parser.add_argument("--start", required=True, metavar="Q1,Q2,...",
-                        help="start joint positions (angles in rad, or deg with --deg; lengths in m), e.g. '0,0.52,0.52'")
+                        help="start joint positions (angles in rad, or deg with --deg; lengths in m), "
+                             "e.g. '0,0.52,0.52'")
     parser.add_argument("--goal", required=True, metavar="Q1,Q2,...", help="goal joint positions")
-    parser.add_argument("--deg", action="store_true", help="the angles of --start and --goal are in degrees (lengths stay in m)")
+    parser.add_argument("--deg", action="store_true",
+                        help="the angles of --start and --goal are in degrees (lengths stay in m)")
     parser.add_argument("--refine", action="store_true", help="warm-start the exact solver from the plan")
     parser.add_argument("--N", type=int, default=None,
                         help="with --refine: sampling intervals of the refined problem (default the model's N)")

@@ -37,12 +37,15 @@ def configure(parser):
     add_urdf_arguments(parser, "load a serial arm from a URDF file instead of --robot")
     add_robot_param_argument(parser)
     start = parser.add_mutually_exclusive_group()
-    start.add_argument("--start-q", metavar="Q1,Q2,...", help="start configuration (angles in rad, or deg with --deg; lengths in m)")
+    start.add_argument("--start-q", metavar="Q1,Q2,...",
+                       help="start configuration (angles in rad, or deg with --deg; lengths in m)")
     start.add_argument("--start-xy", metavar="X,Y", help="start task point [m] (X,Y,Z for spatial arms; inverse kinematics)")
     goal = parser.add_mutually_exclusive_group()
-    goal.add_argument("--goal-q", metavar="Q1,Q2,...", help="goal configuration (angles in rad, or deg with --deg; lengths in m)")
+    goal.add_argument("--goal-q", metavar="Q1,Q2,...",
+                      help="goal configuration (angles in rad, or deg with --deg; lengths in m)")
     goal.add_argument("--goal-xy", metavar="X,Y", help="goal task point [m] (X,Y,Z for spatial arms; inverse kinematics)")
-    parser.add_argument("--deg", action="store_true", help="the angles of --start-q / --goal-q are in degrees (lengths stay in m)")
+    parser.add_argument("--deg", action="store_true",
+                        help="the angles of --start-q / --goal-q are in degrees (lengths stay in m)")
     parser.add_argument("--N", type=int, default=20, help="number of sampling intervals (default 20)")
     parser.add_argument("--weights", default="time=1,energy=1",
                         help="cost weights, keys time, energy, kinetic, singularity (default 'time=1,energy=1')")
