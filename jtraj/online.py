@@ -250,7 +250,9 @@ class Planner:
     as a parallel robot's leg-singularity margins). On 4,096 fresh parallel3 pairs of a
     300-pair dataset's law it raises the feasible plans from 96.3 % to 98.5 %; the rest
     need more time than ``N h_max`` allows along the candidates' paths (half of the 16
-    examined are infeasible for the exact solver too).
+    examined are infeasible for the exact solver too). A batch runs the repair without
+    the step first and only the plans it flags (:attr:`Plan.bent`) again with it, in
+    calls of ``bend_chunk`` pairs (:data:`BEND_CHUNK`).
 
     Coverage (``coverage_distance``, ``coverage_box``, ``ood``; :mod:`jtraj.coverage`):
     with the training pairs in the model's metadata (models from
