@@ -352,7 +352,7 @@ class Planner:
         # position step and flags the plans that need it, the second runs those again with
         # it (under vmap the step's branch is a select, which every plan would pay for)
         self._bend_batch = None
-        if correct and (getattr(robot, "path_constraints", None) is not None if positions is None else positions):
+        if core.bends:
             self._bend_batch = self._flat_batch
             self._flat_batch = _packed(self._core("flag"), self.n)[1]
         self.chunk, self.threads, self._pool = CHUNK, THREADS, None
@@ -452,6 +452,7 @@ class Planner:
                         jnp.linalg.norm(q[-1] - qg), jnp.linalg.norm(qd[-1]), pred_err, s, pick, bent, d, box,
                         (d > radius) | (box > BOX_MARGIN))
         self.candidates = () if repair is None else repair.candidates
+        core.bends = repair is not None and repair.positions is True  # (the step runs in core)
         return core
 
     def _inputs(self, q_start, q_goal):

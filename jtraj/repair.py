@@ -382,12 +382,6 @@ def position_rows(robot, q):
     return jnp.concatenate(parts) if parts else None
 
 
-def _has_position_rows(robot) -> bool:
-    """Whether :func:`position_rows` has any row for ``robot``."""
-    lim = robot.limits
-    return lim.q_min is not None or lim.workspace is not None or getattr(robot, "path_constraints", None) is not None
-
-
 def _box_rows(x, lo, hi):
     lo, hi = jnp.broadcast_to(lo, x.shape), jnp.broadcast_to(hi, x.shape)
     width = jnp.where(jnp.isfinite(hi - lo), hi - lo, 1.0)
@@ -397,7 +391,8 @@ def _box_rows(x, lo, hi):
 def position_excess(robot, q):
     """Largest excess of the positions q (N+1, n) over :func:`position_rows` (0 when
     within), or None where the robot has no constraints on positions."""
-    if not _has_position_rows(robot):
+    lim = robot.limits
+    if lim.q_min is None and lim.workspace is None and getattr(robot, "path_constraints", None) is None:
         return None
     return jnp.maximum(jnp.max(jax.vmap(lambda x: position_rows(robot, x))(q)), 0.0)
 
@@ -505,7 +500,8 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
     is poor as well (``repair.candidates`` names the candidates, in the order of
     :attr:`Repaired.candidate`). Without the projected prediction, the prediction's
     accelerations serve only the effort steps (the switching profiles use its periods
-    alone). ``positions`` (default: where the robot has path constraints) runs
+    alone). ``positions`` (default: where the robot has path constraints; the value in
+    effect is ``repair.positions``) runs
     :func:`position_step` on every candidate before its time scaling, where a
     candidate's path leaves the position rows (:attr:`Repaired.bent`);
     ``positions="flag"`` only reports whether it would have run: the repair is then
@@ -795,5 +791,5 @@ def make_repair(robot, weights, *, homogeneous: bool | None = None, quadratic: b
             c = cost_of(robot, weights, q, qd, tau, h)
         return Repaired(v, h, q, qd, tau, c, s, jnp.any(pick & uniform_flags), i, outside)
 
-    repair.candidates = tuple(names)
+    repair.candidates, repair.positions = tuple(names), positions
     return repair

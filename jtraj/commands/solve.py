@@ -204,8 +204,9 @@ def build_problem(args):
         raise ValueError(f"--via-tol must be a finite number > 0, got {args.via_tol}")
     d = int(np.asarray(robot.forward_kinematics(np.zeros(n))).shape[0])
     joints = getattr(robot, "joint_names", None)
-    q_start = parse_vector(args.start_q, "--start-q", n, deg=args.deg, joints=joints, angles=angular(robot))
-    q_goal = parse_vector(args.goal_q, "--goal-q", n, deg=args.deg, joints=joints, angles=angular(robot))
+    rad = angular(robot)
+    q_start = parse_vector(args.start_q, "--start-q", n, deg=args.deg, joints=joints, angles=rad)
+    q_goal = parse_vector(args.goal_q, "--goal-q", n, deg=args.deg, joints=joints, angles=rad)
     p_start = parse_vector(args.start_xy, "--start-xy", d)
     p_goal = parse_vector(args.goal_xy, "--goal-xy", d)
     vias = [ViaPoint(point=parse_vector(v, "--via", d), tol=args.via_tol) for v in args.via]
