@@ -430,6 +430,26 @@ def test_query_refine_exit_code_and_json(plan_model, tmp_path, capsys):
     assert alone["refined_iterations"] == d["refined_iterations"] and alone["refined_h"] == d["refined_h"]
 
 
+def test_robots_lists_every_robot_with_a_one_line_summary_and_shows_units(capsys):
+    """``jtraj robots``: one line per built-in robot with its degrees of freedom and a
+    self-contained summary (its factory docstring's first paragraph); ``jtraj robots
+    NAME`` adds the units of the coordinates and of the efforts."""
+    from jtraj import robots
+
+    assert cli.main(["robots"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    for name in robots.names():
+        text = robots.summary(name)
+        assert 20 < len(text) < 120 and "\n" not in text and "``" not in text and "docstring" not in text, name
+        row = [line for line in lines if line.split()[:1] == [name]]
+        assert len(row) == 1 and f"n = {robots.get(name).n}" in row[0] and row[0].endswith(text), name
+    assert cli.main(["robots", "gough_stewart"]) == 0
+    out = capsys.readouterr().out
+    assert robots.summary("gough_stewart") in out and "coordinates 3 m, 3 rad; efforts 6 N" in out
+    assert cli.main(["robots", "wmr"]) == 0
+    assert "coordinates 2 m, 1 rad; efforts 2 N m" in capsys.readouterr().out
+
+
 def test_robots_shows_a_urdf_arm_and_joint_names(tmp_path, capsys):
     """``jtraj robots --urdf``: the arm ``solve --urdf`` and ``dataset --urdf`` would load,
     with its joint names and limits (the tip link choosing the branch's end); the names

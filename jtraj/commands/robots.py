@@ -23,15 +23,18 @@ def run(args) -> int:
         raise ValueError("--robot-param needs a robot: a name or --urdf PATH")
     robot = urdf_robot(args)
     if robot is None and args.name is None:
+        width = max(map(len, robots.names()))
         for name in robots.names():
-            robot = robots.get(name)
-            print(f"{name}: n = {robot.n}, {type(robot).__name__}")
+            print(f"{name:{width}s}  n = {robots.get(name).n}  {robots.summary(name)}")
+        print("\n`jtraj robots NAME` shows one robot's coordinates, parameters and limits; "
+              "`jtraj robots --urdf PATH` shows your own arm.")
         return 0
     if robot is None:
         if args.name not in robots.names():
             raise ValueError(f"name must be one of {robots.names()} (or give --urdf PATH), got {args.name!r}")
         robot = robots.get(args.name)
-    _show(args.name or robot.name, with_robot_params(robot, args))
+    _show(args.name or robot.name, with_robot_params(robot, args),
+          None if args.name is None else robots.summary(args.name))
     if args.urdf is not None and "qdd_max" not in robot_params(args):
         from jtraj.robots.urdf import DEFAULT_QDD_MAX
 
@@ -40,17 +43,33 @@ def run(args) -> int:
     return 0
 
 
-def _show(name, robot):
+def _show(name, robot, summary=None):
     import numpy as np
 
     from jtraj import robots
 
+    from jtraj.plotting import coordinate_units, effort_units
+
     print(f"{name}: n = {robot.n}, {type(robot).__name__}")
+    if summary:
+        print(f"  {summary}")
     joints = getattr(robot, "joint_names", None)
     if joints:
         print("  joints  ", ", ".join(joints))
+    print(f"  units    coordinates {_runs(coordinate_units(robot))}; efforts {_runs(effort_units(robot))}")
     print("  parameters:", ", ".join(robots.parameter_names(robot)))
     lim = robot.limits
     for f in ("q_min", "q_max", "qd_max", "qdd_max", "tau_max", "h_min", "h_max"):
         val = getattr(lim, f)
         print(f"  {f:8s} {'-' if val is None else np.array2string(np.asarray(val), precision=4)}")
+
+
+def _runs(units):
+    """["rad", "rad", "m"] -> "2 rad, 1 m": the units in order, equal neighbours counted."""
+    out = []
+    for u in units:
+        if out and out[-1][1] == u:
+            out[-1][0] += 1
+        else:
+            out.append([1, u])
+    return ", ".join(f"{k} {u}" for k, u in out)

@@ -48,6 +48,15 @@ def _factory(name: str) -> Callable[[], Robot]:
     return getattr(importlib.import_module(module), attr)
 
 
+def summary(name: str) -> str:
+    """One line on the built-in robot ``name``: the first paragraph of its factory's
+    docstring (``jtraj robots`` lists them)."""
+    import inspect
+
+    doc = inspect.getdoc(_factory(name)) or ""
+    return " ".join(doc.split("\n\n")[0].split())
+
+
 def parameter_names(robot: Robot | str) -> list[str]:
     """Names :func:`with_params` accepts for ``robot`` (a robot or a built-in name): its
     numeric parameters and the fields of its :class:`Limits`."""
@@ -82,4 +91,4 @@ def from_metadata(meta: dict) -> Robot:
 
 __all__ = ["Actuator", "Friction", "Limits", "Robot", "SerialPlanar", "SpatialSerial", "from_metadata", "from_urdf",
            "get", "names", "parameter_names", "serial_planar", "small_det", "small_solve", "spatial_serial",
-           "with_params"]
+           "summary", "with_params"]

@@ -251,7 +251,9 @@ def _layout(radius, angles_deg):
 
 
 def gough_stewart() -> GoughStewart:
-    """The platform with the parameters of the module docstring."""
+    """The Gough-Stewart platform: six prismatic legs, the platform's pose as coordinates (Khoukhi ch. 4).
+
+    The parameters are the module docstring's."""
     base = _layout(1.0, [-15, 15, 105, 135, 225, 255])
     plat = _layout(0.5, [-45, 45, 75, 165, 195, 285])
     m_p, r_p = 50.0, 0.5

@@ -166,7 +166,9 @@ class Parallel3(Robot):
 
 
 def parallel3() -> Parallel3:
-    """Chettibi's 3-leg planar parallel robot with our assumed base layout."""
+    """Chettibi's planar parallel robot with three two-link legs, redundantly actuated (Chettibi 7.2).
+
+    The base layout (an equilateral triangle of circumradius 0.5 m) is assumed."""
     ang = jnp.deg2rad(jnp.array([0.0, 120.0, 240.0]))
     base = 0.5 * jnp.stack([jnp.cos(ang), jnp.sin(ang)], axis=-1)
     lim = Limits.make(2, q_min=(-0.5, -0.5), q_max=(0.5, 0.5), qd_max=1.0, qdd_max=10.0,

@@ -208,7 +208,9 @@ class PKM2(Robot):
 
 
 def pkm2() -> PKM2:
-    """The thesis' PKM with chapter-4 parameters; see the module docstring."""
+    """The thesis' planar translational parallel manipulator on two sliders (Khoukhi ch. 4).
+
+    Chapter 4's parameters; the module docstring describes the model."""
     lim = Limits.make(2, q_min=(-0.8, -1.72), q_max=(0.8, -0.72), qd_max=0.2, qdd_max=2.0,
                       tau_max=(550.0, 700.0), h_min=0.005, h_max=0.7,
                       workspace=[[-0.8, -1.72], [0.8, -0.72]])

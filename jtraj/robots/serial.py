@@ -157,7 +157,7 @@ SERIAL3_LIMITS = dict(tau_max=(40.0, 25.0, 20.0), qd_max=2.0, qdd_max=3.0, h_min
 
 
 def serial3() -> SerialPlanar:
-    """The canonical benchmark arm (Khoukhi, Table 6.1), in a horizontal plane.
+    """The thesis' planar three-link benchmark arm (Khoukhi, Table 6.1) in a horizontal plane.
 
     Lengths (1.0, 0.8, 0.45) m, masses (10, 8, 4) kg, inertias about the centres of
     mass (9.23, 7.5, 5.21) kg m^2, centres of mass at mid-link, no gravity, no friction.
@@ -170,7 +170,7 @@ def serial3() -> SerialPlanar:
 
 
 def serial3_vertical() -> SerialPlanar:
-    """``serial3`` in a vertical plane (g = 9.81 m/s^2) behind gearboxes.
+    """The serial3 arm in a vertical plane (g = 9.81 m/s^2), driven through gearboxes.
 
     Holding the arm stretched horizontally takes about 238 N m at joint 1 and 72 N m
     at joint 2, so the published limits (40, 25, 20) N m cannot be joint torques with
@@ -187,7 +187,7 @@ def serial3_vertical() -> SerialPlanar:
 
 
 def ibm7535() -> SerialPlanar:
-    """A two-link SCARA-like arm standing in for the IBM 7535 B04 (Chettibi 7.1).
+    """A planar two-link SCARA-like arm standing in for the IBM 7535 B04 (Chettibi 7.1).
 
     The IBM 7535's mass and length parameters (Geering et al. 1986) are not in our
     sources and no public copy was found, so these values are *assumed*: horizontal

@@ -477,7 +477,7 @@ def _data_file(*parts) -> Path:
 
 
 def panda(**overrides) -> SpatialSerial:
-    """The Franka Emika Panda (7 DOF) of example-robot-data's ``panda.urdf``.
+    """The Franka Emika Panda (7 DOF), from example-robot-data's panda.urdf.
 
     Tip: the flange frame ``panda_link8`` (0.107 m beyond joint 7's frame). The hand
     (0.73 kg) is mounted and its fingers locked closed: their masses ride on body 7.
@@ -491,7 +491,7 @@ def panda(**overrides) -> SpatialSerial:
 
 
 def ur5(**overrides) -> SpatialSerial:
-    """The Universal Robots UR5 (6 DOF) of example-robot-data's ``ur5_robot.urdf``.
+    """The Universal Robots UR5 (6 DOF), from example-robot-data's ur5_robot.urdf.
 
     Tip: ``tool0``, the tool flange (UR's TCP with no tool). Joint box (+-2 pi, elbow
     +-pi), velocity and torque limits from the URDF; UR publishes no joint acceleration
@@ -502,22 +502,25 @@ def ur5(**overrides) -> SpatialSerial:
 
 
 def ur10(**overrides) -> SpatialSerial:
-    """The Universal Robots UR10 (6 DOF) of example-robot-data's ``ur10_robot.urdf``;
-    tip ``tool0``, limits as :func:`ur5`."""
+    """The Universal Robots UR10 (6 DOF), from example-robot-data's ur10_robot.urdf.
+
+    Tip ``tool0``, limits as :func:`ur5`."""
     return from_urdf(_data_file("ur_description", "urdf", "ur10_robot.urdf"), tip_link="tool0",
                      name="ur10", **overrides)
 
 
 def kinova(**overrides) -> SpatialSerial:
-    """The Kinova Jaco2 j2s6s200 (6 DOF) of example-robot-data's ``kinova.urdf``; tip
-    ``j2s6s200_end_effector``. Joints 1, 4 and 6 are continuous (no joint box); the
+    """The Kinova Jaco2 j2s6s200 (6 DOF), from example-robot-data's kinova.urdf.
+
+    Tip ``j2s6s200_end_effector``. Joints 1, 4 and 6 are continuous (no joint box); the
     URDF's (fixed) fingers ride on body 6. qdd_max = :data:`DEFAULT_QDD_MAX`."""
     return from_urdf(_data_file("kinova_description", "robots", "kinova.urdf"),
                      tip_link="j2s6s200_end_effector", name="kinova", **overrides)
 
 
 def so100(**overrides) -> SpatialSerial:
-    """The SO-100 arm (5 DOF) of example-robot-data's ``so100.urdf``: tip ``gripper``
-    (the wrist-roll body), the jaw locked at 0. qdd_max = :data:`DEFAULT_QDD_MAX`."""
+    """The SO-100 arm (5 DOF), from example-robot-data's so100.urdf.
+
+    Tip ``gripper`` (the wrist-roll body), the jaw locked at 0. qdd_max = :data:`DEFAULT_QDD_MAX`."""
     return from_urdf(_data_file("so_arm_description", "urdf", "so100.urdf"), tip_link="gripper",
                      name="so100", **overrides)

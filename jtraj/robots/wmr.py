@@ -155,7 +155,9 @@ class WMR(Robot):
 
 
 def wmr() -> WMR:
-    """The differential-drive robot with our assumed parameters and obstacles."""
+    """A differential-drive mobile robot among three circular obstacles (Chettibi, example 3).
+
+    Its mass, inertias, wheel geometry and obstacles are assumed."""
     lim = Limits.make(3, qd_max=(2.0, 2.0, 2.0), qdd_max=(0.5, 0.5, 2.5), tau_max=(1.0, 1.0),
                       h_min=0.05, h_max=2.0, workspace=[[0.0, 0.0], [24.0, 24.0]], n_actuators=2)
     obstacles = jnp.array([[8.0, 8.5, 2.0], [14.0, 13.0, 2.0], [18.5, 19.5, 1.5]])
