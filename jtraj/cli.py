@@ -145,6 +145,9 @@ def main(argv=None) -> int:
     except ValueError as exc:  # bad input: one readable line, no traceback
         print(f"jtraj {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except ImportError as exc:  # an optional package missing (example-robot-data, ray): its message says which
+        print(f"jtraj {args.command}: error: {exc}", file=sys.stderr)
+        return 2
     except BrokenPipeError:  # the reader of the output left (``jtraj robots | head``): stop quietly
         if argv is None:  # (Python's own flush of stdout at exit would report it again)
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

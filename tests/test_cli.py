@@ -450,6 +450,24 @@ def test_robots_lists_every_robot_with_a_one_line_summary_and_shows_units(capsys
     assert "coordinates 2 m, 1 rad; efforts 2 N m" in capsys.readouterr().out
 
 
+def test_robots_without_example_robot_data_name_the_extra_to_install(tmp_path, monkeypatch, capsys):
+    """Without the URDF files of example-robot-data (a plain ``pip install jtraj``), the
+    list still shows every robot, marks the URDF arms with the extra to install, and
+    ``jtraj robots panda`` and ``jtraj solve --robot panda`` say so in one line (status
+    2, no traceback)."""
+    monkeypatch.setenv("JTRAJ_ROBOT_DATA", str(tmp_path))
+    assert cli.main(["robots"]) == 0
+    rows = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines() if line[:1].isalpha())
+    assert rows["panda"].startswith("n = ?") and rows["panda"].endswith("Needs: pip install 'jtraj[robots]'")
+    assert rows["serial3"].startswith("n = 3") and "Needs" not in rows["serial3"]
+    for args in (["robots", "panda"], ["solve", "--robot", "panda", "--start-q", "0,0,0,-1,0,1,0",
+                                       "--goal-q", "0.1,0,0,-1,0,1,0"]):
+        assert cli.main(args) == 2, args
+        err = capsys.readouterr().err
+        assert err.startswith(f"jtraj {args[0]}: error: ") and "pip install 'jtraj[robots]'" in err
+        assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
 def test_robots_shows_a_urdf_arm_and_joint_names(tmp_path, capsys):
     """``jtraj robots --urdf``: the arm ``solve --urdf`` and ``dataset --urdf`` would load,
     with its joint names and limits (the tip link choosing the branch's end); the names

@@ -25,7 +25,11 @@ def run(args) -> int:
     if robot is None and args.name is None:
         width = max(map(len, robots.names()))
         for name in robots.names():
-            print(f"{name:{width}s}  n = {robots.get(name).n}  {robots.summary(name)}")
+            try:
+                n, note = f"n = {robots.get(name).n}", ""
+            except ImportError:  # a URDF arm without example-robot-data
+                n, note = "n = ?", " Needs: pip install 'jtraj[robots]'"
+            print(f"{name:{width}s}  {n}  {robots.summary(name)}{note}")
         print("\n`jtraj robots NAME` shows one robot's coordinates, parameters and limits; "
               "`jtraj robots --urdf PATH` shows your own arm.")
         return 0
