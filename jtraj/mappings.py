@@ -337,7 +337,8 @@ def train_mapping(data, mapping: str = "nefotc", *, n_rules: int | None = None, 
     ``report`` (JSON-able) holds ``train_rmse``, ``test_rmse`` (target units, all
     outputs pooled), ``test_rmse_per_output``, ``train_rmse_per_output``, ``n_rules``,
     ``epochs``, ``seconds``, ``linear_test_rmse``, ``knn_test_rmse``,
-    ``ratio_to_linear`` (goal <= 0.5) and the split sizes; with extra inputs also
+    ``ratio_to_linear`` (the test RMSE over the linear baseline's: below 1 the model
+    beats a linear fit) and the split sizes; with extra inputs also
     ``thesis_linear_test_rmse`` and ``ratio_to_thesis_linear``, the linear baseline on
     the thesis' inputs of the mapping (e.g. ``(q, qd)`` for ``nefotc``). Other keyword
     options go to :func:`jtraj.anfis.train` (``clip_outputs`` defaults to True and

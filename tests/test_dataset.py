@@ -735,6 +735,9 @@ def test_urdf_arm_dataset_trains_and_queries_without_its_file(tmp_path, capsys):
     model = tmp_path / "plan.anfis"
     assert cli_main(["train", "--data", str(out), "--mapping", "plan", "--order", "0", "--rules", "2",
                      "--epochs", "2", "--out", str(model), "--no-progress"]) == 0
+    printed = capsys.readouterr().out  # the fit against its baselines; the plan mapping is never mirrored
+    assert "ratio to linear" in printed and "below 1 the model beats a linear fit" in printed
+    assert "mirror" not in printed
     planner = Planner(str(model))
     assert planner.robot.joint_names == arm.joint_names and float(planner.robot.limits.h_max) == float(
         robot.limits.h_max)

@@ -112,10 +112,10 @@ def run(args) -> int:
     print(f"{args.mapping}: {report['n_rules']} rules{members}, {report['epochs']} epochs, {report['seconds']:.1f} s; "
           f"RMSE train {report['train_rmse']:.4g}, test {report['test_rmse']:.4g} "
           f"(linear {report['linear_test_rmse']:.4g}, 5-NN {report['knn_test_rmse']:.4g}; "
-          f"ratio to linear {report['ratio_to_linear']:.3f}, goal <= 0.5)")
+          f"ratio to linear {report['ratio_to_linear']:.3f}: below 1 the model beats a linear fit)")
     if report.get("augment") == "mirror":
         print("training data: each trajectory and its mirror image q -> -q (--augment none: without)")
-    elif report.get("augment_note"):
+    elif report.get("augment_note") and args.mapping in mappings.MIRROR_AUTO_MAPPINGS:  # the others never are
         print(f"no mirror augmentation: {report['augment_note']}")
     if "thesis_linear_test_rmse" in report:
         print(f"inputs {', '.join(report['inputs'])}; linear on the thesis' inputs: test "
