@@ -90,9 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "(decoupled augmented Lagrangian, batched datasets, ANFIS online planner).",
         epilog="Exit status: 0 done (a solve or refinement converged, a dataset complete and intact); 1 done "
                "but not that (not converged, a gradient check failed, a dataset incomplete or with corrupt "
-               "chunks; see each command's --help); 2 bad input (a message names the argument or file). "
-               "Compiled programs are kept in ~/.cache/jtraj/jax ($JTRAJ_CACHE_DIR moves it, JTRAJ_CACHE=0 "
-               "turns it off).")
+               "chunks; see each command's --help); 2 bad input or a missing optional package (a message "
+               "names the argument, file or package). Compiled programs are kept in ~/.cache/jtraj/jax "
+               "($JTRAJ_CACHE_DIR moves it, JTRAJ_CACHE=0 turns it off).")
     parser.add_argument("--version", action="version", version=f"jtraj {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, mod in _available().items():
