@@ -223,6 +223,8 @@ def test_static_inputs_are_refused_when_traced():
         implicit._method(jtraj.transcription.Transcription("decoupled"), "lu")
 
 
+# SolverOptions(method=tracer) makes equinox warn of a static array before jtraj refuses it
+@pytest.mark.filterwarnings("ignore:A JAX array is being set as static:UserWarning")
 def test_static_arguments_refused_before_tracing():
     """Differentiating with respect to the transcription or a string option raises a
     ValueError naming it, before any solver is traced (no compilation here)."""
