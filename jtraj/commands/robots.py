@@ -51,7 +51,6 @@ def _show(name, robot, summary=None):
     import numpy as np
 
     from jtraj import robots
-
     from jtraj.plotting import coordinate_units, effort_units
 
     print(f"{name}: n = {robot.n}, {type(robot).__name__}")
@@ -70,10 +69,6 @@ def _show(name, robot, summary=None):
 
 def _runs(units):
     """["rad", "rad", "m"] -> "2 rad, 1 m": the units in order, equal neighbours counted."""
-    out = []
-    for u in units:
-        if out and out[-1][1] == u:
-            out[-1][0] += 1
-        else:
-            out.append([1, u])
-    return ", ".join(f"{k} {u}" for k, u in out)
+    from itertools import groupby
+
+    return ", ".join(f"{len(list(run))} {unit}" for unit, run in groupby(units))
