@@ -458,8 +458,8 @@ def test_robots_without_example_robot_data_name_the_extra_to_install(tmp_path, m
     monkeypatch.setenv("JTRAJ_ROBOT_DATA", str(tmp_path))
     assert cli.main(["robots"]) == 0
     rows = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines() if line[:1].isalpha())
-    assert rows["panda"].startswith("n = ?") and rows["panda"].endswith("Needs: pip install 'jtraj[robots]'")
-    assert rows["serial3"].startswith("n = 3") and "Needs" not in rows["serial3"]
+    assert rows["panda"].startswith("n = ?") and rows["panda"].endswith("(install the robots extra: pip install 'jtraj[robots]')")
+    assert rows["serial3"].startswith("n = 3") and "install" not in rows["serial3"]
     for args in (["robots", "panda"], ["solve", "--robot", "panda", "--start-q", "0,0,0,-1,0,1,0",
                                        "--goal-q", "0.1,0,0,-1,0,1,0"]):
         assert cli.main(args) == 2, args

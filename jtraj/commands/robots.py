@@ -23,12 +23,14 @@ def run(args) -> int:
         raise ValueError("--robot-param needs a robot: a name or --urdf PATH")
     robot = urdf_robot(args)
     if robot is None and args.name is None:
+        from jtraj.robots.urdf import INSTALL_HINT
+
         width = max(map(len, robots.names()))
         for name in robots.names():
             try:
                 n, note = f"n = {robots.get(name).n}", ""
             except ImportError:  # a URDF arm without example-robot-data
-                n, note = "n = ?", " Needs: pip install 'jtraj[robots]'"
+                n, note = "n = ?", f" ({INSTALL_HINT})"
             print(f"{name:{width}s}  {n}  {robots.summary(name)}{note}")
         print("\n`jtraj robots NAME` shows one robot's coordinates, parameters and limits; "
               "`jtraj robots --urdf PATH` shows your own arm.")
